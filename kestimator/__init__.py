@@ -1,0 +1,8 @@
+"""kestimator: print-time estimates that equal what Klipper's motion planner computes.
+
+The core (this package) uses only the standard library (plus tomli before Python 3.11).
+Klipper's look-ahead is re-implemented from Klipper3d/klipper (GPLv3, Kevin O'Connor and
+contributors); see kestimator/planner.py.
+"""
+
+__version__ = "0.1.0"

@@ -1,0 +1,232 @@
+"""One streaming pass over a G-code file: Klipper's time at every line that matters.
+
+Owns the timeline: reading the file line by line (lines end at LF, as Klipper reads them),
+layer markers, per-feature sums, the `; ESTIMATOR_ADD_TIME` comment, warnings, and the
+`Estimate` result. The file is never held in memory: only the look-ahead queue (bounded by
+Klipper's own flush rule) and the recorded times (one per layer and per sample) are kept.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Callable, Iterable, Iterator
+
+from kestimator.errors import KestimatorError
+from kestimator.gcode import parse_line
+from kestimator.interpreter import CommandError, Interpreter
+from kestimator.limits import Limits
+from kestimator.planner import Move
+from kestimator.toolhead import MoveError, ToolHead
+
+# Comment markers that start a layer.
+LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
+# Comment markers that name the feature (extrusion role) of the moves that follow.
+FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
+ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
+# Feature name for moves before the first feature marker.
+NO_FEATURE = "(none)"
+# At most this many warnings are kept (each names its line); the rest are counted.
+MAX_WARNINGS = 100
+READ_BUFFER_BYTES = 1 << 20
+
+
+@dataclasses.dataclass
+class Estimate:
+    """What Klipper's planner gives for one file."""
+
+    path: str
+    total_s: float
+    layers: list[tuple[int, float]]
+    features: dict[str, float]
+    n_moves: int
+    n_lines: int
+    ignored_commands: dict[str, int]
+    warnings: list[str]
+    warnings_dropped: int
+    # (line, t) pairs: every move on lines before `line` has finished at t seconds.
+    samples: list[tuple[int, float]]
+
+    @property
+    def first_layer_s(self) -> float | None:
+        """Seconds from the first layer marker to the second (None without two layers)."""
+        if len(self.layers) < 2:
+            return None
+        return self.layers[1][1] - self.layers[0][1]
+
+
+def _is_layer_marker(comment_line: str) -> bool:
+    for marker in LAYER_MARKERS:
+        if comment_line.startswith(marker):
+            rest = comment_line[len(marker):]
+            if marker == ";LAYER:":
+                return rest.strip().lstrip("-").isdigit()
+            return not rest.strip()
+    return False
+
+
+def iter_lines(path: str | os.PathLike[str]) -> Iterator[bytes]:
+    """The file's lines as bytes, split at LF only (the LF is kept)."""
+    try:
+        with open(path, "rb", buffering=READ_BUFFER_BYTES) as f:
+            yield from f
+    except IsADirectoryError:
+        raise KestimatorError("is a directory, not a G-code file", path) from None
+    except OSError as exc:
+        raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
+
+
+class Timeline:
+    """Drives the interpreter over lines and records times at the lines asked for."""
+
+    def __init__(self, limits: Limits, path: str = "<input>", homing_time: float = 0.0,
+                 heat_time: float = 0.0, sample_every_s: float | None = None) -> None:
+        self.path = path
+        self.toolhead = ToolHead(limits, on_moves=self._on_moves)
+        self.warnings: list[str] = []
+        self.warnings_dropped = 0
+        self.interp = Interpreter(limits, self.toolhead, self._warn_here,
+                                  homing_time=homing_time, heat_time=heat_time)
+        self.feature_names: list[str] = [NO_FEATURE]
+        self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
+        self.feature_time: list[float] = [0.0]
+        self.interp.tag = 0
+        self.layers: list[tuple[int, float]] = []
+        self.samples: list[tuple[int, float]] = []
+        self.sample_every_s = sample_every_s
+        self._next_sample_t = 0.0
+        self.n_moves = 0
+        self.lineno = 0
+        self._warned_macros: set[str] = set()
+
+    # Callbacks from the toolhead
+    def _on_moves(self, moves: list[Move], start_t: float) -> None:
+        feature_time = self.feature_time
+        for move in moves:
+            feature_time[move.tag] += move.accel_t + move.cruise_t + move.decel_t
+        self.n_moves += len(moves)
+
+    def _warn_here(self, message: str) -> None:
+        self.warn(message, self.lineno)
+
+    def warn(self, message: str, line: int | None = None) -> None:
+        """Keep a warning naming file and line (bounded; the rest are counted)."""
+        if len(self.warnings) >= MAX_WARNINGS:
+            self.warnings_dropped += 1
+            return
+        where = "%s:%d: " % (self.path, line) if line is not None else "%s: " % self.path
+        self.warnings.append(where + message)
+
+    def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
+        index = len(store)
+        store.append((lineno, 0.0))
+
+        def resolve(t: float) -> None:
+            store[index] = (lineno, t)
+        self.toolhead.register_lookahead_callback(resolve)
+
+    # Per line
+    def feed(self, raw: bytes) -> None:
+        """Process one line (bytes, with or without its line ending)."""
+        self.lineno += 1
+        text = raw.decode("utf-8", "replace")
+        stripped = text.strip()
+        if not stripped:
+            return
+        if stripped[0] == ";":
+            self._comment(stripped)
+            return
+        cmd = parse_line(stripped)
+        if not cmd.name:
+            if cmd.comment is not None:
+                self._comment(";" + cmd.comment)
+            return
+        try:
+            self.interp.execute(cmd)
+        except (CommandError, MoveError) as exc:
+            self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno)
+        if self.sample_every_s is not None and self.toolhead.last_move_end_t >= self._next_sample_t:
+            self._next_sample_t = self.toolhead.last_move_end_t + self.sample_every_s
+            self._record(self.samples, self.lineno + 1)
+
+    def _comment(self, text: str) -> None:
+        if _is_layer_marker(text):
+            self._record(self.layers, self.lineno)
+            return
+        for marker in FEATURE_MARKERS:
+            if text.startswith(marker):
+                self._set_feature(text[len(marker):].strip())
+                return
+        body = text.lstrip(";").strip()
+        if body.startswith(ADD_TIME_MARKER):
+            self._add_time(body[len(ADD_TIME_MARKER):].split())
+
+    def _set_feature(self, name: str) -> None:
+        fid = self.feature_ids.get(name)
+        if fid is None:
+            fid = self.feature_ids[name] = len(self.feature_names)
+            self.feature_names.append(name)
+            self.feature_time.append(0.0)
+        self.interp.tag = fid
+
+    def _add_time(self, words: list[str]) -> None:
+        try:
+            seconds = float(words[0])
+        except (IndexError, ValueError):
+            self.warn("ESTIMATOR_ADD_TIME needs a number of seconds", self.lineno)
+            return
+        if not 0.0 <= seconds < float("inf"):
+            self.warn("ESTIMATOR_ADD_TIME needs a finite, non-negative time", self.lineno)
+            return
+        before = self.toolhead.print_time
+        self.toolhead.add_time(seconds)
+        self.feature_time[self.interp.tag] += self.toolhead.print_time - before
+
+    def finish(self) -> Estimate:
+        """Flush the planner and return the estimate."""
+        before = self.toolhead.print_time
+        total = self.toolhead.finish()
+        del before
+        interp = self.interp
+        if interp.moved_e_before_mode:
+            self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
+                      "extrusion mode, which was assumed")
+        for name in sorted(interp.ignored):
+            if not _looks_like_gcode(name) and name not in self._warned_macros:
+                self._warned_macros.add(name)
+                self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
+                          "its effect on time is unknown and counted as 0 s" % name)
+        features = {name: self.feature_time[i] for i, name in enumerate(self.feature_names)
+                    if self.feature_time[i] > 0.0 or name != NO_FEATURE}
+        return Estimate(
+            path=self.path, total_s=total, layers=list(self.layers), features=features,
+            n_moves=self.n_moves, n_lines=self.lineno,
+            ignored_commands=dict(sorted(interp.ignored.items())), warnings=self.warnings,
+            warnings_dropped=self.warnings_dropped, samples=list(self.samples))
+
+
+def _looks_like_gcode(name: str) -> bool:
+    return len(name) >= 2 and name[0] in "GMTD" and name[1].isdigit()
+
+
+def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>",
+                   homing_time: float = 0.0, heat_time: float = 0.0,
+                   sample_every_s: float | None = None,
+                   progress: Callable[[int], None] | None = None) -> Estimate:
+    """Estimate from an iterable of byte lines (split at LF)."""
+    timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
+                        sample_every_s=sample_every_s)
+    feed = timeline.feed
+    for raw in lines:
+        feed(raw)
+    return timeline.finish()
+
+
+def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: float = 0.0,
+                  heat_time: float = 0.0, sample_every_s: float | None = None) -> Estimate:
+    """Estimate a G-code file in one streaming pass."""
+    path_s = os.fspath(path)
+    if os.path.isdir(path_s):
+        raise KestimatorError("is a directory, not a G-code file", path_s)
+    return estimate_lines(iter_lines(path_s), limits, path_s, homing_time=homing_time,
+                          heat_time=heat_time, sample_every_s=sample_every_s)

@@ -1,0 +1,88 @@
+"""One G-code line to one command, exactly as Klipper's `klippy/gcode.py` splits it.
+
+No state lives here. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
+the line, cuts it at the first ';', upper-cases it and splits it on runs of letters: the
+command is the first letter group with its number (`G1`, `M104`, `SET_VELOCITY_LIMIT`) and
+every later letter group is a parameter whose value is the text up to the next letter.
+Extended commands (names that are not a letter and a number) take `KEY=value` pairs as
+`shlex` splits them. A line number `N123` before the command is skipped.
+"""
+
+from __future__ import annotations
+
+import re
+import shlex
+from typing import NamedTuple
+
+_ARGS_RE = re.compile(r"([A-Z_]+|[A-Z*])")
+
+
+class Command(NamedTuple):
+    """A parsed line: upper-case name, letter parameters, code text and comment.
+
+    `params` holds letter parameters of traditional commands only; an extended command's
+    `KEY=value` pairs are parsed on demand by `extended_params(code)`, because Klipper
+    only parses them for commands it knows (a malformed unknown command is no error).
+    """
+
+    name: str
+    params: dict[str, str]
+    code: str
+    comment: str | None
+
+
+def split_comment(line: str) -> tuple[str, str | None]:
+    """The code part (stripped) and the comment after the first ';' (None if none)."""
+    line = line.strip()
+    cpos = line.find(";")
+    if cpos < 0:
+        return line, None
+    return line[:cpos], line[cpos + 1:]
+
+
+def is_traditional(name: str) -> bool:
+    """True for `G1`-style names (a letter then a number), which take letter parameters."""
+    if len(name) < 2 or not name[0].isalpha():
+        return False
+    try:
+        float(name[1:].split()[0])
+    except ValueError:
+        return False
+    return True
+
+
+def parse_line(line: str) -> Command:
+    """Split one line (without its line ending) into a Command; empty name for no command."""
+    code, comment = split_comment(line)
+    parts = _ARGS_RE.split(code.upper())
+    if "".join(parts[:2]) == "N":
+        # Skip line number at start of command
+        name = "".join(parts[3:5]).strip()
+        first = 5
+    else:
+        name = "".join(parts[:3]).strip()
+        first = 3
+    if name and not is_traditional(name):
+        return Command(name.split()[0], {}, code, comment)
+    params = {parts[i]: parts[i + 1].strip() for i in range(first, len(parts), 2)}
+    return Command(name, params, code, comment)
+
+
+def extended_params(code: str) -> dict[str, str]:
+    """`NAME KEY=value KEY2="quoted value"` parameters, keys upper-cased (Klipper's rules).
+
+    Raises ValueError for text Klipper calls a malformed command.
+    """
+    stripped = code.strip()
+    space = stripped.find(" ")
+    raw = "" if space < 0 else stripped[space + 1:]
+    lexer = shlex.shlex(raw, posix=True)
+    lexer.whitespace_split = True
+    lexer.commenters = "#;"
+    params: dict[str, str] = {}
+    for arg in lexer:
+        key, sep, value = arg.partition("=")
+        if not sep:
+            raise ValueError("Malformed command '%s'" % stripped)
+        params[key.upper()] = value
+    return params

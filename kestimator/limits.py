@@ -1,0 +1,115 @@
+"""The one value that describes what a Klipper printer allows: `Limits`.
+
+This module owns Klipper's own defaults for every motion setting we model and the values
+derived from them (junction deviation, the minimum_cruise_ratio pseudo-acceleration).
+Sources of limits (printer.cfg, slicer settings, the command line) build a `Limits` through
+`Limits.from_values`, so a default lives in exactly one place: here.
+
+Defaults follow mainline Klipper at commit 84104bbbd: klippy/toolhead.py ([printer]),
+klippy/kinematics/extruder.py ([extruder]), klippy/extras/gcode_arcs.py and
+klippy/extras/firmware_retraction.py.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+# What `SET_VELOCITY_LIMIT ACCEL_TO_DECEL` (and [printer] max_accel_to_decel) means depends
+# on the Klipper generation the printer runs.
+KLIPPER_GENERATIONS = ("mainline", "mcr", "absolute")
+
+# Values [printer] requires in Klipper but that a user without a printer.cfg may not give;
+# these stand in for them and are reported as guesses.
+FALLBACK_MAX_VELOCITY_V = 300.0
+FALLBACK_MAX_ACCEL = 3000.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Limits:
+    """Resolved motion settings, in Klipper's units (mm, mm/s, mm/s^2, s)."""
+
+    kinematics: str = "cartesian"
+    max_velocity: float = FALLBACK_MAX_VELOCITY_V
+    max_accel: float = FALLBACK_MAX_ACCEL
+    minimum_cruise_ratio: float = 0.5
+    square_corner_velocity: float = 5.0
+    max_z_velocity: float = FALLBACK_MAX_VELOCITY_V
+    max_z_accel: float = FALLBACK_MAX_ACCEL
+    # [extruder]
+    nozzle_diameter: float = 0.4
+    filament_diameter: float = 1.75
+    max_extrude_cross_section: float = 4.0 * 0.4**2
+    max_extrude_only_velocity: float = 0.0  # 0 means "derive as Klipper does"
+    max_extrude_only_accel: float = 0.0
+    max_extrude_only_distance: float = 50.0
+    instantaneous_corner_velocity: float = 1.0
+    # [gcode_arcs]
+    arcs_enabled: bool = False
+    arc_resolution: float = 1.0
+    # [firmware_retraction]
+    firmware_retraction_enabled: bool = False
+    retract_length: float = 0.0
+    retract_speed: float = 20.0
+    unretract_extra_length: float = 0.0
+    unretract_speed: float = 10.0
+    # Which meaning ACCEL_TO_DECEL has (see KLIPPER_GENERATIONS).
+    klipper_generation: str = "mainline"
+    # Only read by the "absolute" and "mcr" generations; 0 means "not set".
+    max_accel_to_decel: float = 0.0
+
+    @property
+    def filament_area(self) -> float:
+        """Cross-section of the filament in mm^2."""
+        return math.pi * (self.filament_diameter * 0.5) ** 2
+
+    @property
+    def max_extrude_ratio(self) -> float:
+        """Largest allowed E mm per XY mm (max_extrude_cross_section / filament area)."""
+        return self.max_extrude_cross_section / self.filament_area
+
+    @classmethod
+    def field_names(cls) -> tuple[str, ...]:
+        """Every settable key, in declaration order."""
+        return tuple(f.name for f in dataclasses.fields(cls))
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> "Limits":
+        """Build Limits from explicit values, filling every absent key as Klipper does.
+
+        Derived defaults: max_z_velocity/max_z_accel default to max_velocity/max_accel;
+        max_extrude_cross_section to 4 * nozzle_diameter^2; max_extrude_only_velocity and
+        max_extrude_only_accel to max_velocity/max_accel times the default extrude ratio.
+        """
+        unknown = set(values) - set(cls.field_names())
+        if unknown:
+            raise KeyError("unknown limit(s): " + ", ".join(sorted(unknown)))
+        v = dict(values)
+        v.setdefault("max_velocity", FALLBACK_MAX_VELOCITY_V)
+        v.setdefault("max_accel", FALLBACK_MAX_ACCEL)
+        v.setdefault("max_z_velocity", v["max_velocity"])
+        v.setdefault("max_z_accel", v["max_accel"])
+        nozzle_d = float(v.get("nozzle_diameter", cls.nozzle_diameter))
+        filament_d = float(v.get("filament_diameter", cls.filament_diameter))
+        def_cross_section = 4.0 * nozzle_d**2
+        def_extrude_ratio = def_cross_section / (math.pi * (filament_d * 0.5) ** 2)
+        v.setdefault("max_extrude_cross_section", def_cross_section)
+        if not v.get("max_extrude_only_velocity"):
+            v["max_extrude_only_velocity"] = float(v["max_velocity"]) * def_extrude_ratio
+        if not v.get("max_extrude_only_accel"):
+            v["max_extrude_only_accel"] = float(v["max_accel"]) * def_extrude_ratio
+        if v.get("klipper_generation", "mainline") not in KLIPPER_GENERATIONS:
+            raise ValueError(
+                "klipper_generation must be one of " + ", ".join(KLIPPER_GENERATIONS))
+        return cls(**v)
+
+    def replace(self, **changes: Any) -> "Limits":
+        """A copy with some values changed (no re-derivation of defaults)."""
+        return dataclasses.replace(self, **changes)
+
+
+def default_limits() -> Limits:
+    """Klipper's defaults with the stand-in velocity and acceleration."""
+    return Limits.from_values({})

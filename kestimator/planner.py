@@ -1,0 +1,247 @@
+"""Klipper's look-ahead: one requested move (`Move`) and the queue that plans them.
+
+Re-implemented from mainline Klipper, `klippy/toolhead.py` at commit 84104bbbd
+(Copyright (C) 2016-2025 Kevin O'Connor, GNU GPLv3), the `Move` and `LookAheadQueue`
+classes, with the extruder's junction limit from `klippy/kinematics/extruder.py`.
+Names follow upstream so the two can be read side by side; the arithmetic is done in the
+same order as upstream so results agree to the last bit where possible.
+
+The planner does no I/O and knows no G-code. Positions are (x, y, z, e) in mm.
+
+Unit suffixes (Klipper's legend): _d is distance (mm), _v is velocity (mm/s), _v2 is
+velocity squared (mm^2/s^2), _t is time (s), _r is a ratio.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+# Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
+EXTRUDE_ONLY_ACCEL = 99999999.9
+# No limit yet on the next junction.
+UNLIMITED_JUNCTION_V2 = 999999999.9
+# A move shorter than this in XYZ is an extrude-only move.
+MIN_KINEMATIC_MOVE_D = 0.000000001
+# Seconds of queued moves after which the queue tries a lazy flush.
+LOOKAHEAD_FLUSH_TIME = 0.150
+
+_sqrt = math.sqrt
+
+
+class Move:
+    """One straight-line move and, once planned, its trapezoidal velocity profile."""
+
+    __slots__ = (
+        "start_pos", "end_pos", "accel", "junction_deviation", "is_kinematic_move",
+        "axes_d", "move_d", "axes_r", "min_move_t", "max_start_v2", "max_cruise_v2",
+        "delta_v2", "next_junction_v2", "max_mcr_start_v2", "mcr_delta_v2",
+        "start_v", "cruise_v", "end_v", "accel_t", "cruise_t", "decel_t",
+        "instant_corner_v", "tag", "timing_callbacks",
+    )
+
+    def __init__(self, start_pos: tuple[float, float, float, float],
+                 end_pos: tuple[float, float, float, float], speed: float,
+                 max_velocity: float, max_accel: float, junction_deviation: float,
+                 mcr_pseudo_accel: float, instant_corner_v: float, tag: Any = None) -> None:
+        self.start_pos = start_pos
+        self.end_pos = end_pos
+        self.accel = max_accel
+        self.junction_deviation = junction_deviation
+        self.instant_corner_v = instant_corner_v
+        self.tag = tag
+        self.timing_callbacks: list[Any] | None = None
+        velocity = min(speed, max_velocity)
+        self.is_kinematic_move = True
+        dx = end_pos[0] - start_pos[0]
+        dy = end_pos[1] - start_pos[1]
+        dz = end_pos[2] - start_pos[2]
+        de = end_pos[3] - start_pos[3]
+        move_d = _sqrt(dx * dx + dy * dy + dz * dz)
+        if move_d < MIN_KINEMATIC_MOVE_D:
+            # Extrude only move
+            self.end_pos = (start_pos[0], start_pos[1], start_pos[2], end_pos[3])
+            dx = dy = dz = 0.0
+            move_d = abs(de)
+            inv_move_d = 0.0
+            if move_d:
+                inv_move_d = 1.0 / move_d
+            self.accel = EXTRUDE_ONLY_ACCEL
+            velocity = speed
+            self.is_kinematic_move = False
+        else:
+            inv_move_d = 1.0 / move_d
+        self.move_d = move_d
+        self.axes_d = (dx, dy, dz, de)
+        self.axes_r = (dx * inv_move_d, dy * inv_move_d, dz * inv_move_d, de * inv_move_d)
+        self.min_move_t = move_d / velocity if move_d else 0.0
+        # Junction speeds are tracked in velocity squared.  The delta_v2 is the maximum
+        # amount of this squared-velocity that can change in this move.
+        self.max_start_v2 = 0.0
+        self.max_cruise_v2 = velocity**2
+        self.delta_v2 = 2.0 * move_d * self.accel
+        self.next_junction_v2 = UNLIMITED_JUNCTION_V2
+        # Setup for minimum_cruise_ratio checks
+        self.max_mcr_start_v2 = 0.0
+        self.mcr_delta_v2 = 2.0 * move_d * mcr_pseudo_accel
+
+    def limit_speed(self, speed: float, accel: float) -> None:
+        """Lower the cruise speed and acceleration (kinematic or extruder limits)."""
+        speed2 = speed**2
+        if speed2 < self.max_cruise_v2:
+            self.max_cruise_v2 = speed2
+            self.min_move_t = self.move_d / speed
+        self.accel = min(self.accel, accel)
+        self.delta_v2 = 2.0 * self.move_d * self.accel
+        self.mcr_delta_v2 = min(self.mcr_delta_v2, self.delta_v2)
+
+    def limit_next_junction_speed(self, speed: float) -> None:
+        """Cap the speed at the junction after this move."""
+        self.next_junction_v2 = min(self.next_junction_v2, speed**2)
+
+    def calc_junction(self, prev_move: "Move") -> None:
+        """Maximum start speed from the corner with `prev_move` (junction deviation)."""
+        if not self.is_kinematic_move or not prev_move.is_kinematic_move:
+            return
+        # The extruder is an extra axis: it limits the junction by its change of E/mm.
+        diff_r = self.axes_r[3] - prev_move.axes_r[3]
+        if diff_r:
+            ea_v2 = (self.instant_corner_v / abs(diff_r)) ** 2
+        else:
+            ea_v2 = self.max_cruise_v2
+        max_start_v2 = min(self.max_cruise_v2, prev_move.max_cruise_v2,
+                           prev_move.next_junction_v2,
+                           prev_move.max_start_v2 + prev_move.delta_v2, ea_v2)
+        # Find max velocity using "approximated centripetal velocity"
+        axes_r = self.axes_r
+        prev_axes_r = prev_move.axes_r
+        junction_cos_theta = -(axes_r[0] * prev_axes_r[0]
+                               + axes_r[1] * prev_axes_r[1]
+                               + axes_r[2] * prev_axes_r[2])
+        sin_theta_d2 = _sqrt(max(0.5 * (1.0 - junction_cos_theta), 0.0))
+        cos_theta_d2 = _sqrt(max(0.5 * (1.0 + junction_cos_theta), 0.0))
+        one_minus_sin_theta_d2 = 1.0 - sin_theta_d2
+        if one_minus_sin_theta_d2 > 0.0 and cos_theta_d2 > 0.0:
+            R_jd = sin_theta_d2 / one_minus_sin_theta_d2
+            move_jd_v2 = R_jd * self.junction_deviation * self.accel
+            pmove_jd_v2 = R_jd * prev_move.junction_deviation * prev_move.accel
+            # Approximated circle must contact moves no further than mid-move
+            quarter_tan_theta_d2 = 0.25 * sin_theta_d2 / cos_theta_d2
+            move_centripetal_v2 = self.delta_v2 * quarter_tan_theta_d2
+            pmove_centripetal_v2 = prev_move.delta_v2 * quarter_tan_theta_d2
+            max_start_v2 = min(max_start_v2, move_jd_v2, pmove_jd_v2,
+                               move_centripetal_v2, pmove_centripetal_v2)
+        # Apply limits
+        self.max_start_v2 = max_start_v2
+        self.max_mcr_start_v2 = min(
+            max_start_v2, prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2)
+
+    def set_junction(self, start_v2: float, cruise_v2: float, end_v2: float) -> None:
+        """Fix the velocity profile: accelerate, cruise, decelerate."""
+        half_inv_accel = 0.5 / self.accel
+        accel_d = (cruise_v2 - start_v2) * half_inv_accel
+        decel_d = (cruise_v2 - end_v2) * half_inv_accel
+        cruise_d = self.move_d - accel_d - decel_d
+        self.start_v = start_v = _sqrt(start_v2)
+        self.cruise_v = cruise_v = _sqrt(cruise_v2)
+        self.end_v = end_v = _sqrt(end_v2)
+        # Time is the distance divided by the average velocity.
+        self.accel_t = accel_d / ((start_v + cruise_v) * 0.5)
+        self.cruise_t = cruise_d / cruise_v
+        self.decel_t = decel_d / ((end_v + cruise_v) * 0.5)
+
+    @property
+    def move_t(self) -> float:
+        """Planned duration of the move in seconds (after set_junction)."""
+        return self.accel_t + self.cruise_t + self.decel_t
+
+
+class LookAheadQueue:
+    """Pending moves, planned when enough are queued or when motion must stop."""
+
+    __slots__ = ("queue", "junction_flush")
+
+    def __init__(self) -> None:
+        self.queue: list[Move] = []
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME
+
+    def reset(self) -> None:
+        """Drop every pending move."""
+        del self.queue[:]
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME
+
+    def set_flush_time(self, flush_time: float) -> None:
+        """Seconds of queued moves before the next lazy flush."""
+        self.junction_flush = flush_time
+
+    def is_empty(self) -> bool:
+        """True when no move is pending."""
+        return not self.queue
+
+    def get_last(self) -> Move | None:
+        """The most recently queued move, if any."""
+        if self.queue:
+            return self.queue[-1]
+        return None
+
+    def flush(self, lazy: bool = False) -> list[Move]:
+        """Plan and remove the moves whose profile is final (all of them unless lazy)."""
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME
+        update_flush_count = lazy
+        queue = self.queue
+        flush_count = len(queue)
+        # Traverse queue from last to first move and determine maximum junction speed
+        # assuming the robot comes to a complete stop after the last move.
+        junction_info: list[Any] = [None] * flush_count
+        next_start_v2 = next_mcr_start_v2 = peak_cruise_v2 = 0.0
+        pending_cv2_assign = 0
+        for i in range(flush_count - 1, -1, -1):
+            move = queue[i]
+            reachable_start_v2 = next_start_v2 + move.delta_v2
+            start_v2 = min(move.max_start_v2, reachable_start_v2)
+            cruise_v2 = None
+            pending_cv2_assign += 1
+            reach_mcr_start_v2 = next_mcr_start_v2 + move.mcr_delta_v2
+            mcr_start_v2 = min(move.max_mcr_start_v2, reach_mcr_start_v2)
+            if mcr_start_v2 < reach_mcr_start_v2:
+                # It's possible for this move to accelerate
+                if (mcr_start_v2 + move.mcr_delta_v2 > next_mcr_start_v2
+                        or pending_cv2_assign > 1):
+                    # This move can both accel and decel, or this is a full accel
+                    # move followed by a full decel move
+                    if update_flush_count and peak_cruise_v2:
+                        flush_count = i + pending_cv2_assign
+                        update_flush_count = False
+                    peak_cruise_v2 = (mcr_start_v2 + reach_mcr_start_v2) * 0.5
+                cruise_v2 = min((start_v2 + reachable_start_v2) * 0.5,
+                                move.max_cruise_v2, peak_cruise_v2)
+                pending_cv2_assign = 0
+            junction_info[i] = (move, start_v2, cruise_v2, next_start_v2)
+            next_start_v2 = start_v2
+            next_mcr_start_v2 = mcr_start_v2
+        if update_flush_count or not flush_count:
+            return []
+        # Traverse queue in forward direction to propagate cruise_v2
+        prev_cruise_v2 = 0.0
+        for i in range(flush_count):
+            move, start_v2, cruise_v2, next_start_v2 = junction_info[i]
+            if cruise_v2 is None:
+                # This move can't accelerate - propagate cruise_v2 from previous
+                cruise_v2 = min(prev_cruise_v2, start_v2)
+            move.set_junction(min(start_v2, cruise_v2), cruise_v2,
+                              min(next_start_v2, cruise_v2))
+            prev_cruise_v2 = cruise_v2
+        # Remove processed moves from the queue
+        res = queue[:flush_count]
+        del queue[:flush_count]
+        return res
+
+    def add_move(self, move: Move) -> bool:
+        """Queue a move; True when enough time is queued for a lazy flush."""
+        self.queue.append(move)
+        if len(self.queue) == 1:
+            return False
+        move.calc_junction(self.queue[-2])
+        self.junction_flush -= move.min_move_t
+        # Check if enough moves have been queued to reach the target flush time.
+        return self.junction_flush <= 0.0
