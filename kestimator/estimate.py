@@ -9,6 +9,7 @@ Klipper's own flush rule) and the recorded times (one per layer and per sample) 
 from __future__ import annotations
 
 import dataclasses
+import io
 import os
 from collections.abc import Callable, Iterable, Iterator
 
@@ -230,3 +231,8 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
         raise KestimatorError("is a directory, not a G-code file", path_s)
     return estimate_lines(iter_lines(path_s), limits, path_s, homing_time=homing_time,
                           heat_time=heat_time, sample_every_s=sample_every_s)
+
+
+def estimate_text(text: str, limits: Limits, **options: float) -> Estimate:
+    """Estimate G-code given as a string (for tests and embedding)."""
+    return estimate_lines(io.BytesIO(text.encode("utf-8")), limits, "<text>", **options)

@@ -40,6 +40,8 @@ TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
 
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 _AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
+# Parameters a G0/G1 may carry (G is the command letter itself).
+_MOVE_PARAMS = frozenset("XYZEFG")
 
 WarnFn = Callable[[str], None]
 
@@ -194,6 +196,9 @@ class Interpreter:
             if not gcode_speed > 0.0 or math.isinf(gcode_speed):
                 raise CommandError("Invalid speed in '%s'" % cmd.code)
             self.speed = gcode_speed * self.speed_factor
+        for key in params:
+            if key not in _MOVE_PARAMS:
+                self.warn("Klipper ignores parameter %s in '%s'" % (key, cmd.code.strip()))
         self._move(self.speed)
 
     def _move(self, speed: float) -> None:

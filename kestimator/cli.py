@@ -1,0 +1,185 @@
+"""The `kestimator` command: a thin layer over the library API.
+
+Owns argument parsing, output formatting (JSON and text) and exit codes. It computes
+nothing itself: estimates come from `kestimator.estimate`, limits from
+`kestimator.config`, slicer facts from `kestimator.slicers`.
+
+Exit codes: 0 success; 1 the input could not be processed (the message names file and
+line); 2 the command line was wrong.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import traceback
+from collections.abc import Sequence
+from typing import Any
+
+from kestimator import __version__
+from kestimator.config.printer_cfg import limits_from_printer_cfg
+from kestimator.errors import KestimatorError
+from kestimator.estimate import Estimate, estimate_file
+from kestimator.limits import Limits
+from kestimator.slicers import SlicerInfo, detect_file
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+JSON_SCHEMA_VERSION = 1
+
+EPILOG = """examples:
+  kestimator estimate print.gcode --printer-cfg ~/printer_data/config/printer.cfg
+  kestimator estimate print.gcode --json > times.json
+"""
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kestimator",
+        description="Print-time estimates equal to what Klipper's motion planner computes.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version="kestimator " + __version__)
+    parser.add_argument("--debug", action="store_true",
+                        help="show a traceback when something fails")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    est = sub.add_parser(
+        "estimate", help="print Klipper's time for a G-code file",
+        description="Replay a G-code file through Klipper's planner and print the time.",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    est.add_argument("file", help="the G-code file")
+    _add_limit_options(est)
+    est.add_argument("--json", action="store_true", help="print one JSON object")
+    est.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    return parser
+
+
+def _add_limit_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--printer-cfg", metavar="CFG",
+                        help="your Klipper printer.cfg (includes and SAVE_CONFIG are read)")
+    parser.add_argument("--homing-time", type=float, default=0.0, metavar="S",
+                        help="seconds each G28 takes on your printer (default 0)")
+    parser.add_argument("--heat-time", type=float, default=0.0, metavar="S",
+                        help="seconds each heater wait (M109/M190/TEMPERATURE_WAIT) takes "
+                             "(default 0)")
+
+
+def resolve_limits(printer_cfg: str | None) -> tuple[Limits, str, list[str]]:
+    """Limits for a run, a one-line description of their source, and warnings."""
+    if printer_cfg:
+        limits, _sources = limits_from_printer_cfg(printer_cfg)
+        return limits, os.fspath(printer_cfg), []
+    limits = Limits.from_values({"arcs_enabled": True, "firmware_retraction_enabled": True})
+    return limits, "defaults", [
+        "no printer.cfg given: max_velocity %g, max_accel %g and Klipper's other defaults "
+        "were assumed (pass --printer-cfg for exact times)"
+        % (limits.max_velocity, limits.max_accel)]
+
+
+def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
+                     extra_warnings: list[str]) -> dict[str, Any]:
+    """The documented `--json` object (schema version JSON_SCHEMA_VERSION)."""
+    return {
+        "schema": JSON_SCHEMA_VERSION,
+        "kestimator": __version__,
+        "file": est.path,
+        "total_s": round(est.total_s, 6),
+        "first_layer_s": None if est.first_layer_s is None else round(est.first_layer_s, 6),
+        "layer_count": len(est.layers),
+        "layers": [{"line": line, "t": round(t, 6)} for line, t in est.layers],
+        "features": {name: round(t, 6) for name, t in est.features.items()},
+        "slicer": {"name": slicer.name, "version": slicer.version,
+                   "estimate_s": slicer.estimate_s},
+        "limits_source": limits_source,
+        "n_moves": est.n_moves,
+        "n_lines": est.n_lines,
+        "ignored_commands": est.ignored_commands,
+        "warnings": extra_warnings + est.warnings,
+        "warnings_dropped": est.warnings_dropped,
+    }
+
+
+def format_duration(seconds: float) -> str:
+    """1h 02m 03s style, for people."""
+    s = int(round(seconds))
+    h, rem = divmod(s, 3600)
+    m, sec = divmod(rem, 60)
+    if h:
+        return "%dh %02dm %02ds" % (h, m, sec)
+    if m:
+        return "%dm %02ds" % (m, sec)
+    return "%ds" % sec
+
+
+def _print_text(doc: dict[str, Any], out: Any) -> None:
+    total = doc["total_s"]
+    lines = ["%s" % doc["file"],
+             "  Klipper time : %s (%.3f s)" % (format_duration(total), total)]
+    slicer = doc["slicer"]
+    name = slicer["name"] + (" " + slicer["version"] if slicer["version"] else "")
+    if slicer["estimate_s"] is not None:
+        diff = slicer["estimate_s"] - total
+        pct = 100.0 * diff / total if total else 0.0
+        lines.append("  %-13s: %s (%+.1f %% vs Klipper)" % (
+            "Slicer", format_duration(slicer["estimate_s"]), pct))
+        lines.append("  %-13s  %s" % ("", name))
+    else:
+        lines.append("  %-13s: %s, no estimate in the file" % ("Slicer", name))
+    if doc["first_layer_s"] is not None:
+        lines.append("  First layer  : %s" % format_duration(doc["first_layer_s"]))
+    lines.append("  Layers       : %d" % doc["layer_count"])
+    lines.append("  Limits from  : %s" % doc["limits_source"])
+    if doc["features"]:
+        lines.append("  Time per feature:")
+        for feature, t in sorted(doc["features"].items(), key=lambda kv: -kv[1]):
+            share = 100.0 * t / total if total else 0.0
+            lines.append("    %-28s %10s %5.1f %%" % (feature[:28], format_duration(t), share))
+    if doc["ignored_commands"]:
+        lines.append("  Not Klipper commands (0 s): " + ", ".join(
+            "%s x%d" % kv for kv in doc["ignored_commands"].items()))
+    for warning in doc["warnings"]:
+        lines.append("  warning: " + warning)
+    out.write("\n".join(lines) + "\n")
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    """`kestimator estimate`."""
+    limits, source, warnings = resolve_limits(args.printer_cfg)
+    for name in ("homing_time", "heat_time"):
+        if not 0.0 <= getattr(args, name) < float("inf"):
+            raise KestimatorError("--%s must be a non-negative number of seconds"
+                                  % name.replace("_", "-"))
+    est = estimate_file(args.file, limits, homing_time=args.homing_time,
+                        heat_time=args.heat_time)
+    slicer = detect_file(args.file)
+    doc = estimate_to_json(est, slicer, source, warnings)
+    if args.json:
+        json.dump(doc, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        _print_text(doc, sys.stdout)
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the `kestimator` command; returns the exit status."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help(sys.stderr)
+        return EXIT_USAGE
+    try:
+        if args.command == "estimate":
+            return cmd_estimate(args)
+    except KestimatorError as exc:
+        if args.debug:
+            traceback.print_exc()
+        sys.stderr.write("kestimator: error: %s\n" % exc)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        sys.stderr.write("kestimator: interrupted\n")
+        return EXIT_FAILURE
+    parser.error("unknown command %r" % args.command)
+    return EXIT_USAGE

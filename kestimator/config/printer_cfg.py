@@ -1,0 +1,395 @@
+"""Reading a Klipper printer.cfg as Klipper reads it, and mapping it to `Limits`.
+
+This module owns the printer.cfg syntax and nothing else of Klipper's configuration:
+sections and options, comments, indented continuation lines, `[include]` files and the
+SAVE_CONFIG block, with the file and line every value came from; and the mapping of the
+motion options kestimator models onto `Limits` fields, checked against the same bounds
+Klipper enforces. Defaults for absent options stay in `kestimator.limits`.
+
+The rules follow mainline Klipper at commit 84104bbbd, klippy/configfile.py (Python's
+configparser as Klipper configures it: no interpolation, later duplicates win, `#` and `;`
+comments), re-implemented here so that every value keeps its file and line.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import glob
+import math
+import operator
+import os
+
+from kestimator.errors import KestimatorError
+from kestimator.limits import Limits
+
+# Klipper recognises the SAVE_CONFIG block only by these three whole lines, preceded by a
+# line break and followed by one.
+_AUTOSAVE_HEADER = (
+    "#*# <---------------------- SAVE_CONFIG ---------------------->",
+    "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.",
+    "#*#",
+)
+_AUTOSAVE_PREFIX = "#*# "
+_INCLUDE_PREFIX = "include "
+
+KLIPPER_DEFAULT = "klipper default"
+KESTIMATOR_DEFAULT = "kestimator default"
+REQUIRED_FALLBACK = "guessed: required by Klipper but not in the config"
+
+
+@dataclasses.dataclass(frozen=True)
+class ConfigValue:
+    """One option's value as written, and where it was written."""
+
+    value: str      # raw text
+    path: str       # file it came from
+    line: int       # 1-based line in that file
+
+    @property
+    def location(self) -> str:
+        """`<file>:<line>`."""
+        return f"{self.path}:{self.line}"
+
+
+Sections = dict[str, dict[str, ConfigValue]]
+
+
+@dataclasses.dataclass
+class _Config:
+    """Sections being read, and where each section was first declared."""
+
+    sections: Sections = dataclasses.field(default_factory=dict)
+    headers: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    def section(self, name: str, path: str, line: int) -> dict[str, ConfigValue]:
+        """The section called `name` (any case), created at path:line if new."""
+        key = name.lower()
+        if key not in self.sections:
+            self.sections[key] = {}
+            self.headers[key] = f"{path}:{line}"
+        return self.sections[key]
+
+
+@dataclasses.dataclass
+class _Option:
+    """An option whose continuation lines may still follow."""
+
+    section: dict[str, ConfigValue]
+    name: str
+    line: int
+    parts: list[str]
+
+    def store(self, path: str) -> None:
+        """Write the value to its section as configparser joins it."""
+        self.section[self.name] = ConfigValue("\n".join(self.parts).rstrip(), path,
+                                              self.line)
+
+
+_NumberedLines = list[tuple[int, str]]
+
+
+def read_printer_cfg(path: str | os.PathLike[str]) -> Sections:
+    """sections (lower-case names, e.g. 'printer', 'extruder', 'gcode_arcs') -> options
+    (lower-case) -> value, after includes and the SAVE_CONFIG block, as Klipper merges them.
+
+    Raises KestimatorError for an unreadable file, a missing include, an include cycle or
+    a line that is not config syntax.
+    """
+    return _read_config(os.fspath(path)).sections
+
+
+def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[str, str]]:
+    """Limits plus, for every Limits field, where it came from.
+
+    A value read from the config is reported as "<file>:<line>"; the rest as
+    "klipper default", "derived from <option>", "kestimator default" (klipper_generation)
+    or, for options Klipper requires but the config lacks, `REQUIRED_FALLBACK`.
+    """
+    config = _read_config(os.fspath(path))
+    values: dict[str, object] = {}
+    provenance: dict[str, str] = {}
+    read_from: dict[str, ConfigValue] = {}
+    for spec in _FLOAT_OPTIONS:
+        raw = config.sections.get(spec.section, {}).get(spec.option)
+        if raw is not None:
+            values[spec.field] = spec.parse(raw)
+            read_from[spec.field] = raw
+    kinematics = config.sections.get("printer", {}).get("kinematics")
+    if kinematics is not None:
+        if not kinematics.value:
+            raise KestimatorError("[printer] kinematics is empty", kinematics.path,
+                                  kinematics.line)
+        values["kinematics"] = kinematics.value
+        read_from["kinematics"] = kinematics
+    for section, field in (("gcode_arcs", "arcs_enabled"),
+                           ("firmware_retraction", "firmware_retraction_enabled")):
+        if section in config.sections:
+            values[field] = True
+            provenance[field] = config.headers[section]
+    limits = Limits.from_values(values)
+    for field, bound, allowed, text in _RELATIVE_BOUNDS:
+        raw = read_from.get(field)
+        if raw is not None and not allowed(getattr(limits, field), getattr(limits, bound)):
+            raise KestimatorError(
+                f"{field} must be {text} {bound} ({getattr(limits, bound):g}), "
+                f"got {raw.value}", raw.path, raw.line)
+    for field, raw in read_from.items():
+        provenance[field] = raw.location
+    for field in Limits.field_names():
+        provenance.setdefault(field, _ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT))
+    return limits, provenance
+
+
+@dataclasses.dataclass(frozen=True)
+class _FloatOption:
+    """A numeric option, its Limits field and the bounds Klipper's getfloat() enforces."""
+
+    section: str
+    option: str
+    field: str
+    minval: float | None = None
+    above: float | None = None
+    below: float | None = None
+
+    def parse(self, raw: ConfigValue) -> float:
+        """The option's value as a number, or a KestimatorError naming file and line."""
+        name = f"[{self.section}] {self.option}"
+        try:
+            value = float(raw.value)
+        except ValueError:
+            raise KestimatorError(f"{name}: {raw.value!r} is not a number",
+                                  raw.path, raw.line) from None
+        if not math.isfinite(value):
+            raise KestimatorError(f"{name}: {raw.value!r} is not a finite number",
+                                  raw.path, raw.line)
+        for bound, allowed, text in ((self.minval, operator.ge, "at least"),
+                                     (self.above, operator.gt, "above"),
+                                     (self.below, operator.lt, "below")):
+            if bound is not None and not allowed(value, bound):
+                raise KestimatorError(f"{name} must be {text} {bound:g}, got {raw.value}",
+                                      raw.path, raw.line)
+        return value
+
+
+# Bounds as in klippy/toolhead.py, kinematics/*.py, kinematics/extruder.py,
+# extras/gcode_arcs.py and extras/firmware_retraction.py at 84104bbbd
+# (max_accel_to_decel as in the Klipper releases that still read it).
+_FLOAT_OPTIONS = (
+    _FloatOption("printer", "max_velocity", "max_velocity", above=0.0),
+    _FloatOption("printer", "max_accel", "max_accel", above=0.0),
+    _FloatOption("printer", "minimum_cruise_ratio", "minimum_cruise_ratio",
+                 minval=0.0, below=1.0),
+    _FloatOption("printer", "square_corner_velocity", "square_corner_velocity", minval=0.0),
+    _FloatOption("printer", "max_z_velocity", "max_z_velocity", above=0.0),
+    _FloatOption("printer", "max_z_accel", "max_z_accel", above=0.0),
+    _FloatOption("printer", "max_accel_to_decel", "max_accel_to_decel", above=0.0),
+    _FloatOption("extruder", "nozzle_diameter", "nozzle_diameter", above=0.0),
+    _FloatOption("extruder", "filament_diameter", "filament_diameter"),
+    _FloatOption("extruder", "max_extrude_cross_section", "max_extrude_cross_section",
+                 above=0.0),
+    _FloatOption("extruder", "max_extrude_only_velocity", "max_extrude_only_velocity",
+                 above=0.0),
+    _FloatOption("extruder", "max_extrude_only_accel", "max_extrude_only_accel", above=0.0),
+    _FloatOption("extruder", "max_extrude_only_distance", "max_extrude_only_distance",
+                 minval=0.0),
+    _FloatOption("extruder", "instantaneous_corner_velocity",
+                 "instantaneous_corner_velocity", minval=0.0),
+    _FloatOption("gcode_arcs", "resolution", "arc_resolution", above=0.0),
+    _FloatOption("firmware_retraction", "retract_length", "retract_length", minval=0.0),
+    _FloatOption("firmware_retraction", "retract_speed", "retract_speed", minval=1.0),
+    _FloatOption("firmware_retraction", "unretract_extra_length", "unretract_extra_length",
+                 minval=0.0),
+    _FloatOption("firmware_retraction", "unretract_speed", "unretract_speed", minval=1.0),
+)
+
+
+# Bounds Klipper sets from another option: (field, other field, test, wording).
+_RELATIVE_BOUNDS = (
+    ("max_z_velocity", "max_velocity", operator.le, "at most"),
+    ("max_z_accel", "max_accel", operator.le, "at most"),
+    ("filament_diameter", "nozzle_diameter", operator.ge, "at least"),
+)
+
+# Where an absent field's value comes from, when it is not simply Klipper's default.
+_ABSENT_PROVENANCE = {
+    "kinematics": REQUIRED_FALLBACK,
+    "max_velocity": REQUIRED_FALLBACK,
+    "max_accel": REQUIRED_FALLBACK,
+    "nozzle_diameter": REQUIRED_FALLBACK,
+    "filament_diameter": REQUIRED_FALLBACK,
+    "max_z_velocity": "derived from max_velocity",
+    "max_z_accel": "derived from max_accel",
+    "max_extrude_cross_section": "derived from nozzle_diameter",
+    "max_extrude_only_velocity": "derived from max_velocity",
+    "max_extrude_only_accel": "derived from max_accel",
+    "klipper_generation": KESTIMATOR_DEFAULT,
+}
+
+
+def _read_config(path: str) -> _Config:
+    """The whole configuration: the main file, its includes, then its SAVE_CONFIG block."""
+    regular, autosave = _split_autosave(_read_lines(path, None))
+    config = _Config()
+    _parse_file(path, regular, config, [])
+    saved = _Config()
+    _parse_chunk([(number, _strip_hash(text)) for number, text in autosave], path, saved)
+    # Klipper drops SAVE_CONFIG options the regular config already sets.
+    for name, options in saved.sections.items():
+        if name not in config.sections:
+            config.sections[name] = {}
+            config.headers[name] = saved.headers[name]
+        for option, value in options.items():
+            config.sections[name].setdefault(option, value)
+    return config
+
+
+def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
+    """The file's lines (universal newlines); errors name the include line if any."""
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as exc:
+        reason = exc.strerror or str(exc)
+        if included_from is not None:
+            raise KestimatorError(f"cannot read included file {path}: {reason}",
+                                  *included_from) from None
+        raise KestimatorError(f"cannot read config file: {reason}", path) from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise KestimatorError(f"not UTF-8 text ({exc.reason})", path, line) from None
+    return text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+
+def _split_autosave(lines: list[str]) -> tuple[list[str], _NumberedLines]:
+    """(regular lines, SAVE_CONFIG lines without their '#*# ' and with line numbers).
+
+    As Klipper, a block with anything after the header but '#*#' lines, or a '#*# ' line
+    above it, is ignored: its lines are then plain comments.
+    """
+    size = len(_AUTOSAVE_HEADER)
+    start = _find_header(lines)
+    if start is None or any(line.startswith(_AUTOSAVE_PREFIX) for line in lines[1:start]):
+        return lines, []
+    block = list(enumerate(lines[start + size:], start=start + size + 1))
+    # Klipper strip()s the block as a whole.
+    while block and not block[0][1].strip():
+        block.pop(0)
+    while block and not block[-1][1].strip():
+        block.pop()
+    if block:
+        block[0] = (block[0][0], block[0][1].lstrip())
+        block[-1] = (block[-1][0], block[-1][1].rstrip())
+    found_again = _find_header([text for _, text in block])
+    if found_again is not None or not all(
+            text.startswith(_AUTOSAVE_PREFIX) or text == "#*#" for _, text in block):
+        return lines, []
+    return lines[:start], [(number, text[len(_AUTOSAVE_PREFIX):]) for number, text in block]
+
+
+def _find_header(lines: list[str]) -> int | None:
+    """Index of the SAVE_CONFIG header's first line, where Klipper would find it."""
+    size = len(_AUTOSAVE_HEADER)
+    for index in range(1, len(lines) - size):
+        if tuple(lines[index:index + size]) == _AUTOSAVE_HEADER:
+            return index
+    return None
+
+
+def _strip_hash(text: str) -> str:
+    """The line without its `#` comment: Klipper cuts every line at its first `#`."""
+    return text.split("#", 1)[0]
+
+
+def _section_header(text: str) -> str | None:
+    """The name in a `[name]` line (to its last `]`, as configparser), else None."""
+    end = text.rfind("]")
+    if text.startswith("[") and end > 1:
+        return text[1:end]
+    return None
+
+
+def _parse_file(path: str, lines: list[str], config: _Config,
+                stack: list[tuple[str, str]]) -> None:
+    """Parse one file's lines, splicing its `[include]`s in where they stand.
+
+    `stack` holds (real path, path as named) of the files being parsed, outermost first.
+    """
+    stack.append((os.path.realpath(path), path))
+    # As Klipper, the text between two includes is parsed on its own: after an include
+    # an option needs a new [section] header.
+    chunk: _NumberedLines = []
+    for number, text in enumerate(lines, start=1):
+        text = _strip_hash(text)
+        header = _section_header(text)
+        if header is not None and header.startswith(_INCLUDE_PREFIX):
+            _parse_chunk(chunk, path, config)
+            chunk = []
+            _include(path, number, header[len(_INCLUDE_PREFIX):].strip(), config, stack)
+        else:
+            chunk.append((number, text))
+    _parse_chunk(chunk, path, config)
+    stack.pop()
+
+
+def _include(path: str, line: int, spec: str, config: _Config,
+             stack: list[tuple[str, str]]) -> None:
+    """Parse the files `[include spec]` on path:line names, in sorted order."""
+    pattern = os.path.join(os.path.dirname(path), spec)
+    names = sorted(glob.glob(pattern))
+    if not names and not any(c in pattern for c in "*?["):
+        raise KestimatorError(f"include file {pattern} does not exist", path, line)
+    for name in names:
+        if any(os.path.realpath(name) == real for real, _ in stack):
+            chain = " -> ".join([shown for _, shown in stack] + [name])
+            raise KestimatorError("include cycle: " + chain, path, line)
+        _parse_file(name, _read_lines(name, (path, line)), config, stack)
+
+
+def _parse_chunk(lines: _NumberedLines, path: str, config: _Config) -> None:
+    """Parse `#`-free lines as one configparser read (strict=False, `;` inline comments)."""
+    section: dict[str, ConfigValue] | None = None
+    option: _Option | None = None
+    indent_level = 0
+    for number, text in lines:
+        if not text.strip():
+            # A blank line belongs to the value being read (trailing ones are dropped).
+            if option is not None:
+                option.parts.append("")
+            continue
+        value = _strip_semicolon(text).strip()
+        if not value:
+            continue
+        indent = len(text) - len(text.lstrip())
+        if option is not None and indent > indent_level:
+            option.parts.append(value)
+            continue
+        indent_level = indent
+        if option is not None:
+            option.store(path)
+            option = None
+        header = _section_header(value)
+        if header is not None:
+            section = config.section(header, path, number)
+            continue
+        if section is None:
+            raise KestimatorError("option before any [section] header (an [include] "
+                                  "line also ends the section above it)", path, number)
+        cut = min((i for i in (value.find(":"), value.find("=")) if i >= 0), default=-1)
+        name = value[:cut].strip()
+        if cut < 0 or not name:
+            raise KestimatorError(f"cannot parse {value!r}: expected 'option: value', a "
+                                  "[section] header or an indented continuation line",
+                                  path, number)
+        option = _Option(section, name.lower(), number, [value[cut + 1:].strip()])
+    if option is not None:
+        option.store(path)
+
+
+def _strip_semicolon(text: str) -> str:
+    """The line without its `;` comment: one at the start or after whitespace."""
+    start = text.find(";")
+    while start > 0 and not text[start - 1].isspace():
+        start = text.find(";", start + 1)
+    return text if start < 0 else text[:start]

@@ -1,0 +1,28 @@
+"""Shared paths: the corpus is read in place from ../shared beside the checkout."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+PROJECT = Path(__file__).resolve().parents[1]
+SHARED = PROJECT.parent / "shared"
+CORPUS = SHARED / "corpus"
+CORPUS_CFG = CORPUS / "printer.cfg"
+IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+def corpus_files(pattern: str = "*/*.gcode") -> list[Path]:
+    """Corpus G-code files, sorted; empty when the corpus is absent."""
+    return sorted((CORPUS / "gcode").glob(pattern))
+
+
+@pytest.fixture(scope="session")
+def corpus_root() -> Path:
+    if not CORPUS.is_dir():
+        if IN_CI:
+            pytest.fail("the shared corpus is missing at %s" % CORPUS)
+        pytest.skip("the shared corpus is not beside this checkout")
+    return CORPUS
