@@ -86,6 +86,8 @@ class Timeline:
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
         self.warnings: list[str] = []
         self.warnings_dropped = 0
+        self._warning_keys: dict[str, int] = {}
+        self._warning_repeats: list[int] = []
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
                                   homing_time=homing_time, heat_time=heat_time)
         self.feature_names: list[str] = [NO_FEATURE]
@@ -107,16 +109,28 @@ class Timeline:
             feature_time[move.tag] += move.accel_t + move.cruise_t + move.decel_t
         self.n_moves += len(moves)
 
-    def _warn_here(self, message: str) -> None:
-        self.warn(message, self.lineno)
+    def _warn_here(self, message: str, key: str | None = None) -> None:
+        self.warn(message, self.lineno, key)
 
-    def warn(self, message: str, line: int | None = None) -> None:
-        """Keep a warning naming file and line (bounded; the rest are counted)."""
+    def warn(self, message: str, line: int | None = None, key: str | None = None) -> None:
+        """Keep a warning naming file and line; repeats of the same key are only counted."""
+        if key is not None:
+            index = self._warning_keys.get(key)
+            if index is not None:
+                self._warning_repeats[index] += 1
+                return
         if len(self.warnings) >= MAX_WARNINGS:
             self.warnings_dropped += 1
             return
         where = "%s:%d: " % (self.path, line) if line is not None else "%s: " % self.path
+        if key is not None:
+            self._warning_keys[key] = len(self.warnings)
         self.warnings.append(where + message)
+        self._warning_repeats.append(0)
+
+    def _final_warnings(self) -> list[str]:
+        return [w if not n else "%s (%d more like it)" % (w, n)
+                for w, n in zip(self.warnings, self._warning_repeats, strict=True)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
         index = len(store)
@@ -145,7 +159,8 @@ class Timeline:
         try:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
-            self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno)
+            self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
+                      "reject:" + cmd.name)
         if self.sample_every_s is not None and self.toolhead.last_move_end_t >= self._next_sample_t:
             self._next_sample_t = self.toolhead.last_move_end_t + self.sample_every_s
             self._record(self.samples, self.lineno + 1)
@@ -202,7 +217,8 @@ class Timeline:
         return Estimate(
             path=self.path, total_s=total, layers=list(self.layers), features=features,
             n_moves=self.n_moves, n_lines=self.lineno,
-            ignored_commands=dict(sorted(interp.ignored.items())), warnings=self.warnings,
+            ignored_commands=dict(sorted(interp.ignored.items())),
+            warnings=self._final_warnings(),
             warnings_dropped=self.warnings_dropped, samples=list(self.samples))
 
 

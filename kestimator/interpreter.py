@@ -43,7 +43,8 @@ _AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
 _MOVE_PARAMS = frozenset("XYZEFG")
 
-WarnFn = Callable[[str], None]
+# warn(message, key): warnings with the same key are reported once, with a count.
+WarnFn = Callable[[str, "str | None"], None]
 
 
 class CommandError(Exception):
@@ -198,7 +199,8 @@ class Interpreter:
             self.speed = gcode_speed * self.speed_factor
         for key in params:
             if key not in _MOVE_PARAMS:
-                self.warn("Klipper ignores parameter %s in '%s'" % (key, cmd.code.strip()))
+                self.warn("Klipper ignores parameter %s in '%s'" % (key, cmd.code.strip()),
+                          "move-param:" + key)
         self._move(self.speed)
 
     def _move(self, speed: float) -> None:
@@ -368,7 +370,7 @@ class Interpreter:
             t = _float(cmd.params, "T", above=0.0)
             if p is None or t is None:
                 self.warn("M204 without S needs both P and T; Klipper ignores '%s'"
-                          % cmd.code.strip())
+                          % cmd.code.strip(), "m204-incomplete")
                 return
             accel = min(p, t)
         self.toolhead.set_max_velocities(None, accel, None, None)

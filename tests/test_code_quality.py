@@ -1,0 +1,43 @@
+"""The code base stays lint-clean and the core stays dependency-free."""
+
+from __future__ import annotations
+
+import ast
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from .conftest import IN_CI, PROJECT
+
+STDLIB = set(sys.stdlib_module_names)
+
+
+def test_ruff_finds_nothing() -> None:
+    ruff = shutil.which("ruff")
+    if ruff is None:
+        if IN_CI:
+            pytest.fail("ruff is not installed (it is part of the test extras)")
+        pytest.skip("ruff is not installed")
+    proc = subprocess.run([ruff, "check", "."], cwd=PROJECT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_core_imports_only_the_standard_library() -> None:
+    offenders = []
+    for path in sorted((PROJECT / "kestimator").rglob("*.py")):
+        if path.name == "cli.py" or "cli" in path.parts[-2:-1]:
+            continue
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names = [node.module]
+            for name in names:
+                top = name.split(".")[0]
+                if top not in STDLIB and top not in ("kestimator", "tomli"):
+                    offenders.append("%s: %s" % (path.relative_to(PROJECT), name))
+    assert not offenders
