@@ -23,6 +23,7 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.rewrite import inject_file
 from kestimator.slicers import SlicerInfo, detect_file
 
 EXIT_OK = 0
@@ -53,7 +54,28 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_limit_options(est)
     est.add_argument("--json", action="store_true", help="print one JSON object")
     est.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    inj = sub.add_parser(
+        "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
+        description="Rewrite a G-code file so M73 progress lines and the slicer's time "
+                    "comments show Klipper's time. In place (atomically) unless -o is given; "
+                    "every other line is kept byte for byte.",
+        epilog=INJECT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    inj.add_argument("file", help="the G-code file (the slicer appends it last)")
+    inj.add_argument("-o", "--output", metavar="OUT",
+                     help="write the result here and leave FILE untouched")
+    _add_limit_options(inj)
+    inj.add_argument("--json", action="store_true", help="print a JSON summary")
+    inj.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
+    inj.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return parser
+
+
+INJECT_EPILOG = """examples:
+  kestimator inject print.gcode --printer-cfg ~/printer_data/config/printer.cfg
+  kestimator inject print.gcode -o print-klipper.gcode
+As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line is:
+  kestimator inject --printer-cfg /path/to/printer.cfg
+"""
 
 
 def _add_limit_options(parser: argparse.ArgumentParser) -> None:
@@ -147,10 +169,7 @@ def _print_text(doc: dict[str, Any], out: Any) -> None:
 def cmd_estimate(args: argparse.Namespace) -> int:
     """`kestimator estimate`."""
     limits, source, warnings = resolve_limits(args.printer_cfg)
-    for name in ("homing_time", "heat_time"):
-        if not 0.0 <= getattr(args, name) < float("inf"):
-            raise KestimatorError("--%s must be a non-negative number of seconds"
-                                  % name.replace("_", "-"))
+    _check_time_options(args)
     est = estimate_file(args.file, limits, homing_time=args.homing_time,
                         heat_time=args.heat_time)
     slicer = detect_file(args.file)
@@ -163,6 +182,36 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_inject(args: argparse.Namespace) -> int:
+    """`kestimator inject`."""
+    limits, source, warnings = resolve_limits(args.printer_cfg)
+    _check_time_options(args)
+    result = inject_file(args.file, limits, output=args.output, limits_source=source,
+                         homing_time=args.homing_time, heat_time=args.heat_time)
+    doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
+    doc["slicer"]["estimate_s"] = result.slicer_estimate_s
+    doc["output"] = result.output
+    doc["m73_written"] = result.m73_written
+    if args.json:
+        json.dump(doc, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    elif not args.quiet:
+        total = result.estimate.total_s
+        slicer_s = result.slicer_estimate_s
+        said = ("" if slicer_s is None else
+                ", the slicer said %s" % format_duration(slicer_s))
+        sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
+            result.output, format_duration(total), said, result.m73_written))
+    return EXIT_OK
+
+
+def _check_time_options(args: argparse.Namespace) -> None:
+    for name in ("homing_time", "heat_time"):
+        if not 0.0 <= getattr(args, name) < float("inf"):
+            raise KestimatorError("--%s must be a non-negative number of seconds"
+                                  % name.replace("_", "-"))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status."""
     parser = _build_parser()
@@ -173,6 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "estimate":
             return cmd_estimate(args)
+        if args.command == "inject":
+            return cmd_inject(args)
     except KestimatorError as exc:
         if args.debug:
             traceback.print_exc()

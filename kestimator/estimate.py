@@ -11,7 +11,9 @@ from __future__ import annotations
 import dataclasses
 import io
 import os
-from collections.abc import Callable, Iterable, Iterator
+from array import array
+from collections import deque
+from collections.abc import Iterable, Iterator
 
 from kestimator.errors import KestimatorError
 from kestimator.gcode import parse_line
@@ -30,6 +32,10 @@ NO_FEATURE = "(none)"
 # At most this many warnings are kept (each names its line); the rest are counted.
 MAX_WARNINGS = 100
 READ_BUFFER_BYTES = 1 << 20
+# Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
+# when full, every other sample is dropped and the spacing doubles.
+MAX_SAMPLES = 65536
+FIRST_SAMPLE_SPACING_S = 0.01
 
 
 @dataclasses.dataclass
@@ -45,8 +51,14 @@ class Estimate:
     ignored_commands: dict[str, int]
     warnings: list[str]
     warnings_dropped: int
-    # (line, t) pairs: every move on lines before `line` has finished at t seconds.
-    samples: list[tuple[int, float]]
+    # Progress samples: the move on line sample_lines[i] ends at sample_times[i] seconds
+    # (spacing at most total_s / 32768, so any line's time is known to that precision).
+    sample_lines: array
+    sample_times: array
+    # Exact times at comment lines asked for (e.g. Cura's ;TIME_ELAPSED:): line -> t.
+    marks: dict[int, float]
+    first_command_line: int | None
+    last_move_line: int | None
 
     @property
     def first_layer_s(self) -> float | None:
@@ -81,7 +93,8 @@ class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
     def __init__(self, limits: Limits, path: str = "<input>", homing_time: float = 0.0,
-                 heat_time: float = 0.0, sample_every_s: float | None = None) -> None:
+                 heat_time: float = 0.0, sample: bool = False,
+                 mark_prefixes: tuple[str, ...] = ()) -> None:
         self.path = path
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
         self.warnings: list[str] = []
@@ -93,21 +106,50 @@ class Timeline:
         self.feature_names: list[str] = [NO_FEATURE]
         self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
         self.feature_time: list[float] = [0.0]
-        self.interp.tag = 0
+        # Moves are tagged with their line; feature changes wait here (line, feature id)
+        # until the planner has flushed every move before them.
+        self._feature_changes: deque[tuple[int, int]] = deque()
+        self._feature = 0
+        self._queued_feature = 0
         self.layers: list[tuple[int, float]] = []
-        self.samples: list[tuple[int, float]] = []
-        self.sample_every_s = sample_every_s
+        self.marks: list[tuple[int, float]] = []
+        self.mark_prefixes = mark_prefixes
+        self.sample = sample
+        self.sample_lines = array("q")
+        self.sample_times = array("d")
+        self._sample_spacing = FIRST_SAMPLE_SPACING_S
         self._next_sample_t = 0.0
         self.n_moves = 0
         self.lineno = 0
+        self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
         feature_time = self.feature_time
+        changes = self._feature_changes
+        feature = self._feature
+        t = start_t
         for move in moves:
-            feature_time[move.tag] += move.accel_t + move.cruise_t + move.decel_t
+            while changes and changes[0][0] <= move.tag:
+                feature = changes.popleft()[1]
+            dt = move.accel_t + move.cruise_t + move.decel_t
+            feature_time[feature] += dt
+            t += dt
+            if self.sample and t >= self._next_sample_t:
+                self._add_sample(move.tag, t)
+        self._feature = feature
         self.n_moves += len(moves)
+
+    def _add_sample(self, line: int, t: float) -> None:
+        lines, times = self.sample_lines, self.sample_times
+        if len(lines) >= MAX_SAMPLES:
+            del lines[1::2]
+            del times[1::2]
+            self._sample_spacing *= 2.0
+        lines.append(line)
+        times.append(t)
+        self._next_sample_t = t + self._sample_spacing
 
     def _warn_here(self, message: str, key: str | None = None) -> None:
         self.warn(message, self.lineno, key)
@@ -156,18 +198,21 @@ class Timeline:
             if cmd.comment is not None:
                 self._comment(";" + cmd.comment)
             return
+        if self.first_command_line is None:
+            self.first_command_line = self.lineno
+        self.interp.tag = self.lineno
         try:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
             self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
                       "reject:" + cmd.name)
-        if self.sample_every_s is not None and self.toolhead.last_move_end_t >= self._next_sample_t:
-            self._next_sample_t = self.toolhead.last_move_end_t + self.sample_every_s
-            self._record(self.samples, self.lineno + 1)
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
             self._record(self.layers, self.lineno)
+            return
+        if self.mark_prefixes and text.startswith(self.mark_prefixes):
+            self._record(self.marks, self.lineno)
             return
         for marker in FEATURE_MARKERS:
             if text.startswith(marker):
@@ -183,7 +228,12 @@ class Timeline:
             fid = self.feature_ids[name] = len(self.feature_names)
             self.feature_names.append(name)
             self.feature_time.append(0.0)
-        self.interp.tag = fid
+        if self.toolhead.lookahead.is_empty():
+            self._feature_changes.clear()
+            self._feature = fid
+        else:
+            self._feature_changes.append((self.lineno, fid))
+        self._queued_feature = fid
 
     def _add_time(self, words: list[str]) -> None:
         try:
@@ -196,13 +246,12 @@ class Timeline:
             return
         before = self.toolhead.print_time
         self.toolhead.add_time(seconds)
-        self.feature_time[self.interp.tag] += self.toolhead.print_time - before
+        # add_time stopped the head: every queued feature change has been applied.
+        self.feature_time[self._queued_feature] += self.toolhead.print_time - before
 
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
-        before = self.toolhead.print_time
         total = self.toolhead.finish()
-        del before
         interp = self.interp
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
@@ -218,8 +267,10 @@ class Timeline:
             path=self.path, total_s=total, layers=list(self.layers), features=features,
             n_moves=self.n_moves, n_lines=self.lineno,
             ignored_commands=dict(sorted(interp.ignored.items())),
-            warnings=self._final_warnings(),
-            warnings_dropped=self.warnings_dropped, samples=list(self.samples))
+            warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
+            sample_lines=self.sample_lines, sample_times=self.sample_times,
+            marks=dict(self.marks), first_command_line=self.first_command_line,
+            last_move_line=self.toolhead.last_move_line)
 
 
 def _looks_like_gcode(name: str) -> bool:
@@ -227,12 +278,15 @@ def _looks_like_gcode(name: str) -> bool:
 
 
 def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>",
-                   homing_time: float = 0.0, heat_time: float = 0.0,
-                   sample_every_s: float | None = None,
-                   progress: Callable[[int], None] | None = None) -> Estimate:
-    """Estimate from an iterable of byte lines (split at LF)."""
+                   homing_time: float = 0.0, heat_time: float = 0.0, sample: bool = False,
+                   mark_prefixes: tuple[str, ...] = ()) -> Estimate:
+    """Estimate from an iterable of byte lines (split at LF).
+
+    With `sample`, progress samples for M73 placement are kept; comment lines starting
+    with one of `mark_prefixes` get their exact time in `Estimate.marks`.
+    """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
-                        sample_every_s=sample_every_s)
+                        sample=sample, mark_prefixes=mark_prefixes)
     feed = timeline.feed
     for raw in lines:
         feed(raw)
@@ -240,13 +294,14 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
 
 
 def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: float = 0.0,
-                  heat_time: float = 0.0, sample_every_s: float | None = None) -> Estimate:
+                  heat_time: float = 0.0, sample: bool = False,
+                  mark_prefixes: tuple[str, ...] = ()) -> Estimate:
     """Estimate a G-code file in one streaming pass."""
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
         raise KestimatorError("is a directory, not a G-code file", path_s)
     return estimate_lines(iter_lines(path_s), limits, path_s, homing_time=homing_time,
-                          heat_time=heat_time, sample_every_s=sample_every_s)
+                          heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes)
 
 
 def estimate_text(text: str, limits: Limits, **options: float) -> Estimate:

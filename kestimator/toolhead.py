@@ -59,6 +59,8 @@ class ToolHead:
         self.print_time = 0.0
         # End of the last planned move: what "every move so far has finished" means.
         self.last_move_end_t = 0.0
+        # The tag (source line) of the last move queued.
+        self.last_move_line: int | None = None
         self.special_queuing_state = "NeedPrime"
         # motion_queuing state: how far steps have been generated, and how far they must be
         # (-inf until the first move: before it, Klipper's start buffer dominates).
@@ -167,6 +169,7 @@ class ToolHead:
         if axes_d[3]:
             self._check_extruder_move(move)
         self.commanded_pos = move.end_pos
+        self.last_move_line = tag
         if self.lookahead.add_move(move):
             self._process_lookahead(lazy=True)
         return move

@@ -29,6 +29,7 @@ __all__ = [
     "ADAPTERS",
     "SlicerAdapter",
     "SlicerInfo",
+    "adapter_for",
     "detect",
     "detect_file",
     "format_prusa_duration",
@@ -42,6 +43,14 @@ ADAPTERS: tuple[SlicerAdapter, ...] = (
     GenericAdapter(),
 )
 """Tried in this order; ``GenericAdapter`` comes last because it knows the rarer slicers."""
+
+
+def adapter_for(family: str) -> SlicerAdapter:
+    """The adapter of a family id (``SlicerInfo.family``); the generic one if unknown."""
+    for adapter in ADAPTERS:
+        if adapter.family == family:
+            return adapter
+    return ADAPTERS[-1]
 
 
 def detect(head: bytes, tail: bytes) -> SlicerInfo:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from collections.abc import Mapping
 
 DETECT_WINDOW_BYTES = 1024 * 1024
 """Bytes read from each end of a file, as Moonraker does: headers and footers fit in it."""
@@ -74,14 +75,48 @@ class FileEnds:
         return match.group("name"), match.group("version")
 
 
+@dataclasses.dataclass(frozen=True)
+class KlipperTimes:
+    """Klipper's times for one file, as the time-comment rewriters need them."""
+
+    total_s: float
+    first_layer_s: float | None
+    """From the first layer marker to the second."""
+    model_s: float | None
+    """From the first layer marker to the end (Bambu's "model printing time")."""
+    marks: Mapping[int, float]
+    """Exact time at each comment line an adapter asked for in ``mark_prefixes``."""
+
+
 class SlicerAdapter:
     """One slicer family's knowledge of its files; every family module defines one subclass."""
 
     family: str = ""
+    time_comment_prefixes: tuple[str, ...] = ()
+    """Comment lines that may carry this family's own time: only these reach
+    ``rewrite_time_comment`` (a cheap ``startswith`` filter on the hot path)."""
+    mark_prefixes: tuple[str, ...] = ()
+    """Comment lines whose own time the estimate must record exactly (per-layer times)."""
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         """Return what this family knows about the file, or None if it did not write it."""
         raise NotImplementedError
+
+    def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
+        """Klipper's version of a time comment this family writes, or None to keep ``text``.
+
+        ``text`` is the line without its line ending; only lines starting with one of
+        ``time_comment_prefixes`` are offered. The result keeps everything but the time.
+        """
+        return None
+
+
+def replace_group(match: re.Match[str], group: int | str, new: str) -> str:
+    """The matched string with one group's text replaced (the rest kept byte for byte)."""
+    start, end = match.span(group)
+    whole_start = match.start(0)
+    text = match.string
+    return text[whole_start:start] + new + text[end:match.end(0)]
 
 
 def first_group(pattern: re.Pattern[str], text: str) -> str | None:

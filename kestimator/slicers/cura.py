@@ -15,7 +15,14 @@ from __future__ import annotations
 
 import re
 
-from kestimator.slicers.base import FileEnds, SlicerAdapter, SlicerInfo, first_group
+from kestimator.slicers.base import (
+    FileEnds,
+    KlipperTimes,
+    SlicerAdapter,
+    SlicerInfo,
+    first_group,
+    replace_group,
+)
 
 CURA_PLACEHOLDER_TIME_S = 6666.0
 """What CuraEngine writes in ``;TIME:`` while it does not know the print time yet."""
@@ -26,6 +33,13 @@ _GRIFFIN_TIME_RE = re.compile(r"^;PRINT\.TIME:(\d+(?:\.\d+)?)\s*$", re.MULTILINE
 _FLOAT = r"(-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?)"
 _MIN_X_RE = re.compile(r"^;MINX:" + _FLOAT, re.MULTILINE)
 _MAX_X_RE = re.compile(r"^;MAXX:" + _FLOAT, re.MULTILINE)
+
+
+# ;TIME:<whole seconds> and ;PRINT.TIME:<whole seconds> in the header; ;TIME_ELAPSED:<%f>
+# at the end of every layer: the time every move before it has finished.
+_TIME_LINE_RE = re.compile(r"(?P<key>;TIME:|;PRINT\.TIME:)(?P<t>\d+(?:\.\d+)?)\s*")
+_ELAPSED_LINE_RE = re.compile(r";TIME_ELAPSED:(?P<t>-?\d+(?:\.\d+)?)\s*")
+ELAPSED_PREFIX = ";TIME_ELAPSED:"
 
 
 def _has_filled_bounding_box(head: str) -> bool:
@@ -48,6 +62,8 @@ class CuraAdapter(SlicerAdapter):
     """Files written by CuraEngine, from the Cura application or its command line."""
 
     family = "cura"
+    time_comment_prefixes = (";TIME:", ";PRINT.TIME:", ELAPSED_PREFIX)
+    mark_prefixes = (ELAPSED_PREFIX,)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         match = _VERSION_RE.search(ends.head)
@@ -60,3 +76,16 @@ class CuraAdapter(SlicerAdapter):
             estimate_s=cura_estimate_s(ends.head),
             first_layer_estimate_s=None,
         )
+
+    def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
+        """``;TIME:``/``;PRINT.TIME:`` get the total, each ``;TIME_ELAPSED:`` its own time."""
+        if text.startswith(ELAPSED_PREFIX):
+            match = _ELAPSED_LINE_RE.fullmatch(text)
+            elapsed_s = times.marks.get(line)
+            if match is None or elapsed_s is None:
+                return None
+            return replace_group(match, "t", "%f" % elapsed_s)
+        match = _TIME_LINE_RE.fullmatch(text)
+        if match is None:
+            return None
+        return replace_group(match, "t", "%d" % round(times.total_s))

@@ -24,10 +24,12 @@ from kestimator.slicers.base import (
     SECONDS_PER_HOUR,
     SECONDS_PER_MINUTE,
     FileEnds,
+    KlipperTimes,
     SlicerAdapter,
     SlicerInfo,
     first_group,
     parse_number,
+    replace_group,
 )
 
 FAMILY = "generic"
@@ -116,10 +118,55 @@ _DETECTORS: tuple[Callable[[FileEnds], SlicerInfo | None], ...] = (
     _ideamaker, _kirimoto, _kisslicer, _icesl, _simplify3d)
 
 
+def _simplify3d_duration(seconds: float) -> str:
+    """Simplify3D's ``1 hours 2 minutes`` / ``52 minutes`` (whole minutes, rounded)."""
+    hours, minutes = divmod(round(seconds / SECONDS_PER_MINUTE), 60)
+    return "%d hours %d minutes" % (hours, minutes) if hours else "%d minutes" % minutes
+
+
+TimeFn = Callable[[KlipperTimes, int], "float | None"]
+
+# (prefix, full-line pattern with group "t", value from the times, format of the value):
+# every slicer here states its time in one number that the rewrite replaces in place.
+_TIME_COMMENTS: tuple[tuple[str, re.Pattern[str], TimeFn, Callable[[float], str]], ...] = (
+    (";Print Time:", re.compile(r";Print Time: (?P<t>\d+(?:\.\d+)?)\s*"),
+     lambda times, line: times.total_s, lambda s: "%d" % round(s)),
+    (";PRINTING_TIME:", re.compile(r";PRINTING_TIME: (?P<t>\d+)\s*"),
+     lambda times, line: times.marks.get(line), lambda s: "%d" % round(s)),
+    (";REMAINING_TIME:", re.compile(r";REMAINING_TIME: (?P<t>\d+)\s*"),
+     lambda times, line: (None if line not in times.marks
+                          else max(0.0, times.total_s - times.marks[line])),
+     lambda s: "%d" % round(s)),
+    ("; --- print time:", re.compile(r"; --- print time: (?P<t>\d+(?:\.\d+)?)s ---\s*"),
+     lambda times, line: times.total_s, lambda s: "%d" % round(s)),
+    ("; Calculated-during-export Build Time:",
+     re.compile(r"; Calculated-during-export Build Time:\s*(?P<t>\d+(?:\.\d+)?) minutes\s*"),
+     lambda times, line: times.total_s, lambda s: "%.2f" % (s / SECONDS_PER_MINUTE)),
+    ("; estimated_print_time_s :",
+     re.compile(r"; estimated_print_time_s :\s*(?P<t>\d+(?:\.\d+)?)\s*"),
+     lambda times, line: times.total_s, lambda s: "%d" % round(s)),
+    (";   Build time:", re.compile(r";\s+Build [tT]ime: (?P<t>.*?)\s*"),
+     lambda times, line: times.total_s, _simplify3d_duration),
+)
+
+
 class GenericAdapter(SlicerAdapter):
     """The slicers above, tried in order; the caller falls back to ``UNKNOWN`` after this."""
 
     family = FAMILY
+    time_comment_prefixes = tuple(prefix for prefix, *_ in _TIME_COMMENTS)
+    mark_prefixes = (";PRINTING_TIME:", ";REMAINING_TIME:")
+
+    def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
+        """ideaMaker, Kiri:Moto, KISSlicer, IceSL and Simplify3D time lines."""
+        for prefix, pattern, value, fmt in _TIME_COMMENTS:
+            if text.startswith(prefix):
+                match = pattern.fullmatch(text)
+                seconds = value(times, line)
+                if match is None or seconds is None:
+                    return None
+                return replace_group(match, "t", fmt(seconds))
+        return None
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         for detector in _DETECTORS:

@@ -15,8 +15,20 @@ from __future__ import annotations
 
 import re
 
-from kestimator.slicers.base import FileEnds, SlicerAdapter, SlicerInfo, find_duration
-from kestimator.slicers.prusaslicer import ESTIMATE_RE, FIRST_LAYER_ESTIMATE_RE
+from kestimator.slicers.base import (
+    FileEnds,
+    KlipperTimes,
+    SlicerAdapter,
+    SlicerInfo,
+    find_duration,
+    format_prusa_duration,
+)
+from kestimator.slicers.prusaslicer import (
+    ESTIMATE_RE,
+    FIRST_LAYER_ESTIMATE_RE,
+    TIME_COMMENT_PREFIXES,
+    rewrite_estimated_time_line,
+)
 
 _ORCA_NAME = "OrcaSlicer"
 _BAMBU_HEADER_RE = re.compile(r"^; BambuStudio\S*\s+(\S+)", re.MULTILINE)
@@ -24,10 +36,23 @@ BAMBU_ESTIMATE_RE = re.compile(
     r"^; model printing time: .*?; total estimated time: (.+?)\s*$", re.MULTILINE)
 
 
+_BAMBU_TIME_LINE_RE = re.compile(
+    r"(?P<pre>; model printing time: )(?P<model>.+?)(?P<mid>; total estimated time: )"
+    r"(?P<total>.+?)(?P<post>\s*)")
+_BAMBU_PREFIX = "; model printing time:"
+
+
+def _bambu_duration(seconds: float, like: str) -> str:
+    """Bambu's duration text, with or without spaces between units as ``like`` has them."""
+    text = format_prusa_duration(seconds)
+    return text if " " in like.strip() else text.replace(" ", "")
+
+
 class OrcaAdapter(SlicerAdapter):
     """OrcaSlicer and Bambu Studio, which share one code base and file layout."""
 
     family = "orca"
+    time_comment_prefixes = (*TIME_COMMENT_PREFIXES, _BAMBU_PREFIX)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         generated_by = ends.generated_by()
@@ -48,3 +73,15 @@ class OrcaAdapter(SlicerAdapter):
             estimate_s=estimate_s,
             first_layer_estimate_s=find_duration(FIRST_LAYER_ESTIMATE_RE, ends.tail),
         )
+
+    def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
+        """The PrusaSlicer-style footer lines, and Bambu's header line."""
+        if not text.startswith(_BAMBU_PREFIX):
+            return rewrite_estimated_time_line(text, times)
+        match = _BAMBU_TIME_LINE_RE.fullmatch(text)
+        if match is None:
+            return None
+        model_s = times.model_s if times.model_s is not None else times.total_s
+        return (match.group("pre") + _bambu_duration(model_s, match.group("model"))
+                + match.group("mid") + _bambu_duration(times.total_s, match.group("total"))
+                + match.group("post"))

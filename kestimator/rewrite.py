@@ -1,0 +1,338 @@
+"""`inject`: write Klipper's times back into a G-code file without losing a byte.
+
+Owns the second streaming pass and the atomic file swap. Pass 1 (`kestimator.estimate`)
+gives the total, progress samples and exact times at the lines that need them; pass 2
+copies every line byte for byte except the ones kestimator owns:
+
+- every `M73` line is dropped and Klipper-true `M73 P<percent> R<minutes>` lines are
+  written instead: `M73 P0 R<total>` right before the first command, one after every layer
+  marker, one before any command at which the whole percent or the remaining minute
+  changes, and `M73 P100 R0` right after the last move. Klipper has one mode and its M73
+  reads only P, so the silent-mode (`Q`/`S`) and time-to-change (`C`/`D`) forms the slicer
+  wrote are not kept;
+- the slicer's own time comments, which the slicer adapter rewrites in place;
+- one marker line, `; kestimator <version> ...`, right before the first M73.
+
+Inserted lines take the line ending of the line they stand next to. A second run drops
+its own lines and writes them again, so it is byte-identical. The output goes to a
+temporary file in the destination's directory, is fsynced, and replaces the destination
+atomically; on any error the destination is untouched and the temporary file is removed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import re
+import stat
+import tempfile
+from array import array
+from collections.abc import Iterable, Iterator
+
+from kestimator import __version__
+from kestimator.errors import KestimatorError
+from kestimator.estimate import Estimate, estimate_file
+from kestimator.limits import Limits
+from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect_file
+from kestimator.slicers.base import KlipperTimes
+
+MARKER_PREFIX = "; kestimator "
+_MARKER_PREFIX_B = MARKER_PREFIX.encode()
+_MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
+# How far into a file the marker is looked for (it stands before the first command).
+MARKER_SEARCH_BYTES = 1 << 20
+BGCODE_MAGIC = b"GCDE"
+SECONDS_PER_MINUTE = 60.0
+PERCENT = 100.0
+
+
+def _is_m73(code: bytes) -> bool:
+    """True for an M73 command line (already left-stripped)."""
+    if code[:3] not in (b"M73", b"m73"):
+        return False
+    rest = code[3:4]
+    return not rest or rest in b" \t;\r\n"
+
+
+def progress_pr(t: float, total_s: float) -> tuple[int, int]:
+    """Whole percent done and whole minutes left at t seconds, each rounded to nearest."""
+    if total_s <= 0.0:
+        return 100, 0
+    done = min(max(t / total_s, 0.0), 1.0)
+    percent = int(done * PERCENT + 0.5)
+    minutes = int(max(total_s - t, 0.0) / SECONDS_PER_MINUTE + 0.5)
+    return percent, minutes
+
+
+def marker_line(total_s: float, slicer_s: float | None, limits_source: str) -> str:
+    """The one line that says a file was processed, by which version, with what result."""
+    return "%s%s klipper_s=%.3f slicer_s=%s limits=%s" % (
+        MARKER_PREFIX, __version__, total_s,
+        "none" if slicer_s is None else "%.3f" % slicer_s,
+        limits_source.replace("\n", " ") or "unknown")
+
+
+def original_slicer_estimate(path: str, detected: SlicerInfo) -> float | None:
+    """The slicer's own estimate: from our marker if a previous run rewrote it."""
+    with open(path, "rb") as f:
+        head = f.read(MARKER_SEARCH_BYTES)
+    match = _MARKER_SLICER_RE.search(head)
+    if match is None:
+        return detected.estimate_s
+    value = match.group(1)
+    if value == b"none":
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        return detected.estimate_s
+
+
+@dataclasses.dataclass(frozen=True)
+class InjectPlan:
+    """Everything pass 2 needs from pass 1."""
+
+    total_s: float
+    sample_lines: array
+    sample_times: array
+    layer_lines: frozenset[int]
+    last_move_line: int | None
+    times: KlipperTimes
+    adapter: SlicerAdapter
+    marker: str
+
+    @classmethod
+    def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
+                      limits_source: str) -> InjectPlan:
+        """Build the plan from a sampled estimate (estimate_file(..., sample=True))."""
+        model_s = est.total_s - est.layers[0][1] if est.layers else None
+        times = KlipperTimes(total_s=est.total_s, first_layer_s=est.first_layer_s,
+                             model_s=model_s, marks=est.marks)
+        return cls(total_s=est.total_s, sample_lines=est.sample_lines,
+                   sample_times=est.sample_times,
+                   layer_lines=frozenset(line for line, _ in est.layers),
+                   last_move_line=est.last_move_line, times=times, adapter=adapter,
+                   marker=marker_line(est.total_s, slicer_s, limits_source))
+
+
+class Rewriter:
+    """Pass 2, one line at a time: `process(raw)` returns the bytes to write for it."""
+
+    def __init__(self, plan: InjectPlan) -> None:
+        self.plan = plan
+        self.lineno = 0
+        self.eol = b"\n"
+        self._sample = 0
+        self._t = 0.0
+        self._last_pr: tuple[int, int] | None = None
+        self._started = False
+        self._prefixes = plan.adapter.time_comment_prefixes
+        self.m73_written = 0
+
+    def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
+        self._last_pr = (percent, minutes)
+        self.m73_written += 1
+        return b"M73 P%d R%d" % (percent, minutes) + eol
+
+    def _advance(self, line: int) -> bool:
+        """Move the progress pointer to `line`; True if the time changed."""
+        lines = self.plan.sample_lines
+        i = self._sample
+        n = len(lines)
+        if i >= n or lines[i] >= line:
+            return False
+        while i < n and lines[i] < line:
+            i += 1
+        self._sample = i
+        self._t = self.plan.sample_times[i - 1]
+        return True
+
+    def process(self, raw: bytes) -> list[bytes]:
+        """The output for one input line (with its line ending, if it has one)."""
+        self.lineno += 1
+        if raw.endswith(b"\n"):
+            eol = b"\r\n" if raw.endswith(b"\r\n") else b"\n"
+            self.eol = eol
+        else:
+            eol = b""
+        code = raw.lstrip()
+        if not code:
+            return [raw]
+        if code[:1] == b";":
+            return self._comment(raw, code, eol)
+        if _is_m73(code):
+            return []
+        out: list[bytes] = []
+        plan = self.plan
+        line_eol = eol or self.eol
+        if not self._started:
+            self._started = True
+            self._advance(self.lineno)
+            out.append(plan.marker.encode() + line_eol)
+            out.append(self._m73(*progress_pr(self._t, plan.total_s), line_eol))
+        elif self._advance(self.lineno):
+            pr = progress_pr(self._t, plan.total_s)
+            if pr != self._last_pr:
+                out.append(self._m73(pr[0], pr[1], line_eol))
+        if self.lineno == plan.last_move_line:
+            if eol:
+                out.append(raw)
+                out.append(self._m73(100, 0, eol))
+            else:
+                # The file ends in this move without a line ending: never add one to it.
+                out.append(self._m73(100, 0, self.eol))
+                out.append(raw)
+            return out
+        out.append(raw)
+        return out
+
+    def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
+        if code.startswith(_MARKER_PREFIX_B):
+            return []
+        if self.lineno in self.plan.layer_lines and self._started:
+            self._advance(self.lineno)
+            pr = progress_pr(self._t, self.plan.total_s)
+            if eol:
+                return [raw, self._m73(pr[0], pr[1], eol)]
+            return [self._m73(pr[0], pr[1], self.eol), raw]
+        if self._prefixes:
+            text = code.decode("utf-8", "surrogateescape").rstrip("\r\n")
+            if text.startswith(self._prefixes):
+                new = self.plan.adapter.rewrite_time_comment(text, self.lineno,
+                                                             self.plan.times)
+                if new is not None and new != text:
+                    indent = raw[:len(raw) - len(code)]
+                    return [indent + new.encode("utf-8", "surrogateescape") + eol]
+        return [raw]
+
+
+def rewrite_lines(lines: Iterable[bytes], plan: InjectPlan) -> Iterator[bytes]:
+    """Pass 2 over byte lines (split at LF, endings kept)."""
+    rewriter = Rewriter(plan)
+    process = rewriter.process
+    for raw in lines:
+        yield from process(raw)
+
+
+@dataclasses.dataclass(frozen=True)
+class InjectResult:
+    """What an inject run did."""
+
+    path: str
+    output: str
+    estimate: Estimate
+    slicer: SlicerInfo
+    slicer_estimate_s: float | None
+    m73_written: int
+
+
+def check_gcode_file(path: str) -> os.stat_result:
+    """Stat a file we are about to read, refusing what is not a text G-code file."""
+    try:
+        st = os.stat(path)
+    except OSError as exc:
+        raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
+    if stat.S_ISDIR(st.st_mode):
+        raise KestimatorError("is a directory, not a G-code file", path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(BGCODE_MAGIC))
+    except OSError as exc:
+        raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
+    if magic == BGCODE_MAGIC:
+        raise KestimatorError(
+            "binary G-code (.bgcode) is not supported: export plain G-code instead", path, 1)
+    if st.st_size == 0:
+        raise KestimatorError("the file is empty", path)
+    return st
+
+
+def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
+              heat_time: float = 0.0) -> tuple[InjectPlan, Estimate, SlicerInfo, float | None]:
+    """Pass 1: estimate with progress samples and build the rewrite plan."""
+    slicer = detect_file(path)
+    adapter = adapter_for(slicer.family)
+    slicer_s = original_slicer_estimate(path, slicer)
+    est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
+                        sample=True, mark_prefixes=adapter.mark_prefixes)
+    if est.last_move_line is None:
+        raise KestimatorError("the file has no moves: nothing to estimate", path)
+    plan = InjectPlan.from_estimate(est, adapter, slicer_s, limits_source)
+    return plan, est, slicer, slicer_s
+
+
+def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
+                limits_source: str = "", homing_time: float = 0.0,
+                heat_time: float = 0.0) -> InjectResult:
+    """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial."""
+    src = os.fspath(path)
+    dest = os.fspath(output) if output is not None else src
+    before = check_gcode_file(src)
+    plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
+                                            heat_time)
+    rewriter = Rewriter(plan)
+    _write_atomically(src, dest, rewriter, before)
+    return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,
+                        slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
+
+
+def _write_atomically(src: str, dest: str, rewriter: Rewriter,
+                      before: os.stat_result) -> None:
+    dest_dir = os.path.dirname(os.path.abspath(dest))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(dest) + ".",
+                                   suffix=".kestimator-tmp", dir=dest_dir)
+    except OSError as exc:
+        raise KestimatorError("cannot write next to the output: %s"
+                              % (exc.strerror or exc), dest) from None
+    try:
+        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
+            process = rewriter.process
+            write = out.writelines
+            for raw in inp:
+                write(process(raw))
+            out.flush()
+            os.fsync(out.fileno())
+        if dest == src:
+            now = os.stat(src)
+            if (now.st_size, now.st_mtime_ns, now.st_ino) != (
+                    before.st_size, before.st_mtime_ns, before.st_ino):
+                raise KestimatorError("the file changed while it was being processed; "
+                                      "it was left as it is now", src)
+        if os.path.exists(dest):
+            os.chmod(tmp, stat.S_IMODE(os.stat(dest).st_mode))
+        else:
+            os.chmod(tmp, stat.S_IMODE(before.st_mode))
+        os.replace(tmp, dest)
+    except KestimatorError:
+        _remove_quietly(tmp)
+        raise
+    except OSError as exc:
+        _remove_quietly(tmp)
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    _fsync_dir(dest_dir)
+
+
+def _remove_quietly(path: str) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
+def _fsync_dir(path: str) -> None:
+    """Make the rename durable where the platform allows it (not on Windows)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

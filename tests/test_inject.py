@@ -1,0 +1,308 @@
+"""`kestimator inject` on every corpus file: true M73, rewritten time comments, no byte lost.
+
+Progress is checked against Klipper's own reference checkpoints (layer markers and every
+500 moves): each M73 P must lie between Klipper's progress at the checkpoints around it
+(within half a percentage point) and R within a minute of the remaining time there.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from kestimator.config.printer_cfg import limits_from_printer_cfg
+from kestimator.estimate import estimate_file
+from kestimator.rewrite import MARKER_PREFIX, inject_file, progress_pr
+
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files
+
+M73_RE = re.compile(rb"^\s*[Mm]73(?=[\s;]|$)")
+M73_PR_RE = re.compile(rb"^M73 P(\d+) R(\d+)\r?\n?$")
+LARGE_FILE_BYTES = 10_000_000
+
+# Lines each slicer family's time comments start with (what inject may rewrite).
+TIME_COMMENT_RE = re.compile(
+    rb"^(; estimated (first layer )?printing time|; model printing time:|;TIME:|;PRINT\.TIME:"
+    rb"|;TIME_ELAPSED:|;PRINTING_TIME:|;REMAINING_TIME:|;Print Time:|; --- print time:"
+    rb"|; Calculated-during-export Build Time:|; estimated_print_time_s :)")
+
+
+def _params() -> list[object]:
+    out: list[object] = []
+    for path in corpus_files():
+        marks = [pytest.mark.slow] if path.stat().st_size > LARGE_FILE_BYTES else []
+        out.append(pytest.param(path, id=path.parent.name + "/" + path.stem, marks=marks))
+    return out
+
+
+def _owned(line: bytes) -> bool:
+    return (M73_RE.match(line) is not None or line.startswith(MARKER_PREFIX.encode())
+            or TIME_COMMENT_RE.match(line) is not None)
+
+
+def _strip_owned(data: bytes) -> list[bytes]:
+    return [line for line in data.splitlines(keepends=True) if not _owned(line)]
+
+
+def _reference(path: Path) -> dict | None:
+    ref = CORPUS / "reference" / path.parent.name / (path.stem + ".json")
+    return json.loads(ref.read_text()) if ref.exists() else None
+
+
+@pytest.fixture(scope="module")
+def corpus_limits():  # type: ignore[no-untyped-def]
+    return limits_from_printer_cfg(CORPUS_CFG)[0]
+
+
+@pytest.mark.parametrize("src", _params())
+def test_inject_keeps_every_other_byte_and_is_idempotent(src: Path, tmp_path: Path,
+                                                         corpus_limits, corpus_root) -> None:
+    work = tmp_path / src.name
+    shutil.copyfile(src, work)
+    original = src.read_bytes()
+    result = inject_file(work, corpus_limits, limits_source="printer.cfg")
+    first = work.read_bytes()
+    assert _strip_owned(first) == _strip_owned(original)
+    inject_file(work, corpus_limits, limits_source="printer.cfg")
+    assert work.read_bytes() == first
+
+    lines = first.splitlines(keepends=True)
+    markers = [line for line in lines if line.startswith(MARKER_PREFIX.encode())]
+    assert len(markers) == 1
+    m73 = [line for line in lines if M73_RE.match(line)]
+    parsed = [M73_PR_RE.match(line) for line in m73]
+    assert all(parsed), [line for line, p in zip(m73, parsed, strict=True) if not p][:3]
+    percents = [int(p.group(1)) for p in parsed if p]
+    assert percents[0] == 0 and percents[-1] == 100
+    assert percents == sorted(percents)
+    total = result.estimate.total_s
+    assert parsed[0] and int(parsed[0].group(2)) == progress_pr(0.0, total)[1]
+    assert parsed[-1] and int(parsed[-1].group(2)) == 0
+
+
+@pytest.mark.parametrize("src", [p for p in corpus_files()
+                                 if _reference(p) and p.stat().st_size <= LARGE_FILE_BYTES],
+                         ids=lambda p: p.parent.name + "/" + p.stem)
+def test_every_m73_agrees_with_klipper_progress(src: Path, tmp_path: Path, corpus_limits,
+                                                corpus_root) -> None:
+    ref = _reference(src)
+    assert ref is not None
+    total = ref["total_s"]
+    cps = sorted((cp["line"], cp["t"]) for cp in ref["checkpoints"])
+    cp_lines = [line for line, _ in cps]
+    out = tmp_path / src.name
+    inject_file(src, corpus_limits, output=str(out), limits_source="printer.cfg")
+    # Input line numbers of the lines that survive (everything but the slicer's M73s).
+    kept_input_lines = [i + 1 for i, line in enumerate(src.read_bytes().splitlines())
+                        if not M73_RE.match(line)]
+    kept = 0
+    checked = 0
+    for line in out.read_bytes().splitlines():
+        if line.startswith(MARKER_PREFIX.encode()):
+            continue
+        match = M73_PR_RE.match(line)
+        if match is None:
+            kept += 1
+            continue
+        # The M73 stands before input line L: its progress is the time at L.
+        at = kept_input_lines[kept] if kept < len(kept_input_lines) else 10**12
+        i = bisect.bisect_right(cp_lines, at)
+        t_lo = cps[i - 1][1] if i else 0.0
+        t_hi = cps[i][1] if i < len(cps) else total
+        if i and cps[i - 1][0] == at:
+            t_hi = max(t_hi, t_lo)
+        percent, minutes = int(match.group(1)), int(match.group(2))
+        assert 100 * t_lo / total - 0.5 <= percent <= 100 * t_hi / total + 0.5, (line, at)
+        assert (total - t_hi) / 60 - 1 <= minutes <= (total - t_lo) / 60 + 1, (line, at)
+        checked += 1
+    assert checked > 100
+
+
+@pytest.mark.parametrize("name", ["prusaslicer/ps25_nut_accelA_small.gcode",
+                                  "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
+                                  "cura/cura413_ender3_nut_small.gcode",
+                                  "bambustudio/gcodeparsersharp_bs1.6.2.gcode",
+                                  "kirimoto/cancelobj_kirimoto3.0.gcode"])
+def test_rewritten_slicer_time_equals_the_estimate(name: str, tmp_path: Path, corpus_limits,
+                                                   corpus_root) -> None:
+    out = tmp_path / "out.gcode"
+    inject_file(corpus_root / "gcode" / name, corpus_limits, output=str(out))
+    est = estimate_file(out, corpus_limits)
+    text = out.read_text(encoding="utf-8", errors="replace")
+    total = round(est.total_s)
+    if "estimated printing time (normal mode)" in text:
+        from kestimator.slicers import parse_prusa_duration
+        values = re.findall(r"^; estimated printing time \(normal mode\) = (.+)$", text, re.M)
+        assert values and all(parse_prusa_duration(v) == total for v in values)
+    elif ";TIME:" in text:
+        assert re.findall(r"^;TIME:(\d+)$", text, re.M) == [str(total)]
+        elapsed = [float(v) for v in re.findall(r"^;TIME_ELAPSED:(\S+)$", text, re.M)]
+        assert elapsed == sorted(elapsed) and elapsed[-1] <= est.total_s + 1e-6
+    elif "total estimated time" in text:
+        from kestimator.slicers import detect_file
+        assert detect_file(out).estimate_s == total
+    else:
+        assert re.findall(r"^; --- print time: (\d+)s ---$", text, re.M) == [str(total)]
+
+
+def test_line_endings_bytes_and_missing_final_newline_are_kept(tmp_path: Path,
+                                                              corpus_limits) -> None:
+    body = (b"; generated by PrusaSlicer 2.6.0 on 2024-01-01 at 00:00:00 UTC\r\n"
+            b"M73 P0 R1\r\n; caf\xe9 \xff\xfe not utf-8\n;LAYER_CHANGE\r\nG1 X10 F3000\r\n"
+            b"M73 Q50 S1\nG1 X20 ; mixed ending\n;LAYER_CHANGE\nG1 X30")
+    work = tmp_path / "mixed.gcode"
+    work.write_bytes(body)
+    inject_file(work, corpus_limits)
+    out = work.read_bytes()
+    assert _strip_owned(out) == _strip_owned(body)
+    assert not out.endswith(b"\n")
+    assert b"M73 Q" not in out
+    assert out.count(b"M73 P") >= 4
+    for line in out.splitlines(keepends=True):
+        if line.startswith(b"M73 P"):
+            assert line.endswith(b"\n")
+
+
+def test_output_option_leaves_the_input_untouched(tmp_path: Path, corpus_limits,
+                                                  corpus_root) -> None:
+    src = tmp_path / "in.gcode"
+    shutil.copyfile(corpus_root / "gcode/prusaslicer/ps25_nut_accelA_small.gcode", src)
+    before = src.read_bytes()
+    inject_file(src, corpus_limits, output=str(tmp_path / "out.gcode"))
+    assert src.read_bytes() == before
+    assert (tmp_path / "out.gcode").read_bytes() != before
+
+
+def _run_cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = dict(os.environ, PYTHONPATH=str(PROJECT))
+    return subprocess.run([sys.executable, "-m", "kestimator", *args], capture_output=True,
+                          text=True, env=env)
+
+
+def test_cli_inject_reports_klipper_time(tmp_path: Path, corpus_root) -> None:
+    work = tmp_path / "nut.gcode"
+    shutil.copyfile(corpus_root / "gcode/prusaslicer/ps25_nut_accelA_small.gcode", work)
+    proc = _run_cli("inject", str(work), "--printer-cfg", str(CORPUS_CFG))
+    assert proc.returncode == 0, proc.stderr
+    assert "Klipper time 3m 42s" in proc.stdout
+    assert "; estimated printing time (normal mode) = 3m 42s" in work.read_text()
+
+
+def test_failure_on_unreadable_file_leaves_it_intact(tmp_path: Path) -> None:
+    if os.geteuid() == 0:
+        pytest.skip("root can read any file")
+    work = tmp_path / "locked.gcode"
+    work.write_bytes(b"G1 X10 F3000\n")
+    work.chmod(0)
+    proc = _run_cli("inject", str(work))
+    work.chmod(0o644)
+    assert proc.returncode == 1
+    assert work.read_bytes() == b"G1 X10 F3000\n"
+
+
+def test_failure_in_a_read_only_directory_leaves_the_file_intact(tmp_path: Path) -> None:
+    if os.geteuid() == 0:
+        pytest.skip("root may write into read-only directories")
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    work = folder / "print.gcode"
+    work.write_bytes(b"G1 X10 F3000\n")
+    folder.chmod(0o555)
+    try:
+        proc = _run_cli("inject", str(work))
+    finally:
+        folder.chmod(0o755)
+    assert proc.returncode == 1
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert str(work) in proc.stderr
+    assert work.read_bytes() == b"G1 X10 F3000\n"
+
+
+def test_failure_while_writing_leaves_the_original_and_no_temp_file(
+        tmp_path: Path, corpus_limits, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+
+    from kestimator import rewrite
+    from kestimator.errors import KestimatorError
+
+    work = tmp_path / "print.gcode"
+    body = b"M83\n;LAYER_CHANGE\nG1 X10 E1 F3000\n;LAYER_CHANGE\nG1 X20 E1\n"
+    work.write_bytes(body)
+    real_process = rewrite.Rewriter.process
+
+    def disk_full(self, raw: bytes) -> list[bytes]:  # type: ignore[no-untyped-def]
+        if self.lineno >= 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_process(self, raw)
+
+    monkeypatch.setattr(rewrite.Rewriter, "process", disk_full)
+    with pytest.raises(KestimatorError, match="No space left on device"):
+        inject_file(work, corpus_limits)
+    assert work.read_bytes() == body
+    assert os.listdir(tmp_path) == ["print.gcode"]
+
+
+def test_missing_file_and_binary_gcode_give_one_line_errors(tmp_path: Path) -> None:
+    proc = _run_cli("inject", str(tmp_path / "nope.gcode"))
+    assert proc.returncode == 1
+    assert proc.stderr.count("\n") == 1 and "nope.gcode" in proc.stderr
+    binary = tmp_path / "print.bgcode"
+    binary.write_bytes(b"GCDE\x01\x00\x00\x00" + b"\x00" * 64)
+    proc = _run_cli("inject", str(binary))
+    assert proc.returncode == 1
+    assert "binary G-code" in proc.stderr and "Traceback" not in proc.stderr
+    assert binary.read_bytes().startswith(b"GCDE")
+
+
+@pytest.mark.parametrize("where", ["mkstemp", "replace", "open"])
+def test_permission_denied_anywhere_exits_1_with_one_line_and_the_file_intact(
+        where: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import errno
+
+    from kestimator import cli, rewrite
+
+    work = tmp_path / "print.gcode"
+    body = b"M83\nG1 X10 E1 F3000\nG1 X20 E1\n"
+    work.write_bytes(body)
+
+    def denied(*args: object, **kwargs: object) -> None:
+        raise PermissionError(errno.EACCES, "Permission denied")
+
+    if where == "mkstemp":
+        monkeypatch.setattr(rewrite.tempfile, "mkstemp", denied)
+    elif where == "replace":
+        monkeypatch.setattr(rewrite.os, "replace", denied)
+    else:
+        real_open = open
+
+        def open_denied(path, mode="r", *args, **kwargs):  # type: ignore[no-untyped-def]
+            if str(path) == str(work) and "b" in mode and getattr(open_denied, "armed", 0):
+                denied()
+            return real_open(path, mode, *args, **kwargs)
+
+        monkeypatch.setattr(rewrite, "open", open_denied, raising=False)
+        monkeypatch.setattr(rewrite.Rewriter, "__init__", _arming(open_denied,
+                                                                  rewrite.Rewriter.__init__))
+    status = cli.main(["inject", str(work)])
+    err = capsys.readouterr().err
+    assert status == 1
+    assert err.count("\n") == 1 and "Permission denied" in err and str(work) in err
+    assert work.read_bytes() == body
+    assert os.listdir(tmp_path) == ["print.gcode"]
+
+
+def _arming(target, init):  # type: ignore[no-untyped-def]
+    """Wrap Rewriter.__init__ so the pass-2 open of the source fails (pass 1 succeeded)."""
+    def wrapped(self, *args, **kwargs):  # type: ignore[no-untyped-def]
+        target.armed = 1
+        init(self, *args, **kwargs)
+    return wrapped
