@@ -12,18 +12,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import traceback
 from collections.abc import Sequence
 from typing import Any
 
 from kestimator import __version__
-from kestimator.config.printer_cfg import limits_from_printer_cfg
+from kestimator.config import resolve
+from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
+from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
-from kestimator.rewrite import inject_file
+from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import SlicerInfo, detect_file
 
 EXIT_OK = 0
@@ -67,7 +68,26 @@ def _build_parser() -> argparse.ArgumentParser:
     inj.add_argument("--json", action="store_true", help="print a JSON summary")
     inj.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     inj.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    lim = sub.add_parser(
+        "limits", help="show the printer limits a file would be timed with, and their sources",
+        description="Print every printer limit kestimator would use for FILE and where each "
+                    "came from: --set, the printer.cfg line or Moonraker, the profile, the "
+                    "slicer setting in the file (a guess), or a default.",
+        epilog=LIMITS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    lim.add_argument("file", nargs="?",
+                     help="the G-code file (its slicer settings stand in when no printer "
+                          "config is known)")
+    _add_limit_options(lim, with_times=False)
+    lim.add_argument("--json", action="store_true", help="print one JSON object")
+    lim.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
     return parser
+
+
+LIMITS_EPILOG = """examples:
+  kestimator limits print.gcode
+  kestimator limits print.gcode --moonraker http://voron.local:7125 --json
+  kestimator limits --printer-cfg printer.cfg --set klipper_generation=mcr
+"""
 
 
 INJECT_EPILOG = """examples:
@@ -78,26 +98,56 @@ As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line i
 """
 
 
-def _add_limit_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--printer-cfg", metavar="CFG",
-                        help="your Klipper printer.cfg (includes and SAVE_CONFIG are read)")
-    parser.add_argument("--homing-time", type=float, default=0.0, metavar="S",
-                        help="seconds each G28 takes on your printer (default 0)")
-    parser.add_argument("--heat-time", type=float, default=0.0, metavar="S",
-                        help="seconds each heater wait (M109/M190/TEMPERATURE_WAIT) takes "
-                             "(default 0)")
+def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True) -> None:
+    machine = parser.add_mutually_exclusive_group()
+    machine.add_argument("--printer-cfg", metavar="CFG",
+                         help="your Klipper printer.cfg (includes and SAVE_CONFIG are read)")
+    machine.add_argument("--moonraker", metavar="URL",
+                         help="read the printer's live Klipper settings from Moonraker, e.g. "
+                              "http://voron.local:7125 (cached for when it is offline, "
+                              "%g s timeout)" % DEFAULT_TIMEOUT_S)
+    parser.add_argument("--api-key", metavar="KEY",
+                        help="Moonraker's API key, if it asks for one (also the profile's "
+                             "api_key or $%s)" % API_KEY_ENVIRONMENT)
+    parser.add_argument("--profile", metavar="TOML",
+                        help="your kestimator profile (default: "
+                             "~/.config/kestimator/config.toml if it exists)")
+    parser.add_argument("--no-profile", action="store_true", help="read no profile")
+    parser.add_argument("--printer", metavar="NAME",
+                        help='use the profile\'s [printers."NAME"] table (default: the one '
+                             "named like the slicer's printer preset)")
+    parser.add_argument("--set", action="append", default=[], dest="overrides",
+                        metavar="KEY=VALUE",
+                        help="set one limit, above every other source (keys as "
+                             "`kestimator limits` shows them, e.g. max_accel=5000 or "
+                             "klipper_generation=mcr); repeatable")
+    if with_times:
+        parser.add_argument("--homing-time", type=float, default=0.0, metavar="S",
+                            help="seconds each G28 takes on your printer (default 0)")
+        parser.add_argument("--heat-time", type=float, default=0.0, metavar="S",
+                            help="seconds each heater wait (M109/M190/TEMPERATURE_WAIT) takes "
+                                 "(default 0)")
 
 
-def resolve_limits(printer_cfg: str | None) -> tuple[Limits, str, list[str]]:
+def resolve_limits(args: argparse.Namespace,
+                   gcode_path: str | None) -> tuple[Limits, str, list[str]]:
     """Limits for a run, a one-line description of their source, and warnings."""
-    if printer_cfg:
-        limits, _sources = limits_from_printer_cfg(printer_cfg)
-        return limits, os.fspath(printer_cfg), []
-    limits = Limits.from_values({"arcs_enabled": True, "firmware_retraction_enabled": True})
-    return limits, "defaults", [
-        "no printer.cfg given: max_velocity %g, max_accel %g and Klipper's other defaults "
-        "were assumed (pass --printer-cfg for exact times)"
-        % (limits.max_velocity, limits.max_accel)]
+    resolved = resolve.resolve_limits(_limit_request(args, gcode_path))
+    return resolved.limits, resolved.summary, list(resolved.warnings)
+
+
+def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitRequest:
+    """The command line's limit options as a request to the resolver."""
+    overrides: dict[str, str] = {}
+    for item in args.overrides:
+        key, equals, value = item.partition("=")
+        if not equals or not key.strip():
+            raise KestimatorError("--set takes KEY=VALUE, e.g. --set max_accel=5000")
+        overrides[key.strip()] = value
+    return LimitRequest(gcode=gcode_path, overrides=overrides, printer_cfg=args.printer_cfg,
+                        moonraker_url=args.moonraker, api_key=args.api_key,
+                        profile=args.profile, use_profile=not args.no_profile,
+                        printer=args.printer)
 
 
 def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
@@ -168,10 +218,13 @@ def _print_text(doc: dict[str, Any], out: Any) -> None:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     """`kestimator estimate`."""
-    limits, source, warnings = resolve_limits(args.printer_cfg)
+    limits, source, warnings = resolve_limits(args, args.file)
     _check_time_options(args)
+    check_gcode_file(args.file)
     est = estimate_file(args.file, limits, homing_time=args.homing_time,
                         heat_time=args.heat_time)
+    if est.last_move_line is None:
+        warnings = warnings + ["the file has no moves: there is nothing to time"]
     slicer = detect_file(args.file)
     doc = estimate_to_json(est, slicer, source, warnings)
     if args.json:
@@ -184,7 +237,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """`kestimator inject`."""
-    limits, source, warnings = resolve_limits(args.printer_cfg)
+    limits, source, warnings = resolve_limits(args, args.file)
     _check_time_options(args)
     result = inject_file(args.file, limits, output=args.output, limits_source=source,
                          homing_time=args.homing_time, heat_time=args.heat_time)
@@ -212,6 +265,75 @@ def _check_time_options(args: argparse.Namespace) -> None:
                                   % name.replace("_", "-"))
 
 
+def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]:
+    """The documented `limits --json` object (schema version JSON_SCHEMA_VERSION)."""
+    slicer = resolved.slicer
+    settings = resolved.slicer_settings
+    return {
+        "schema": JSON_SCHEMA_VERSION,
+        "kestimator": __version__,
+        "file": path,
+        "slicer": None if slicer is None else {"name": slicer.name, "version": slicer.version},
+        "machine": resolved.machine,
+        "profile": resolved.profile,
+        "summary": resolved.summary,
+        "limits": {
+            field: {"value": getattr(resolved.limits, field),
+                    "source": resolved.sources[field],
+                    "overridden": [{"value": c.value, "source": c.source}
+                                   for c in resolved.shadowed.get(field, ())]}
+            for field in Limits.field_names()},
+        "slicer_settings": {"origin": settings.origin or None,
+                            "accelerations": dict(settings.accelerations),
+                            "notes": list(settings.notes)},
+        "warnings": list(resolved.warnings),
+    }
+
+
+def _print_limits(doc: dict[str, Any], out: Any) -> None:
+    slicer = doc["slicer"]
+    lines = ["%s" % (doc["file"] or "(no file)")]
+    if slicer is not None:
+        lines.append("  slicer  : %s%s" % (slicer["name"], " " + slicer["version"]
+                                           if slicer["version"] else ""))
+    lines.append("  machine : %s" % (doc["machine"] or "none (no printer.cfg or Moonraker)"))
+    lines.append("  profile : %s" % (doc["profile"] or "none"))
+    width = max(len(field) for field in doc["limits"])
+    for field, entry in doc["limits"].items():
+        lines.append("  %-*s %-10s %s" % (width, field, _shown(entry["value"]),
+                                           entry["source"]))
+    accelerations = doc["slicer_settings"]["accelerations"]
+    if accelerations:
+        lines.append("  accelerations the file sets itself (mm/s^2, not limits): " + ", ".join(
+            "%s %g" % (key, value) for key, value in accelerations.items()))
+    for note in doc["slicer_settings"]["notes"]:
+        lines.append("  note: " + note)
+    for warning in doc["warnings"]:
+        lines.append("  warning: " + warning)
+    out.write("\n".join(lines) + "\n")
+
+
+def _shown(value: object) -> str:
+    """A limit's value for people: 300, 0.64, true, mainline."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return "%g" % value
+    return str(value)
+
+
+def cmd_limits(args: argparse.Namespace) -> int:
+    """`kestimator limits`."""
+    resolved = resolve.resolve_limits(_limit_request(args, args.file))
+    doc = limits_to_json(resolved, args.file)
+    if args.json:
+        json.dump(doc, sys.stdout, indent=1)
+        sys.stdout.write("\n")
+    else:
+        _print_limits(doc, sys.stdout)
+    return EXIT_OK
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status."""
     parser = _build_parser()
@@ -224,6 +346,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_estimate(args)
         if args.command == "inject":
             return cmd_inject(args)
+        if args.command == "limits":
+            return cmd_limits(args)
     except KestimatorError as exc:
         if args.debug:
             traceback.print_exc()

@@ -1,7 +1,10 @@
 """The one value that describes what a Klipper printer allows: `Limits`.
 
 This module owns Klipper's own defaults for every motion setting we model and the values
-derived from them (junction deviation, the minimum_cruise_ratio pseudo-acceleration).
+derived from them (junction deviation, the minimum_cruise_ratio pseudo-acceleration), and the
+``kestimator: klipper_generation = <name>`` directive by which a file may name the Klipper
+generation.
+
 Sources of limits (printer.cfg, slicer settings, the command line) build a `Limits` through
 `Limits.from_values`, so a default lives in exactly one place: here.
 
@@ -14,12 +17,26 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from collections.abc import Mapping
 from typing import Any
 
 # What `SET_VELOCITY_LIMIT ACCEL_TO_DECEL` (and [printer] max_accel_to_decel) means depends
 # on the Klipper generation the printer runs.
 KLIPPER_GENERATIONS = ("mainline", "mcr", "absolute")
+
+# No Klipper setting says which generation a printer runs, so a printer.cfg comment or a
+# slicer's printer notes may: "kestimator: klipper_generation = mcr".
+GENERATION_DIRECTIVE_RE = re.compile(
+    r"\bkestimator\s*:\s*klipper_generation\s*[=:]\s*([^\s,;\"']+)")
+
+
+def find_generation_directive(text: str) -> str | None:
+    """The generation a ``kestimator: klipper_generation = <name>`` directive in ``text``
+    names (not checked against ``KLIPPER_GENERATIONS``), or None."""
+    match = GENERATION_DIRECTIVE_RE.search(text)
+    return None if match is None else match.group(1)
+
 
 # Values [printer] requires in Klipper but that a user without a printer.cfg may not give;
 # these stand in for them and are reported as guesses.

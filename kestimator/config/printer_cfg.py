@@ -6,6 +6,9 @@ SAVE_CONFIG block, with the file and line every value came from; and the mapping
 motion options kestimator models onto `Limits` fields, checked against the same bounds
 Klipper enforces. Defaults for absent options stay in `kestimator.limits`.
 
+Klipper has no option for the Klipper generation a printer runs; a comment
+``# kestimator: klipper_generation = mcr`` in the main file names it (Klipper ignores comments).
+
 The rules follow mainline Klipper at commit 84104bbbd, klippy/configfile.py (Python's
 configparser as Klipper configures it: no interpolation, later duplicates win, `#` and `;`
 comments), re-implemented here so that every value keeps its file and line.
@@ -20,7 +23,7 @@ import operator
 import os
 
 from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
+from kestimator.limits import KLIPPER_GENERATIONS, Limits, find_generation_directive
 
 # Klipper recognises the SAVE_CONFIG block only by these three whole lines, preceded by a
 # line break and followed by one.
@@ -105,11 +108,31 @@ def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[
     "klipper default", "derived from <option>", "kestimator default" (klipper_generation)
     or, for options Klipper requires but the config lacks, `REQUIRED_FALLBACK`.
     """
+    values, provenance = printer_cfg_values(path)
+    limits = Limits.from_values(values)
+    for field in Limits.field_names():
+        provenance.setdefault(field, ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT))
+    return limits, provenance
+
+
+def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object], dict[str, str]]:
+    """Only the Limits fields the config sets, and the "<file>:<line>" each came from.
+
+    A field the config leaves out is Klipper's default (``Limits.from_values`` fills it in);
+    ``arcs_enabled`` and ``firmware_retraction_enabled`` are set, to True, where their
+    section is declared; ``klipper_generation`` where a comment of the main file says
+    ``kestimator: klipper_generation = <name>``. Raises KestimatorError (file and line) for
+    values Klipper rejects.
+    """
     config = _read_config(os.fspath(path))
     values: dict[str, object] = {}
     provenance: dict[str, str] = {}
     read_from: dict[str, ConfigValue] = {}
-    for spec in _FLOAT_OPTIONS:
+    directive = _generation_directive(os.fspath(path))
+    if directive is not None:
+        values["klipper_generation"] = directive.value
+        read_from["klipper_generation"] = directive
+    for spec in FLOAT_OPTIONS:
         raw = config.sections.get(spec.section, {}).get(spec.option)
         if raw is not None:
             values[spec.field] = spec.parse(raw)
@@ -127,7 +150,7 @@ def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[
             values[field] = True
             provenance[field] = config.headers[section]
     limits = Limits.from_values(values)
-    for field, bound, allowed, text in _RELATIVE_BOUNDS:
+    for field, bound, allowed, text in RELATIVE_BOUNDS:
         raw = read_from.get(field)
         if raw is not None and not allowed(getattr(limits, field), getattr(limits, bound)):
             raise KestimatorError(
@@ -135,13 +158,28 @@ def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[
                 f"got {raw.value}", raw.path, raw.line)
     for field, raw in read_from.items():
         provenance[field] = raw.location
-    for field in Limits.field_names():
-        provenance.setdefault(field, _ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT))
-    return limits, provenance
+    return values, provenance
+
+
+def _generation_directive(path: str) -> ConfigValue | None:
+    """The Klipper generation a comment of the main file names, checked, with its line."""
+    for number, text in enumerate(_read_lines(path, None), start=1):
+        stripped = text.lstrip()
+        if not stripped.startswith(("#", ";")):
+            continue
+        name = find_generation_directive(stripped)
+        if name is None:
+            continue
+        if name not in KLIPPER_GENERATIONS:
+            raise KestimatorError(f"klipper_generation must be one of "
+                                  f"{', '.join(KLIPPER_GENERATIONS)}, not {name!r}",
+                                  path, number)
+        return ConfigValue(name, path, number)
+    return None
 
 
 @dataclasses.dataclass(frozen=True)
-class _FloatOption:
+class FloatOption:
     """A numeric option, its Limits field and the bounds Klipper's getfloat() enforces."""
 
     section: str
@@ -162,56 +200,62 @@ class _FloatOption:
         if not math.isfinite(value):
             raise KestimatorError(f"{name}: {raw.value!r} is not a finite number",
                                   raw.path, raw.line)
+        problem = self.violation(value)
+        if problem is not None:
+            raise KestimatorError(f"{name} {problem}, got {raw.value}", raw.path, raw.line)
+        return value
+
+    def violation(self, value: float) -> str | None:
+        """A text such as "must be at least 1" if Klipper refuses ``value``, else None."""
         for bound, allowed, text in ((self.minval, operator.ge, "at least"),
                                      (self.above, operator.gt, "above"),
                                      (self.below, operator.lt, "below")):
             if bound is not None and not allowed(value, bound):
-                raise KestimatorError(f"{name} must be {text} {bound:g}, got {raw.value}",
-                                      raw.path, raw.line)
-        return value
+                return f"must be {text} {bound:g}"
+        return None
 
 
 # Bounds as in klippy/toolhead.py, kinematics/*.py, kinematics/extruder.py,
 # extras/gcode_arcs.py and extras/firmware_retraction.py at 84104bbbd
 # (max_accel_to_decel as in the Klipper releases that still read it).
-_FLOAT_OPTIONS = (
-    _FloatOption("printer", "max_velocity", "max_velocity", above=0.0),
-    _FloatOption("printer", "max_accel", "max_accel", above=0.0),
-    _FloatOption("printer", "minimum_cruise_ratio", "minimum_cruise_ratio",
+FLOAT_OPTIONS = (
+    FloatOption("printer", "max_velocity", "max_velocity", above=0.0),
+    FloatOption("printer", "max_accel", "max_accel", above=0.0),
+    FloatOption("printer", "minimum_cruise_ratio", "minimum_cruise_ratio",
                  minval=0.0, below=1.0),
-    _FloatOption("printer", "square_corner_velocity", "square_corner_velocity", minval=0.0),
-    _FloatOption("printer", "max_z_velocity", "max_z_velocity", above=0.0),
-    _FloatOption("printer", "max_z_accel", "max_z_accel", above=0.0),
-    _FloatOption("printer", "max_accel_to_decel", "max_accel_to_decel", above=0.0),
-    _FloatOption("extruder", "nozzle_diameter", "nozzle_diameter", above=0.0),
-    _FloatOption("extruder", "filament_diameter", "filament_diameter"),
-    _FloatOption("extruder", "max_extrude_cross_section", "max_extrude_cross_section",
+    FloatOption("printer", "square_corner_velocity", "square_corner_velocity", minval=0.0),
+    FloatOption("printer", "max_z_velocity", "max_z_velocity", above=0.0),
+    FloatOption("printer", "max_z_accel", "max_z_accel", above=0.0),
+    FloatOption("printer", "max_accel_to_decel", "max_accel_to_decel", above=0.0),
+    FloatOption("extruder", "nozzle_diameter", "nozzle_diameter", above=0.0),
+    FloatOption("extruder", "filament_diameter", "filament_diameter"),
+    FloatOption("extruder", "max_extrude_cross_section", "max_extrude_cross_section",
                  above=0.0),
-    _FloatOption("extruder", "max_extrude_only_velocity", "max_extrude_only_velocity",
+    FloatOption("extruder", "max_extrude_only_velocity", "max_extrude_only_velocity",
                  above=0.0),
-    _FloatOption("extruder", "max_extrude_only_accel", "max_extrude_only_accel", above=0.0),
-    _FloatOption("extruder", "max_extrude_only_distance", "max_extrude_only_distance",
+    FloatOption("extruder", "max_extrude_only_accel", "max_extrude_only_accel", above=0.0),
+    FloatOption("extruder", "max_extrude_only_distance", "max_extrude_only_distance",
                  minval=0.0),
-    _FloatOption("extruder", "instantaneous_corner_velocity",
+    FloatOption("extruder", "instantaneous_corner_velocity",
                  "instantaneous_corner_velocity", minval=0.0),
-    _FloatOption("gcode_arcs", "resolution", "arc_resolution", above=0.0),
-    _FloatOption("firmware_retraction", "retract_length", "retract_length", minval=0.0),
-    _FloatOption("firmware_retraction", "retract_speed", "retract_speed", minval=1.0),
-    _FloatOption("firmware_retraction", "unretract_extra_length", "unretract_extra_length",
+    FloatOption("gcode_arcs", "resolution", "arc_resolution", above=0.0),
+    FloatOption("firmware_retraction", "retract_length", "retract_length", minval=0.0),
+    FloatOption("firmware_retraction", "retract_speed", "retract_speed", minval=1.0),
+    FloatOption("firmware_retraction", "unretract_extra_length", "unretract_extra_length",
                  minval=0.0),
-    _FloatOption("firmware_retraction", "unretract_speed", "unretract_speed", minval=1.0),
+    FloatOption("firmware_retraction", "unretract_speed", "unretract_speed", minval=1.0),
 )
 
 
 # Bounds Klipper sets from another option: (field, other field, test, wording).
-_RELATIVE_BOUNDS = (
+RELATIVE_BOUNDS = (
     ("max_z_velocity", "max_velocity", operator.le, "at most"),
     ("max_z_accel", "max_accel", operator.le, "at most"),
     ("filament_diameter", "nozzle_diameter", operator.ge, "at least"),
 )
 
 # Where an absent field's value comes from, when it is not simply Klipper's default.
-_ABSENT_PROVENANCE = {
+ABSENT_PROVENANCE = {
     "kinematics": REQUIRED_FALLBACK,
     "max_velocity": REQUIRED_FALLBACK,
     "max_accel": REQUIRED_FALLBACK,

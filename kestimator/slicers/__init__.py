@@ -5,11 +5,15 @@ everything about its slicers' files (``orca.py``, ``prusaslicer.py``, ``cura.py`
 ``generic.py``); ``base.py`` holds what they share. The list is explicit: the first adapter that
 recognises a file wins, and a file none recognises is ``generic.UNKNOWN``. Only the first and
 last MiB of a file are read, as Moonraker does, so even 40 MB files are detected at once.
+``read_slicer_settings`` combines a file's embedded settings with the slicer's
+post-processing environment through the same adapters (``settings.py`` has their shape).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import os
+from collections.abc import Mapping
 
 from kestimator.errors import KestimatorError
 from kestimator.slicers.base import (
@@ -24,16 +28,19 @@ from kestimator.slicers.cura import CuraAdapter
 from kestimator.slicers.generic import UNKNOWN, GenericAdapter
 from kestimator.slicers.orca import OrcaAdapter
 from kestimator.slicers.prusaslicer import PrusaSlicerAdapter
+from kestimator.slicers.settings import NO_SETTINGS, SlicerConfig, SlicerSettings
 
 __all__ = [
     "ADAPTERS",
     "SlicerAdapter",
     "SlicerInfo",
+    "SlicerSettings",
     "adapter_for",
     "detect",
     "detect_file",
     "format_prusa_duration",
     "parse_prusa_duration",
+    "read_slicer_settings",
 ]
 
 ADAPTERS: tuple[SlicerAdapter, ...] = (
@@ -77,23 +84,74 @@ def _whole_lines_to_end(data: bytes) -> bytes:
     return b"" if start < 0 else data[start + 1:]
 
 
-def detect_file(path: str | os.PathLike[str]) -> SlicerInfo:
-    """Recognise the slicer of the file at ``path``, reading at most its first and last MiB.
-
-    Lines cut by a window's edge are left out, so a half line never passes for a whole one.
-    Raises ``KestimatorError`` if the file cannot be read.
-    """
+def _read_window_bytes(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
+    """The first and last MiB of the file at ``path`` in whole lines (the same bytes twice if
+    it is small). Raises ``KestimatorError`` if the file cannot be read."""
     try:
         with open(path, "rb") as gcode:
             size = gcode.seek(0, os.SEEK_END)
             gcode.seek(0)
             if size <= DETECT_WINDOW_BYTES:
                 whole = gcode.read()
-                return detect(whole, whole)
+                return whole, whole
             head = _whole_lines_from_start(gcode.read(DETECT_WINDOW_BYTES))
             # One byte more than the window shows whether the window starts a line.
             gcode.seek(size - DETECT_WINDOW_BYTES - 1)
             tail = gcode.read()
     except OSError as exc:
         raise KestimatorError(f"cannot read G-code: {exc.strerror or exc}", path) from exc
-    return detect(head, _whole_lines_to_end(tail))
+    return head, _whole_lines_to_end(tail)
+
+
+def detect_file(path: str | os.PathLike[str]) -> SlicerInfo:
+    """Recognise the slicer of the file at ``path``, reading at most its first and last MiB.
+
+    Lines cut by a window's edge are left out, so a half line never passes for a whole one.
+    Raises ``KestimatorError`` if the file cannot be read.
+    """
+    return detect(*_read_window_bytes(path))
+
+
+ENVIRONMENT_ORIGIN = "SLIC3R_* environment"
+FILE_ORIGIN = "settings in the file"
+
+
+def read_slicer_settings(path: str | os.PathLike[str] | None,
+                         environ: Mapping[str, str] | None = None
+                         ) -> tuple[SlicerInfo, SlicerSettings]:
+    """Which slicer wrote the file at ``path`` and what its settings say about the printer.
+
+    The settings come from the file (its first and last MiB) and, when ``environ`` is given,
+    from the slicer's post-processing environment (``SLIC3R_*``); per key the file wins. With
+    no ``path`` only the environment is read. A file whose slicer is unknown (binary G-code,
+    say) takes its family from the environment. Never fails on content; raises
+    ``KestimatorError`` only if the file cannot be read.
+    """
+    ends = FileEnds.from_bytes(*_read_window_bytes(path)) if path is not None else None
+    info = UNKNOWN
+    if ends is not None:
+        info = next((found for adapter in ADAPTERS
+                     if (found := adapter.detect(ends)) is not None), UNKNOWN)
+    adapter = adapter_for(info.family)
+    config: SlicerConfig = {}
+    origins: list[str] = []
+    if environ is not None:
+        from_environment = adapter.read_environment(environ)
+        if from_environment is None and info is UNKNOWN:
+            for candidate in ADAPTERS:
+                from_environment = candidate.read_environment(environ)
+                if from_environment is not None:
+                    adapter = candidate
+                    break
+        if from_environment:
+            config.update(from_environment)
+            origins.append(ENVIRONMENT_ORIGIN)
+    if ends is not None:
+        from_file = adapter.read_settings(ends)
+        if from_file:
+            config.update(from_file)
+            origins.insert(0, FILE_ORIGIN)
+    if not config:
+        return info, NO_SETTINGS
+    settings = adapter.map_settings(config)
+    return info, dataclasses.replace(settings, origin=" + ".join(origins))

@@ -1,5 +1,6 @@
 """What every slicer adapter shares: the detection result, the adapter interface, the text
-window an adapter looks at, and PrusaSlicer-style duration text.
+window an adapter looks at, and PrusaSlicer-style duration text. (The shape of embedded
+settings is in ``settings.py``.)
 
 Detection works like Moonraker's ``file_manager/metadata.py`` (Arksine/moonraker): only the first
 and the last MiB of a file are read, the slicer is recognised by its own header lines, and the
@@ -15,6 +16,8 @@ import dataclasses
 import math
 import re
 from collections.abc import Mapping
+
+from kestimator.slicers.settings import NO_SETTINGS, SlicerConfig, SlicerSettings
 
 DETECT_WINDOW_BYTES = 1024 * 1024
 """Bytes read from each end of a file, as Moonraker does: headers and footers fit in it."""
@@ -109,6 +112,20 @@ class SlicerAdapter:
         ``time_comment_prefixes`` are offered. The result keeps everything but the time.
         """
         return None
+
+    def read_settings(self, ends: FileEnds) -> SlicerConfig:
+        """The slicer settings the file itself carries (empty for families that embed none)."""
+        return {}
+
+    def read_environment(self, environ: Mapping[str, str]) -> SlicerConfig | None:
+        """The settings this family hands a post-processing script in its environment, or
+        None when ``environ`` holds none of this family's."""
+        return None
+
+    def map_settings(self, config: SlicerConfig) -> SlicerSettings:
+        """What ``config`` (from ``read_settings`` and ``read_environment``) stands for in
+        Klipper; a family that embeds no settings maps nothing."""
+        return NO_SETTINGS
 
 
 def replace_group(match: re.Match[str], group: int | str, new: str) -> str:

@@ -9,11 +9,19 @@ header stays as written, with ``;TIME:6666`` and an empty bounding box (``;MINX:
 larger than ``;MAXX:``; ``GCodeExport::getFileHeader`` in Ultimaker/CuraEngine). The Cura
 application replaces that header with the real one. 6666 is therefore a placeholder unless the
 header's bounding box was filled in; the Griffin header leaves ``;PRINT.TIME:`` out instead.
+
+Also owns Cura's settings: the ``;SETTING_3`` lines at the end of a saved file (JSON, escaped for
+G-code comments as Cura's GCodeWriter does, holding the user's and the quality profile's
+changes as INI text; machine limits are rarely among them), the ``;FLAVOR:`` header, and
+``map_cura_settings``, which the Cura plugin calls with the active machine's values.
 """
 
 from __future__ import annotations
 
+import configparser
+import json
 import re
+from collections.abc import Mapping
 
 from kestimator.slicers.base import (
     FileEnds,
@@ -22,6 +30,15 @@ from kestimator.slicers.base import (
     SlicerInfo,
     first_group,
     replace_group,
+)
+from kestimator.slicers.settings import (
+    LeastOf,
+    SlicerConfig,
+    SlicerLimit,
+    SlicerSettings,
+    SlicerValue,
+    flag,
+    number,
 )
 
 CURA_PLACEHOLDER_TIME_S = 6666.0
@@ -58,6 +75,111 @@ def cura_estimate_s(head: str) -> float | None:
     return max(times_s, default=None)
 
 
+# --- settings ---------------------------------------------------------------------------------
+
+SETTING_PREFIX = ";SETTING_3 "
+FLAVOR_KEY = ";FLAVOR:"
+"""Key under which the header's flavor joins the settings (it is not a Cura setting name)."""
+_FLAVOR_RE = re.compile(r"^;FLAVOR:(\S+)", re.MULTILINE)
+# GCodeWriter escapes backslash, LF and CR so the JSON fits in comments; undo exactly that.
+_UNESCAPE = {"\\\\": "\\", "\\n": "\n", "\\r": "\r"}
+_UNESCAPE_RE = re.compile(r"\\\\|\\n|\\r")
+_FORMULA_PREFIX = "="
+CURA_UNLIMITED_FEEDRATE = 299792458000.0
+"""Cura's default machine_max_feedrate_*: "no limit"."""
+# Cura's RepRap flavor writes accelerations as M204 P / M204 T lines (GCodeExport in
+# Ultimaker/CuraEngine), which Klipper ignores.
+_IGNORED_M204_FLAVORS = frozenset(("RepRap",))
+
+_CURA_RULES = (
+    LeastOf("max_velocity", ("machine_max_feedrate_x", "machine_max_feedrate_y")),
+    LeastOf("max_accel", ("machine_max_acceleration_x", "machine_max_acceleration_y")),
+    LeastOf("max_z_velocity", ("machine_max_feedrate_z",)),
+    LeastOf("max_z_accel", ("machine_max_acceleration_z",)),
+    LeastOf("max_extrude_only_velocity", ("machine_max_feedrate_e",)),
+    LeastOf("max_extrude_only_accel", ("machine_max_acceleration_e",)),
+    LeastOf("square_corner_velocity", ("machine_max_jerk_xy",)),
+    LeastOf("nozzle_diameter", ("machine_nozzle_size",)),
+    LeastOf("filament_diameter", ("material_diameter",)),
+)
+_FEEDRATE_KEYS = frozenset(("machine_max_feedrate_x", "machine_max_feedrate_y",
+                            "machine_max_feedrate_z", "machine_max_feedrate_e"))
+
+
+def _ini_values(text: str) -> dict[str, str]:
+    """The [values] section of one serialised Cura profile."""
+    parser = configparser.ConfigParser(interpolation=None)
+    try:
+        parser.read_string(text)
+    except configparser.Error:
+        return {}
+    return dict(parser["values"]) if parser.has_section("values") else {}
+
+
+def read_setting_3(text: str) -> SlicerConfig:
+    """The settings in the ``;SETTING_3`` lines of ``text``: the global profile's changes,
+    overridden by the first extruder's. Empty when there are none or they do not parse."""
+    chunks = [line[len(SETTING_PREFIX):] for line in text.splitlines()
+              if line.startswith(SETTING_PREFIX)]
+    if not chunks:
+        return {}
+    escaped = "".join(chunks)
+    try:
+        data = json.loads(_UNESCAPE_RE.sub(lambda m: _UNESCAPE[m.group(0)], escaped))
+    except json.JSONDecodeError:
+        return {}
+    if not isinstance(data, dict):
+        return {}
+    profiles = [data.get("global_quality")]
+    extruders = data.get("extruder_quality")
+    if isinstance(extruders, list) and extruders:
+        profiles.append(extruders[0])
+    config: SlicerConfig = {}
+    for profile in profiles:
+        if isinstance(profile, str):
+            config.update({key: SlicerValue(key, value)
+                           for key, value in _ini_values(profile).items()})
+    return config
+
+
+def map_cura_settings(config: Mapping[str, SlicerValue]) -> SlicerSettings:
+    """What Cura settings (key -> value as Cura stores it) stand for in Klipper.
+
+    Formulas (values starting with ``=``) are not evaluated, and a feedrate of
+    ``CURA_UNLIMITED_FEEDRATE`` is no limit; both are left out.
+    """
+    usable: dict[str, SlicerValue] = {}
+    notes: list[str] = []
+    for key, value in config.items():
+        if value.text.startswith(_FORMULA_PREFIX):
+            if any(key in rule.keys for rule in _CURA_RULES):
+                notes.append(f"{value.source}: a formula, not evaluated")
+            continue
+        value_n = number(value)
+        if key in _FEEDRATE_KEYS and value_n is not None and value_n >= CURA_UNLIMITED_FEEDRATE:
+            continue
+        usable[key] = value
+    limits = [limit for rule in _CURA_RULES if (limit := rule.apply(usable)) is not None]
+    firmware = usable.get("machine_firmware_retract")
+    if firmware is not None and flag(firmware):
+        limits.append(SlicerLimit("firmware_retraction_enabled", True, firmware.source))
+        for field, keys in (("retract_length", ("retraction_amount",)),
+                            ("retract_speed", ("retraction_retract_speed", "retraction_speed")),
+                            ("unretract_speed", ("retraction_prime_speed", "retraction_speed"))):
+            for key in keys:
+                value_n = number(usable.get(key))
+                if value_n is not None:
+                    limits.append(SlicerLimit(field, value_n, usable[key].source))
+                    break
+    flavor = usable.get(FLAVOR_KEY)
+    if flavor is not None and flavor.text in _IGNORED_M204_FLAVORS:
+        notes.append(f"{flavor.source}: Cura writes any accelerations it sets as M204 P "
+                     "(print) and M204 T (travel) on separate lines, which Klipper ignores (it "
+                     "needs S, or P and T together); the print runs at max_accel unless macros "
+                     "set it")
+    return SlicerSettings(limits=tuple(limits), notes=tuple(notes))
+
+
 class CuraAdapter(SlicerAdapter):
     """Files written by CuraEngine, from the Cura application or its command line."""
 
@@ -89,3 +211,15 @@ class CuraAdapter(SlicerAdapter):
         if match is None:
             return None
         return replace_group(match, "t", "%d" % round(times.total_s))
+
+    def read_settings(self, ends: FileEnds) -> SlicerConfig:
+        """``;SETTING_3`` from the end of the file, and the ``;FLAVOR:`` header."""
+        config = read_setting_3(ends.tail)
+        flavor = first_group(_FLAVOR_RE, ends.head)
+        if flavor is not None:
+            config[FLAVOR_KEY] = SlicerValue(FLAVOR_KEY, flavor)
+        return config
+
+    def map_settings(self, config: SlicerConfig) -> SlicerSettings:
+        """Cura keys, mapped as docs/LIMITS.md says."""
+        return map_cura_settings(config)

@@ -9,11 +9,18 @@ profiles get one header line instead:
     ; model printing time: 15m 17s; total estimated time: 21m 5s
 
 whose total, not the model-only time, is the estimate.
+
+Also owns their embedded settings: the ``; CONFIG_BLOCK_START``/``; CONFIG_BLOCK_END`` block (at
+the end of the file, or at the top for Bambu printers), per-extruder vectors with ``nil`` for
+unset filament overrides, and OrcaSlicer's key names for ``map_slic3r_settings``. The
+``SLIC3R_*`` environment is read as PrusaSlicer's (``prusaslicer.py``): Orca runs scripts with
+PrusaSlicer's code.
 """
 
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping
 
 from kestimator.slicers.base import (
     FileEnds,
@@ -26,8 +33,21 @@ from kestimator.slicers.base import (
 from kestimator.slicers.prusaslicer import (
     ESTIMATE_RE,
     FIRST_LAYER_ESTIMATE_RE,
+    ORCA_ONLY_KEYS,
     TIME_COMMENT_PREFIXES,
+    Slic3rDialect,
+    map_slic3r_settings,
+    read_slic3r_environment,
     rewrite_estimated_time_line,
+)
+from kestimator.slicers.settings import (
+    LeastOf,
+    SlicerConfig,
+    SlicerLimit,
+    SlicerSettings,
+    config_between,
+    first_item,
+    flag,
 )
 
 _ORCA_NAME = "OrcaSlicer"
@@ -46,6 +66,62 @@ def _bambu_duration(seconds: float, like: str) -> str:
     """Bambu's duration text, with or without spaces between units as ``like`` has them."""
     text = format_prusa_duration(seconds)
     return text if " " in like.strip() else text.replace(" ", "")
+
+
+CONFIG_BLOCK_START = "; CONFIG_BLOCK_START"
+CONFIG_BLOCK_END = "; CONFIG_BLOCK_END"
+
+ORCA_DIALECT = Slic3rDialect(
+    machine_rules=(
+        LeastOf("max_velocity", ("machine_max_speed_x", "machine_max_speed_y")),
+        LeastOf("max_accel", ("machine_max_acceleration_extruding", "machine_max_acceleration_x",
+                              "machine_max_acceleration_y")),
+        LeastOf("max_z_velocity", ("machine_max_speed_z",)),
+        LeastOf("max_z_accel", ("machine_max_acceleration_z",)),
+        LeastOf("max_extrude_only_velocity", ("machine_max_speed_e",)),
+        LeastOf("max_extrude_only_accel", ("machine_max_acceleration_retracting",)),
+        LeastOf("square_corner_velocity", ("machine_max_jerk_x", "machine_max_jerk_y")),
+    ),
+    retract_length=("filament_retraction_length", "retraction_length"),
+    retract_speed=("filament_retraction_speed", "retraction_speed"),
+    deretract_speed=("filament_deretraction_speed", "deretraction_speed"),
+    restart_extra=("filament_retract_restart_extra", "retract_restart_extra"),
+    arc_keys=("enable_arc_fitting",),
+    # Percentages as OrcaSlicer's option tooltips define them.
+    accelerations=(
+        ("default_acceleration", None),
+        ("outer_wall_acceleration", None),
+        ("inner_wall_acceleration", None),
+        ("initial_layer_acceleration", None),
+        ("top_surface_acceleration", None),
+        ("sparse_infill_acceleration", "default_acceleration"),
+        ("internal_solid_infill_acceleration", "default_acceleration"),
+        ("bridge_acceleration", "outer_wall_acceleration"),
+        ("travel_acceleration", None),
+    ),
+)
+
+# printer_structure -> Klipper kinematics (only whether Z has its own limits matters to us).
+_KINEMATICS = {"i3": "cartesian", "corexy": "corexy", "hbot": "corexy", "delta": "delta"}
+
+
+def _orca_extras(config: SlicerConfig) -> tuple[list[SlicerLimit], list[str]]:
+    """What only OrcaSlicer/Bambu Studio say: printer structure, ACCEL_TO_DECEL."""
+    limits: list[SlicerLimit] = []
+    notes: list[str] = []
+    structure = config.get("printer_structure")
+    kinematics = _KINEMATICS.get((first_item(structure.text) or "") if structure else "")
+    if structure is not None and kinematics is not None:
+        limits.append(SlicerLimit("kinematics", kinematics, structure.source))
+    enabled = config.get("accel_to_decel_enable")
+    if enabled is not None and flag(enabled):
+        factor = config.get("accel_to_decel_factor")
+        notes.append(
+            f"{enabled.source}{'' if factor is None else ', ' + factor.text}: the file writes "
+            "SET_VELOCITY_LIMIT ACCEL_TO_DECEL, which mainline Klipper ignores; Klipper from "
+            "2024-03 to 2025-08 turns it into minimum_cruise_ratio and older Klipper uses it "
+            "as is (set klipper_generation to match your printer)")
+    return limits, notes
 
 
 class OrcaAdapter(SlicerAdapter):
@@ -85,3 +161,23 @@ class OrcaAdapter(SlicerAdapter):
         return (match.group("pre") + _bambu_duration(model_s, match.group("model"))
                 + match.group("mid") + _bambu_duration(times.total_s, match.group("total"))
                 + match.group("post"))
+
+    def read_settings(self, ends: FileEnds) -> SlicerConfig:
+        """The CONFIG_BLOCK: in the footer, or in the header for Bambu printers."""
+        for text in (ends.tail, ends.head):
+            config = config_between(text, CONFIG_BLOCK_START, CONFIG_BLOCK_END)
+            if config is not None:
+                return config
+        return {}
+
+    def read_environment(self, environ: Mapping[str, str]) -> SlicerConfig | None:
+        """``SLIC3R_*`` when it holds OrcaSlicer's own keys."""
+        config = read_slic3r_environment(environ)
+        if not any(key in config for key in ORCA_ONLY_KEYS):
+            return None
+        return config
+
+    def map_settings(self, config: SlicerConfig) -> SlicerSettings:
+        """OrcaSlicer/Bambu Studio keys, mapped as docs/LIMITS.md says."""
+        limits, notes = _orca_extras(config)
+        return map_slic3r_settings(config, ORCA_DIALECT).extended(limits, notes)

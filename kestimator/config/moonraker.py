@@ -1,0 +1,272 @@
+"""A live printer's Klipper settings, read from Moonraker, with a cache for when it is offline.
+
+Owns the request (``GET <url>/printer/objects/query?configfile=settings``, the API key in the
+``X-Api-Key`` header when there is one, a timeout, no proxy and no redirects so the key goes to
+that host only), the answer's shape (Moonraker wraps Klipper's status as ``{"result":
+{"eventtime": ..., "status": {"configfile": {"settings": {section: {option: value}}}}}}``;
+Klipper lists every option it read, its defaults included, with lower-case names and typed
+values), the mapping of those settings onto ``Limits`` fields (the option table of the
+printer.cfg reader), and the cache: one JSON file per Moonraker URL in
+``$XDG_CACHE_HOME/kestimator/`` (``~/.cache/kestimator/``), holding only the sections kestimator
+reads. The API key is never written anywhere and never part of a message.
+"""
+
+from __future__ import annotations
+
+import datetime
+import hashlib
+import http.client
+import json
+import math
+import os
+import tempfile
+import urllib.error
+import urllib.parse
+import urllib.request
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+from kestimator.config.fields import SourcedValues
+from kestimator.config.printer_cfg import FLOAT_OPTIONS
+from kestimator.errors import KestimatorError
+
+DEFAULT_TIMEOUT_S = 3.0
+QUERY_PATH = "/printer/objects/query?configfile=settings"
+API_KEY_HEADER = "X-Api-Key"
+CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction")
+"""The Klipper sections kestimator reads; nothing else of the printer's config is cached."""
+MAX_ANSWER_BYTES = 16 * 1024 * 1024
+CACHE_FORMAT = 1
+_SECTION_FLAGS = (("gcode_arcs", "arcs_enabled"),
+                  ("firmware_retraction", "firmware_retraction_enabled"))
+_TIME_SHOWN = "%Y-%m-%dT%H:%MZ"
+_TIME_STORED = "%Y-%m-%dT%H:%M:%SZ"
+
+Settings = dict[str, dict[str, Any]]
+"""Klipper's ``configfile.settings``: section -> option -> value."""
+
+
+class MoonrakerUnreachableError(KestimatorError):
+    """Moonraker did not answer, or Klipper behind it was not ready: the cache may stand in."""
+
+
+class _NoRedirect(urllib.request.HTTPRedirectHandler):
+    """Refuse redirects: a redirected request would carry the API key to another address."""
+
+    def redirect_request(self, req: urllib.request.Request, fp: Any, code: int, msg: str,
+                         headers: Any, newurl: str) -> None:
+        return None
+
+
+def normalise_url(url: str) -> str:
+    """``http(s)://host[:port][/path]`` without a trailing slash (``http://`` if none given).
+
+    Raises KestimatorError for anything else; a URL holding a user name, password or query
+    is refused without being repeated, as it may hold a secret.
+    """
+    text = url.strip()
+    if "://" not in text:
+        text = "http://" + text
+    parts = urllib.parse.urlsplit(text)
+    if "@" in parts.netloc or parts.query or parts.fragment:
+        raise KestimatorError("a Moonraker URL must be http(s)://host[:port][/path], without a "
+                              "user, password or query; pass an API key with --api-key")
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise KestimatorError(f"not a Moonraker URL: {url!r} (expected http://host:7125)")
+    return f"{parts.scheme}://{parts.netloc}{parts.path.rstrip('/')}"
+
+
+def default_cache_dir(environ: Mapping[str, str]) -> Path:
+    """``$XDG_CACHE_HOME/kestimator`` (``~/.cache/kestimator`` when it is unset)."""
+    base = environ.get("XDG_CACHE_HOME") or os.path.join(
+        environ.get("HOME") or os.path.expanduser("~"), ".cache")
+    return Path(base) / "kestimator"
+
+
+def cache_path(url: str, directory: Path) -> Path:
+    """The cache file of one (normalised) Moonraker URL."""
+    digest = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
+    return directory / f"moonraker-{digest}.json"
+
+
+def fetch_settings(url: str, api_key: str | None = None,
+                   timeout_s: float = DEFAULT_TIMEOUT_S) -> Settings:
+    """Klipper's ``configfile.settings`` from the Moonraker at (normalised) ``url``.
+
+    Raises MoonrakerUnreachableError when Moonraker does not answer in ``timeout_s`` or answers
+    that Klipper is not ready (5xx), and KestimatorError when it refuses the request (a
+    missing or wrong API key) or answers something else than settings.
+    """
+    request = urllib.request.Request(url + QUERY_PATH, headers={"Accept": "application/json"})
+    if api_key:
+        request.add_header(API_KEY_HEADER, api_key)
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), _NoRedirect())
+    try:
+        with opener.open(request, timeout=timeout_s) as response:
+            body = response.read(MAX_ANSWER_BYTES + 1)
+    except urllib.error.HTTPError as exc:
+        try:
+            status, reason = exc.code, _error_message(exc)
+        finally:
+            exc.close()
+        if status in (401, 403):
+            raise KestimatorError(f"Moonraker at {url} refused the request ({status} {reason}):"
+                                  " give its API key with --api-key or in the profile") from None
+        if status >= 500:
+            raise MoonrakerUnreachableError(
+                f"Moonraker at {url} answered {status} {reason}") from None
+        raise KestimatorError(f"Moonraker at {url} answered {status} {reason}") from None
+    except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
+        why = getattr(exc, "reason", None) or exc
+        raise MoonrakerUnreachableError(f"Moonraker at {url} did not answer ({why})") from None
+    if len(body) > MAX_ANSWER_BYTES:
+        raise KestimatorError(f"Moonraker at {url} answered more than {MAX_ANSWER_BYTES} bytes")
+    return _settings_from_answer(body, url)
+
+
+def _error_message(exc: urllib.error.HTTPError) -> str:
+    """Moonraker's ``{"error": {"message": ...}}``, else the HTTP reason."""
+    try:
+        message = json.loads(exc.read(MAX_ANSWER_BYTES))["error"]["message"]
+    except (ValueError, KeyError, TypeError, OSError):
+        return str(exc.reason)
+    return str(message)
+
+
+def _settings_from_answer(body: bytes, url: str) -> Settings:
+    try:
+        settings = json.loads(body)["result"]["status"]["configfile"]["settings"]
+    except (ValueError, KeyError, TypeError):
+        raise KestimatorError(f"Moonraker at {url} did not answer with Klipper's settings "
+                              "(result.status.configfile.settings)") from None
+    if not isinstance(settings, dict) or not all(
+            isinstance(options, dict) for options in settings.values()):
+        raise KestimatorError(f"Moonraker at {url} answered settings of an unknown shape")
+    return settings
+
+
+def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
+                    ) -> SourcedValues:
+    """The ``Limits`` fields Klipper's settings give, each sourced as
+    ``<description>: [section] option``.
+
+    The Klipper generation is inferred where the settings tell it: ``max_accel_to_decel``
+    without ``minimum_cruise_ratio`` is only read by Klipper before 2024-03 ("absolute"), both
+    together only by Klipper from 2024-03 to 2025-08 ("mcr"). Raises KestimatorError for a
+    value Klipper could not have accepted (a damaged cache).
+    """
+    values: dict[str, object] = {}
+    sources: dict[str, str] = {}
+    for spec in FLOAT_OPTIONS:
+        raw = settings.get(spec.section, {}).get(spec.option)
+        if raw is None:
+            continue
+        where = f"{description}: [{spec.section}] {spec.option}"
+        value = _number(raw)
+        problem = "is not a number" if value is None else spec.violation(value)
+        if problem is not None:
+            raise KestimatorError(f"{where} = {raw!r} {problem}")
+        values[spec.field] = value
+        sources[spec.field] = where
+    printer = settings.get("printer", {})
+    kinematics = printer.get("kinematics")
+    if isinstance(kinematics, str) and kinematics:
+        values["kinematics"] = kinematics
+        sources["kinematics"] = f"{description}: [printer] kinematics"
+    for section, field in _SECTION_FLAGS:
+        if section in settings:
+            values[field] = True
+            sources[field] = f"{description}: [{section}]"
+    if "max_accel_to_decel" in printer:
+        both = "minimum_cruise_ratio" in printer
+        values["klipper_generation"] = "mcr" if both else "absolute"
+        sources["klipper_generation"] = (
+            f"{description}: [printer] reports max_accel_to_decel "
+            + ("and minimum_cruise_ratio (only Klipper 2024-03..2025-08 reads both)" if both
+               else "without minimum_cruise_ratio (Klipper before 2024-03)"))
+    return SourcedValues(description, values, sources)
+
+
+def _number(raw: object) -> float | None:
+    if isinstance(raw, bool):
+        return None
+    try:
+        value = float(raw)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
+def _utc_now() -> datetime.datetime:
+    return datetime.datetime.now(datetime.timezone.utc)
+
+
+def moonraker_values(url: str, api_key: str | None = None,
+                     timeout_s: float = DEFAULT_TIMEOUT_S,
+                     cache_directory: Path | None = None,
+                     now: Callable[[], datetime.datetime] = _utc_now) -> SourcedValues:
+    """The printer's settings from Moonraker at ``url``, cached on success; when the printer
+    is offline, the cached ones, described as "(cached <time>, printer offline)".
+
+    ``cache_directory`` None means ``default_cache_dir(os.environ)``. Raises KestimatorError
+    when Moonraker refuses the request, or is offline with nothing cached.
+    """
+    url = normalise_url(url)
+    directory = cache_directory if cache_directory is not None else default_cache_dir(os.environ)
+    path = cache_path(url, directory)
+    try:
+        settings = fetch_settings(url, api_key, timeout_s)
+    except MoonrakerUnreachableError as exc:
+        cached = _read_cache(path, url)
+        if cached is None:
+            raise KestimatorError(f"{exc.message}, and no settings of it are cached in "
+                                  f"{directory}") from None
+        settings, fetched = cached
+        shown = fetched.strftime(_TIME_SHOWN)
+        found = settings_values(settings, f"moonraker {url} (cached {shown}, printer offline)")
+        return SourcedValues(found.description, found.values, found.sources,
+                             (f"{exc.message}: using its settings cached at {shown}",))
+    found = settings_values(settings, f"moonraker {url}")
+    problem = _write_cache(path, url, settings, now())
+    if problem is not None:
+        return SourcedValues(found.description, found.values, found.sources, (problem,))
+    return found
+
+
+def _write_cache(path: Path, url: str, settings: Settings,
+                 fetched: datetime.datetime) -> str | None:
+    """Store the sections kestimator reads (atomically); a warning text if that failed."""
+    document = {
+        "format": CACHE_FORMAT,
+        "url": url,
+        "fetched": fetched.astimezone(datetime.timezone.utc).strftime(_TIME_STORED),
+        "settings": {name: settings[name] for name in CACHED_SECTIONS if name in settings},
+    }
+    try:
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        handle, temp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(handle, "w", encoding="utf-8") as out:
+                json.dump(document, out, indent=1, sort_keys=True)
+            os.replace(temp, path)
+        except BaseException:
+            os.unlink(temp)
+            raise
+    except OSError as exc:
+        return f"could not cache Moonraker's settings in {path}: {exc.strerror or exc}"
+    return None
+
+
+def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | None:
+    """(settings, when fetched) from the cache file of ``url``, None if absent or unusable."""
+    try:
+        document = json.loads(path.read_text(encoding="utf-8"))
+        fetched = datetime.datetime.strptime(document["fetched"], _TIME_STORED).replace(
+            tzinfo=datetime.timezone.utc)
+        settings = document["settings"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if document.get("url") != url or not isinstance(settings, dict):
+        return None
+    return settings, fetched

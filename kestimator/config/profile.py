@@ -1,0 +1,173 @@
+"""The user's kestimator profile: a TOML file that names their printer and settings once, so a
+slicer's post-processing line needs no arguments.
+
+Owns where the profile lives (``--profile``, else ``$XDG_CONFIG_HOME/kestimator/config.toml``,
+``~/.config/kestimator/config.toml`` when that is unset), its keys, and the choice of a
+``[printers."<name>"]`` table: by ``--printer NAME``, else the one named like the slicer's
+printer preset (``printer_settings_id``), else none. A table's keys replace the top-level ones
+and its ``[limits]`` add to the top-level ``[limits]``::
+
+    printer_cfg = "~/printer_data/config/printer.cfg"  # or: moonraker = "http://voron.local"
+    api_key = "..."                                    # Moonraker's, if it asks for one
+    moonraker_timeout_s = 3
+
+    [limits]                     # any Limits field (docs/LIMITS.md), e.g.
+    klipper_generation = "mcr"
+
+    [printers."Voron 2.4 0.4 nozzle"]
+    moonraker = "http://voron.local:7125"
+
+A relative ``printer_cfg`` is relative to the profile's folder. The profile ranks below the real
+machine: its ``[limits]`` only decide what no printer.cfg or Moonraker decides.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+from kestimator.config.fields import check_limit_value
+from kestimator.errors import KestimatorError
+
+PROFILE_RELATIVE_PATH = Path("kestimator") / "config.toml"
+_MACHINE_KEYS = ("printer_cfg", "moonraker")
+_TEXT_KEYS = ("printer_cfg", "moonraker", "api_key")
+_TOP_KEYS = frozenset((*_TEXT_KEYS, "moonraker_timeout_s", "limits", "printers"))
+_TABLE_KEYS = _TOP_KEYS - {"printers"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Profile:
+    """What a profile says, for the printer table chosen (if any)."""
+
+    path: str
+    printer: str | None
+    """The ``[printers."<name>"]`` table applied, None for the top level alone."""
+    printer_cfg: str | None
+    """Absolute path (``~`` expanded, relative to the profile's folder)."""
+    moonraker: str | None
+    api_key: str | None = dataclasses.field(repr=False)
+    moonraker_timeout_s: float | None
+    limits: Mapping[str, object]
+    limit_sources: Mapping[str, str]
+    """Field -> ``profile <path>`` (with the table, if the value is the table's)."""
+
+    @property
+    def description(self) -> str:
+        """``profile <path>``, with the printer table if one was chosen."""
+        return _describe(self.path, self.printer)
+
+
+def _describe(path: str, printer: str | None) -> str:
+    return f"profile {path}" + ("" if printer is None else f' [printers."{printer}"]')
+
+
+def default_profile_path(environ: Mapping[str, str]) -> Path:
+    """``$XDG_CONFIG_HOME/kestimator/config.toml`` (``~/.config/...`` when it is unset)."""
+    base = environ.get("XDG_CONFIG_HOME") or os.path.join(
+        environ.get("HOME") or os.path.expanduser("~"), ".config")
+    return Path(base) / PROFILE_RELATIVE_PATH
+
+
+def load_profile(path: str | os.PathLike[str], printer: str | None = None,
+                 slicer_preset: str | None = None) -> Profile:
+    """The profile at ``path``, with the printer table ``printer`` (an error if there is none
+    of that name) or else the one named ``slicer_preset`` (if any).
+
+    Raises KestimatorError (naming the file) for unreadable TOML, unknown keys, values of the
+    wrong type or that Klipper would refuse, or both a printer.cfg and a Moonraker URL.
+    """
+    name = os.fspath(path)
+    toml = _toml_reader(name)
+    try:
+        with open(name, "rb") as handle:
+            document = toml.load(handle)
+    except OSError as exc:
+        raise KestimatorError(f"cannot read profile: {exc.strerror or exc}", name) from None
+    except toml.TOMLDecodeError as exc:
+        raise KestimatorError(f"not valid TOML: {exc}", name) from None
+    _check_keys(document, _TOP_KEYS, "", name)
+    tables = document.get("printers", {})
+    if not isinstance(tables, dict) or not all(isinstance(t, dict) for t in tables.values()):
+        raise KestimatorError('[printers] must hold tables: [printers."<name>"]', name)
+    # Every table is checked, not only the one chosen: a typo shows on the first run.
+    checked_limits: dict[str, dict[str, object]] = {}
+    for table_name, table in tables.items():
+        where = f'[printers."{table_name}"]'
+        _check_keys(table, _TABLE_KEYS, where + " ", name)
+        checked_limits[table_name] = _limits(table.get("limits", {}), where + ".limits", name)
+    chosen = printer if printer is not None else (
+        slicer_preset if slicer_preset in tables else None)
+    if chosen is not None and chosen not in tables:
+        known = ", ".join(sorted(tables)) or "none"
+        raise KestimatorError(f'no [printers."{chosen}"] table (there are: {known})', name)
+    settings: dict[str, Any] = {key: value for key, value in document.items()
+                                if key not in ("printers", "limits")}
+    limits = _limits(document.get("limits", {}), "[limits]", name)
+    limit_sources = dict.fromkeys(limits, _describe(name, None))
+    if chosen is not None:
+        table = tables[chosen]
+        if any(key in table for key in _MACHINE_KEYS):
+            for key in _MACHINE_KEYS:
+                settings.pop(key, None)
+        settings.update({key: value for key, value in table.items() if key != "limits"})
+        table_limits = checked_limits[chosen]
+        limits.update(table_limits)
+        limit_sources.update(dict.fromkeys(table_limits, _describe(name, chosen)))
+    for key in _TEXT_KEYS:
+        if key in settings and (not isinstance(settings[key], str) or not settings[key]):
+            raise KestimatorError(f"{key} must be a non-empty text", name)
+    if all(key in settings for key in _MACHINE_KEYS):
+        raise KestimatorError("names both printer_cfg and moonraker: keep one", name)
+    timeout_s = settings.get("moonraker_timeout_s")
+    if timeout_s is not None and (isinstance(timeout_s, bool) or not isinstance(
+            timeout_s, (int, float)) or not 0.0 < timeout_s < float("inf")):
+        raise KestimatorError("moonraker_timeout_s must be a number of seconds above 0", name)
+    printer_cfg = settings.get("printer_cfg")
+    if printer_cfg is not None:
+        printer_cfg = os.path.join(os.path.dirname(os.path.abspath(name)),
+                                   os.path.expanduser(printer_cfg))
+    return Profile(path=name, printer=chosen, printer_cfg=printer_cfg,
+                   moonraker=settings.get("moonraker"), api_key=settings.get("api_key"),
+                   moonraker_timeout_s=None if timeout_s is None else float(timeout_s),
+                   limits=limits, limit_sources=limit_sources)
+
+
+def _toml_reader(path: str) -> ModuleType:
+    """``tomllib``, or ``tomli`` before Python 3.11; imported only when a profile is read, so
+    kestimator without a profile runs on a bare Python 3.10 (Cura's, say)."""
+    if sys.version_info >= (3, 11):
+        import tomllib
+        return tomllib
+    try:
+        import tomli
+    except ImportError:
+        raise KestimatorError("reading a profile needs Python 3.11 or the tomli package "
+                              "(pip install tomli)", path) from None
+    return tomli
+
+
+def _check_keys(table: Mapping[str, Any], allowed: frozenset[str], where: str,
+                path: str) -> None:
+    unknown = sorted(set(table) - allowed)
+    if unknown:
+        raise KestimatorError(f"{where}unknown key(s) {', '.join(unknown)} (known: "
+                              f"{', '.join(sorted(allowed))})", path)
+
+
+def _limits(table: object, where: str, path: str) -> dict[str, object]:
+    """A ``[limits]`` table, each value checked as Klipper would."""
+    if not isinstance(table, dict):
+        raise KestimatorError(f"{where} must be a table", path)
+    checked: dict[str, object] = {}
+    for field, value in table.items():
+        try:
+            checked[field] = check_limit_value(field, value)
+        except ValueError as exc:
+            raise KestimatorError(f"{where}: {exc}", path) from None
+    return checked

@@ -1,0 +1,323 @@
+"""The one place that decides every printer limit for a file, and says where each came from.
+
+Precedence, highest first:
+
+1. ``--set key=value`` (``LimitRequest.overrides``);
+2. the real machine: a Klipper printer.cfg or Moonraker (one of them). It decides every setting
+   Klipper's configuration holds: the values it sets, and Klipper's defaults for those it leaves
+   out, as the printer itself would;
+3. the user's profile (``[limits]``; the profile may also name the machine);
+4. the slicer's settings embedded in the file, or its ``SLIC3R_*`` post-processing environment:
+   guesses about the printer (docs/LIMITS.md);
+5. defaults: Klipper's, plus, when no machine config is known, kestimator's assumption that a
+   file using G2/G3 or G10/G11 is meant for a printer with [gcode_arcs] / [firmware_retraction].
+
+So the profile and the slicer only stand in where no printer.cfg or Moonraker is known, except
+for what no Klipper config holds: which Klipper generation the printer runs. Every value comes
+with its provenance, and what it overrode is kept (``ResolvedLimits.shadowed``) for
+``kestimator limits``. In the middle generation (``klipper_generation = "mcr"``) a
+``max_accel_to_decel`` without ``minimum_cruise_ratio`` becomes
+``minimum_cruise_ratio = 1 - min(1, max_accel_to_decel / max_accel)``, as that Klipper did.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import cast
+
+from kestimator.config.fields import SourcedValues, check_limit_value, parse_limit_text
+from kestimator.config.moonraker import DEFAULT_TIMEOUT_S, default_cache_dir, moonraker_values
+from kestimator.config.printer_cfg import (
+    ABSENT_PROVENANCE,
+    KLIPPER_DEFAULT,
+    RELATIVE_BOUNDS,
+    REQUIRED_FALLBACK,
+    printer_cfg_values,
+)
+from kestimator.config.profile import Profile, default_profile_path, load_profile
+from kestimator.errors import KestimatorError
+from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
+from kestimator.slicers import SlicerInfo, SlicerSettings, read_slicer_settings
+from kestimator.slicers.settings import NO_SETTINGS
+
+API_KEY_ENVIRONMENT = "MOONRAKER_API_KEY"
+"""Where the Moonraker API key may come from when neither --api-key nor the profile gives it."""
+
+SET_SOURCE = "--set"
+NO_CONFIG_FALLBACK = ("kestimator fallback: Klipper requires it and no printer.cfg or "
+                      "Moonraker gives it")
+GENERATION_DEFAULT = ("kestimator default: mainline Klipper (SET_VELOCITY_LIMIT "
+                      "ACCEL_TO_DECEL is ignored)")
+ASSUMPTIONS = {
+    "arcs_enabled": "kestimator assumption: no printer config known, and a file using G2/G3 "
+                    "is meant for a printer with [gcode_arcs]",
+    "firmware_retraction_enabled": "kestimator assumption: no printer config known, and a "
+                                   "file using G10/G11 is meant for a printer with "
+                                   "[firmware_retraction]",
+}
+MACHINE_FIELDS = frozenset(Limits.field_names()) - {"klipper_generation"}
+"""What a printer.cfg or Moonraker decides, by its values or Klipper's defaults."""
+
+# Ranks of the sources, highest first.
+LEVEL_SET, LEVEL_MACHINE, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED = range(5)
+_STAND_INS = frozenset((LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED))
+
+
+@dataclasses.dataclass(frozen=True)
+class LimitRequest:
+    """Everything that may decide the limits for one file."""
+
+    gcode: str | os.PathLike[str] | None = None
+    overrides: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    """``--set`` values as typed: field -> text."""
+    printer_cfg: str | os.PathLike[str] | None = None
+    moonraker_url: str | None = None
+    api_key: str | None = dataclasses.field(default=None, repr=False)
+    profile: str | os.PathLike[str] | None = None
+    """An explicit profile (it must exist); None looks in the default place."""
+    use_profile: bool = True
+    printer: str | None = None
+    """The profile's ``[printers."<name>"]`` table to use."""
+    environ: Mapping[str, str] | None = None
+    """For ``SLIC3R_*``, the XDG folders and the API key; None means ``os.environ``."""
+    read_slicer_environment: bool = True
+    cache_directory: Path | None = None
+    """Moonraker's cache; None means ``$XDG_CACHE_HOME/kestimator``."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """A value one source proposed for a field."""
+
+    value: object
+    source: str
+    level: int
+
+
+@dataclasses.dataclass(frozen=True)
+class ResolvedLimits:
+    """The limits for a file, where each came from, and what was worth saying."""
+
+    limits: Limits
+    sources: Mapping[str, str]
+    """Every ``Limits`` field -> where its value came from."""
+    shadowed: Mapping[str, tuple[Candidate, ...]]
+    """Field -> values lower-ranked (or, under a machine config, ignored) sources proposed."""
+    machine: str | None
+    """The printer.cfg (its path) or Moonraker (``moonraker <url>``) the values came from;
+    None when none is known."""
+    profile: str | None
+    slicer: SlicerInfo | None
+    slicer_settings: SlicerSettings
+    warnings: tuple[str, ...]
+
+    @property
+    def summary(self) -> str:
+        """One line for people: the machine, or which stand-ins were used."""
+        used = set(self.sources.values())
+        parts = [self.machine] if self.machine is not None else []
+        if self.machine is None:
+            if self.profile is not None and any(s.startswith("profile ") for s in used):
+                parts.append(self.profile)
+            if any(s.startswith("slicer:") for s in used) and self.slicer is not None:
+                parts.append(f"{self.slicer.name} settings in the file (guesses)")
+            parts.append("defaults")
+        if SET_SOURCE in used:
+            parts.append(SET_SOURCE)
+        return " + ".join(parts)
+
+
+def resolve_limits(request: LimitRequest) -> ResolvedLimits:
+    """The ``Limits`` for ``request.gcode`` from every source, in the module's precedence.
+
+    Raises KestimatorError for a bad ``--set``, profile or printer.cfg, for both a printer.cfg
+    and a Moonraker URL, for a Moonraker that refuses the request or is offline with nothing
+    cached, and for values that contradict each other as Klipper would refuse them.
+    """
+    environ = request.environ if request.environ is not None else os.environ
+    if request.printer_cfg and request.moonraker_url:
+        raise KestimatorError("give --printer-cfg or --moonraker, not both")
+    overrides = _parse_overrides(request.overrides)
+    slicer, slicer_settings = None, NO_SETTINGS
+    if request.gcode is not None:
+        slicer, slicer_settings = read_slicer_settings(
+            request.gcode, environ if request.read_slicer_environment else None)
+    profile = _profile(request, environ, slicer_settings.printer_preset)
+    machine = _machine(request, profile, environ)
+    warnings = list(machine.warnings) if machine is not None else []
+
+    candidates = _candidates(overrides, machine, profile, slicer_settings, warnings)
+    chosen: dict[str, Candidate] = {}
+    shadowed: dict[str, tuple[Candidate, ...]] = {}
+    for field in Limits.field_names():
+        proposed = candidates.get(field, [])
+        usable = [c for c in proposed if not (machine is not None and field in MACHINE_FIELDS
+                                              and c.level in _STAND_INS)]
+        if usable:
+            chosen[field] = usable[0]
+        shadowed[field] = tuple(c for c in proposed if not usable or c is not usable[0])
+    _convert_accel_to_decel(chosen)
+    limits, chosen = _build(chosen)
+    sources = {field: chosen[field].source if field in chosen
+               else _default_source(field, machine is not None)
+               for field in Limits.field_names()}
+    warnings += _generation_warnings(limits, chosen)
+    if machine is None:
+        levels = {c.level for c in chosen.values()}
+        stand_ins = [text for level, text in ((LEVEL_SET, "--set"),
+                                              (LEVEL_PROFILE, "the profile's"),
+                                              (LEVEL_SLICER, "the slicer's guesses"))
+                     if level in levels] + ["Klipper's defaults"]
+        warnings.append(
+            "no printer.cfg or Moonraker given: limits are %s (max_velocity %g, max_accel %g); "
+            "pass --printer-cfg or --moonraker for exact times"
+            % (", ".join(stand_ins[:-1]) + " and " + stand_ins[-1] if len(stand_ins) > 1
+               else stand_ins[0], limits.max_velocity, limits.max_accel))
+    return ResolvedLimits(
+        limits=limits, sources=sources, shadowed=shadowed,
+        machine=machine.description if machine is not None else None,
+        profile=profile.description if profile is not None else None,
+        slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings))
+
+
+def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:
+    parsed: dict[str, object] = {}
+    for field, text in overrides.items():
+        try:
+            parsed[field] = parse_limit_text(field, text)
+        except ValueError as exc:
+            raise KestimatorError(f"--set {field}: {exc}") from None
+    return parsed
+
+
+def _profile(request: LimitRequest, environ: Mapping[str, str],
+             slicer_preset: str | None) -> Profile | None:
+    if not request.use_profile:
+        if request.printer is not None:
+            raise KestimatorError("--printer names a table of the profile, which is not read")
+        return None
+    if request.profile is not None:
+        path = Path(request.profile)
+    else:
+        path = default_profile_path(environ)
+        if not path.is_file():
+            if request.printer is not None:
+                raise KestimatorError(f"--printer needs a profile, and there is none at {path}")
+            return None
+    return load_profile(path, printer=request.printer, slicer_preset=slicer_preset)
+
+
+def _machine(request: LimitRequest, profile: Profile | None,
+             environ: Mapping[str, str]) -> SourcedValues | None:
+    """The printer.cfg or Moonraker settings: from the command line, else the profile."""
+    printer_cfg = request.printer_cfg
+    moonraker_url = request.moonraker_url
+    if printer_cfg is None and moonraker_url is None and profile is not None:
+        printer_cfg, moonraker_url = profile.printer_cfg, profile.moonraker
+    if printer_cfg is not None:
+        values, sources = printer_cfg_values(printer_cfg)
+        return SourcedValues(os.fspath(printer_cfg), values, sources)
+    if moonraker_url is None:
+        return None
+    api_key = (request.api_key or (profile.api_key if profile is not None else None)
+               or environ.get(API_KEY_ENVIRONMENT) or None)
+    timeout_s = profile.moonraker_timeout_s if profile is not None else None
+    cache_directory = request.cache_directory or default_cache_dir(environ)
+    return moonraker_values(moonraker_url, api_key,
+                            timeout_s if timeout_s is not None else DEFAULT_TIMEOUT_S,
+                            cache_directory)
+
+
+def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
+                profile: Profile | None, slicer: SlicerSettings,
+                warnings: list[str]) -> dict[str, list[Candidate]]:
+    """Field -> what each source proposes, highest rank first."""
+    found: dict[str, list[Candidate]] = {}
+
+    def add(field: str, value: object, source: str, level: int) -> None:
+        found.setdefault(field, []).append(Candidate(value, source, level))
+
+    for field, value in overrides.items():
+        add(field, value, SET_SOURCE, LEVEL_SET)
+    if machine is not None:
+        for field, value in machine.values.items():
+            add(field, value, machine.sources[field], LEVEL_MACHINE)
+    if profile is not None:
+        for field, value in profile.limits.items():
+            add(field, value, profile.limit_sources[field], LEVEL_PROFILE)
+    for limit in slicer.limits:
+        try:
+            value = check_limit_value(limit.field, limit.value)
+        except ValueError as exc:
+            warnings.append(f"{limit.source}: not used ({exc})")
+            continue
+        add(limit.field, value, limit.source, LEVEL_SLICER)
+    if machine is None:
+        for field, text in ASSUMPTIONS.items():
+            add(field, True, text, LEVEL_ASSUMED)
+    return found
+
+
+def _convert_accel_to_decel(chosen: dict[str, Candidate]) -> None:
+    """Klipper 2024-03..2025-08 turned [printer] max_accel_to_decel into minimum_cruise_ratio
+    when the config gave no minimum_cruise_ratio (klippy/toolhead.py of that time)."""
+    generation = chosen.get("klipper_generation")
+    accel_to_decel = chosen.get("max_accel_to_decel")
+    if (generation is None or generation.value != "mcr" or accel_to_decel is None
+            or "minimum_cruise_ratio" in chosen):
+        return
+    max_accel = chosen.get("max_accel")
+    accel = _number(max_accel.value) if max_accel is not None else FALLBACK_MAX_ACCEL
+    requested = _number(accel_to_decel.value)
+    chosen["minimum_cruise_ratio"] = Candidate(
+        1.0 - min(1.0, requested / accel),
+        f"converted from max_accel_to_decel ({accel_to_decel.source}) as Klipper "
+        f"2024-03..2025-08 did: 1 - min(1, {requested:g} / {accel:g})", accel_to_decel.level)
+
+
+def _number(value: object) -> float:
+    """A value already checked to be a number, as a float."""
+    return float(cast(float, value))
+
+
+def _build(chosen: dict[str, Candidate]) -> tuple[Limits, dict[str, Candidate]]:
+    """``Limits`` from the chosen values, with Klipper's cross-field rules enforced: a slicer's
+    guess beyond one is capped at the bound, anything else is an error."""
+    chosen = dict(chosen)
+    limits = Limits.from_values({field: c.value for field, c in chosen.items()})
+    for field, bound, allowed, text in RELATIVE_BOUNDS:
+        value, limit = getattr(limits, field), getattr(limits, bound)
+        candidate = chosen.get(field)
+        if candidate is None or allowed(value, limit):
+            continue
+        if candidate.level not in (LEVEL_SLICER, LEVEL_ASSUMED):
+            bound_source = chosen[bound].source if bound in chosen else "default"
+            raise KestimatorError(f"{field} {value:g} ({candidate.source}) must be {text} "
+                                  f"{bound} {limit:g} ({bound_source}), as Klipper requires")
+        chosen[field] = Candidate(limit, f"{candidate.source} (capped: Klipper requires {field} "
+                                         f"{text} {bound})", candidate.level)
+        limits = Limits.from_values({f: c.value for f, c in chosen.items()})
+    return limits, chosen
+
+
+def _default_source(field: str, have_machine: bool) -> str:
+    """Where a value no source set comes from."""
+    if field == "klipper_generation":
+        return GENERATION_DEFAULT
+    text = ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT)
+    if text == REQUIRED_FALLBACK and not have_machine:
+        return NO_CONFIG_FALLBACK
+    return text
+
+
+def _generation_warnings(limits: Limits, chosen: Mapping[str, Candidate]) -> list[str]:
+    accel_to_decel = chosen.get("max_accel_to_decel")
+    if (limits.klipper_generation == "mainline" and accel_to_decel is not None
+            and accel_to_decel.level == LEVEL_MACHINE):
+        return [f"max_accel_to_decel ({accel_to_decel.source}) is an option mainline Klipper "
+                "refuses and ignored here: if the printer runs Klipper from before 2025-08, "
+                "set klipper_generation to \"mcr\" (2024-03..2025-08) or \"absolute\" (older)"]
+    return []
