@@ -68,6 +68,44 @@ def parse_line(line: str) -> Command:
     return Command(name, params, code, comment)
 
 
+# A plain move line: `G0`/`G1`, then space-separated parameters in the order X Y Z E F,
+# each holding only digits, '.', '+' and '-', then an optional ';' comment. Anything else
+# (lower case, tabs, other order, `*`, exponents, no-space parameters, line numbers) goes
+# through `parse_line`, which gives the same result for plain lines, only slower.
+_NUMBER = rb"([-+.0-9]+)"
+_PLAIN_MOVE_RE = re.compile(
+    rb"G[01](?: X%s)?(?: Y%s)?(?: Z%s)?(?: E%s)?(?: F%s)? *(?:;.*)?\r?\n?"
+    % ((_NUMBER,) * 5), re.DOTALL)
+_plain_move_match = _PLAIN_MOVE_RE.fullmatch
+# Longer lines take the general path (no number there can overflow to inf).
+_PLAIN_MOVE_MAX_BYTES = 200
+MoveValues = tuple["float | None", "float | None", "float | None", "float | None",
+                   "float | None"]
+
+
+def parse_plain_move(raw: bytes) -> MoveValues | None:
+    """(X, Y, Z, E, F) of a plain `G0`/`G1` byte line (None for an absent parameter).
+
+    Gives exactly what `parse_line` and float() give for the same line, or None when the
+    line is not plain (or a value is not a number, or F is not above 0): the caller then
+    uses `parse_line`, which reports the problem as Klipper would.
+    """
+    match = _plain_move_match(raw)
+    if match is None or len(raw) > _PLAIN_MOVE_MAX_BYTES:
+        return None
+    x, y, z, e, f = match.groups()
+    try:
+        values = (None if x is None else float(x), None if y is None else float(y),
+                  None if z is None else float(z), None if e is None else float(e),
+                  None if f is None else float(f))
+    except ValueError:
+        return None
+    f = values[4]
+    if f is not None and not f > 0.0:
+        return None
+    return values
+
+
 def extended_params(code: str) -> dict[str, str]:
     """`NAME KEY=value KEY2="quoted value"` parameters, keys upper-cased (Klipper's rules).
 

@@ -39,6 +39,8 @@ NO_TIME_COMMANDS = frozenset((
 TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
 
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
+# An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
+MAX_ARC_SEGMENTS = 100_000
 _AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
 _MOVE_PARAMS = frozenset("XYZEFG")
@@ -202,6 +204,40 @@ class Interpreter:
                 self.warn("Klipper ignores parameter %s in '%s'" % (key, cmd.code.strip()),
                           "move-param:" + key)
         self._move(self.speed)
+
+    def plain_move(self, x: float | None, y: float | None, z: float | None,
+                   e: float | None, f: float | None) -> None:
+        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move`).
+
+        The same arithmetic as `cmd_G1`, in the same order, without the text handling.
+        """
+        lp = self.last_position
+        base = self.base_position
+        if self.absolute_coord:
+            if x is not None:
+                lp[0] = x + base[0]
+            if y is not None:
+                lp[1] = y + base[1]
+            if z is not None:
+                lp[2] = z + base[2]
+        else:
+            if x is not None:
+                lp[0] += x
+            if y is not None:
+                lp[1] += y
+            if z is not None:
+                lp[2] += z
+        if e is not None:
+            e *= self.extrude_factor
+            if self.absolute_coord and self.absolute_extrude:
+                lp[3] = e + base[3]
+            else:
+                lp[3] += e
+            if not self.extrude_mode_set:
+                self.moved_e_before_mode = True
+        if f is not None:
+            self.speed = f * self.speed_factor
+        self.toolhead.move((lp[0], lp[1], lp[2], lp[3]), self.speed, self.tag)
 
     def _move(self, speed: float) -> None:
         lp = self.last_position
@@ -502,6 +538,10 @@ class Interpreter:
             mm_of_travel = math.hypot(flat_mm, linear_travel)
         else:
             mm_of_travel = math.fabs(flat_mm)
+        if not mm_of_travel / self.limits.arc_resolution <= MAX_ARC_SEGMENTS:
+            # Klipper would grind through millions of segments; no real arc has them.
+            raise CommandError("arc of %.6g mm would be split into more than %d segments"
+                               % (mm_of_travel, MAX_ARC_SEGMENTS))
         segments = max(1.0, math.floor(mm_of_travel / self.limits.arc_resolution))
         theta_per_segment = angular_travel / segments
         linear_per_segment = linear_travel / segments

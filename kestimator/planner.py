@@ -51,16 +51,19 @@ class Move:
         self.instant_corner_v = instant_corner_v
         self.tag = tag
         self.timing_callbacks: list[Any] | None = None
-        velocity = min(speed, max_velocity)
+        # min(speed, max_velocity), written out (this runs once per move)
+        velocity = max_velocity if max_velocity < speed else speed
         self.is_kinematic_move = True
-        dx = end_pos[0] - start_pos[0]
-        dy = end_pos[1] - start_pos[1]
-        dz = end_pos[2] - start_pos[2]
-        de = end_pos[3] - start_pos[3]
+        sx, sy, sz, se = start_pos
+        ex, ey, ez, ee = end_pos
+        dx = ex - sx
+        dy = ey - sy
+        dz = ez - sz
+        de = ee - se
         move_d = _sqrt(dx * dx + dy * dy + dz * dz)
         if move_d < MIN_KINEMATIC_MOVE_D:
             # Extrude only move
-            self.end_pos = (start_pos[0], start_pos[1], start_pos[2], end_pos[3])
+            self.end_pos = (sx, sy, sz, ee)
             dx = dy = dz = 0.0
             move_d = abs(de)
             inv_move_d = 0.0
@@ -104,22 +107,37 @@ class Move:
         if not self.is_kinematic_move or not prev_move.is_kinematic_move:
             return
         # The extruder is an extra axis: it limits the junction by its change of E/mm.
-        diff_r = self.axes_r[3] - prev_move.axes_r[3]
+        axes_r = self.axes_r
+        prev_axes_r = prev_move.axes_r
+        max_cruise_v2 = self.max_cruise_v2
+        diff_r = axes_r[3] - prev_axes_r[3]
         if diff_r:
             ea_v2 = (self.instant_corner_v / abs(diff_r)) ** 2
         else:
-            ea_v2 = self.max_cruise_v2
-        max_start_v2 = min(self.max_cruise_v2, prev_move.max_cruise_v2,
-                           prev_move.next_junction_v2,
-                           prev_move.max_start_v2 + prev_move.delta_v2, ea_v2)
+            ea_v2 = max_cruise_v2
+        # min() of the limits, written out as comparisons (the hot path; min() keeps the
+        # first of equal values, and so does `b if b < a else a`).
+        max_start_v2 = max_cruise_v2
+        v2 = prev_move.max_cruise_v2
+        if v2 < max_start_v2:
+            max_start_v2 = v2
+        v2 = prev_move.next_junction_v2
+        if v2 < max_start_v2:
+            max_start_v2 = v2
+        v2 = prev_move.max_start_v2 + prev_move.delta_v2
+        if v2 < max_start_v2:
+            max_start_v2 = v2
+        if ea_v2 < max_start_v2:
+            max_start_v2 = ea_v2
         # Find max velocity using "approximated centripetal velocity"
-        axes_r = self.axes_r
-        prev_axes_r = prev_move.axes_r
         junction_cos_theta = -(axes_r[0] * prev_axes_r[0]
                                + axes_r[1] * prev_axes_r[1]
                                + axes_r[2] * prev_axes_r[2])
-        sin_theta_d2 = _sqrt(max(0.5 * (1.0 - junction_cos_theta), 0.0))
-        cos_theta_d2 = _sqrt(max(0.5 * (1.0 + junction_cos_theta), 0.0))
+        # max(v2, 0.0) written out: max() keeps v2 unless 0.0 > v2.
+        v2 = 0.5 * (1.0 - junction_cos_theta)
+        sin_theta_d2 = _sqrt(0.0 if 0.0 > v2 else v2)
+        v2 = 0.5 * (1.0 + junction_cos_theta)
+        cos_theta_d2 = _sqrt(0.0 if 0.0 > v2 else v2)
         one_minus_sin_theta_d2 = 1.0 - sin_theta_d2
         if one_minus_sin_theta_d2 > 0.0 and cos_theta_d2 > 0.0:
             R_jd = sin_theta_d2 / one_minus_sin_theta_d2
@@ -129,12 +147,18 @@ class Move:
             quarter_tan_theta_d2 = 0.25 * sin_theta_d2 / cos_theta_d2
             move_centripetal_v2 = self.delta_v2 * quarter_tan_theta_d2
             pmove_centripetal_v2 = prev_move.delta_v2 * quarter_tan_theta_d2
-            max_start_v2 = min(max_start_v2, move_jd_v2, pmove_jd_v2,
-                               move_centripetal_v2, pmove_centripetal_v2)
+            if move_jd_v2 < max_start_v2:
+                max_start_v2 = move_jd_v2
+            if pmove_jd_v2 < max_start_v2:
+                max_start_v2 = pmove_jd_v2
+            if move_centripetal_v2 < max_start_v2:
+                max_start_v2 = move_centripetal_v2
+            if pmove_centripetal_v2 < max_start_v2:
+                max_start_v2 = pmove_centripetal_v2
         # Apply limits
         self.max_start_v2 = max_start_v2
-        self.max_mcr_start_v2 = min(
-            max_start_v2, prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2)
+        v2 = prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2
+        self.max_mcr_start_v2 = v2 if v2 < max_start_v2 else max_start_v2
 
     def set_junction(self, start_v2: float, cruise_v2: float, end_v2: float) -> None:
         """Fix the velocity profile: accelerate, cruise, decelerate."""
@@ -198,11 +222,16 @@ class LookAheadQueue:
         for i in range(flush_count - 1, -1, -1):
             move = queue[i]
             reachable_start_v2 = next_start_v2 + move.delta_v2
-            start_v2 = min(move.max_start_v2, reachable_start_v2)
+            # min() written out as comparisons in this loop (same result, see calc_junction)
+            start_v2 = move.max_start_v2
+            if reachable_start_v2 < start_v2:
+                start_v2 = reachable_start_v2
             cruise_v2 = None
             pending_cv2_assign += 1
             reach_mcr_start_v2 = next_mcr_start_v2 + move.mcr_delta_v2
-            mcr_start_v2 = min(move.max_mcr_start_v2, reach_mcr_start_v2)
+            mcr_start_v2 = move.max_mcr_start_v2
+            if reach_mcr_start_v2 < mcr_start_v2:
+                mcr_start_v2 = reach_mcr_start_v2
             if mcr_start_v2 < reach_mcr_start_v2:
                 # It's possible for this move to accelerate
                 if (mcr_start_v2 + move.mcr_delta_v2 > next_mcr_start_v2
@@ -213,8 +242,11 @@ class LookAheadQueue:
                         flush_count = i + pending_cv2_assign
                         update_flush_count = False
                     peak_cruise_v2 = (mcr_start_v2 + reach_mcr_start_v2) * 0.5
-                cruise_v2 = min((start_v2 + reachable_start_v2) * 0.5,
-                                move.max_cruise_v2, peak_cruise_v2)
+                cruise_v2 = (start_v2 + reachable_start_v2) * 0.5
+                if move.max_cruise_v2 < cruise_v2:
+                    cruise_v2 = move.max_cruise_v2
+                if peak_cruise_v2 < cruise_v2:
+                    cruise_v2 = peak_cruise_v2
                 pending_cv2_assign = 0
             junction_info[i] = (move, start_v2, cruise_v2, next_start_v2)
             next_start_v2 = start_v2
@@ -227,9 +259,9 @@ class LookAheadQueue:
             move, start_v2, cruise_v2, next_start_v2 = junction_info[i]
             if cruise_v2 is None:
                 # This move can't accelerate - propagate cruise_v2 from previous
-                cruise_v2 = min(prev_cruise_v2, start_v2)
-            move.set_junction(min(start_v2, cruise_v2), cruise_v2,
-                              min(next_start_v2, cruise_v2))
+                cruise_v2 = start_v2 if start_v2 < prev_cruise_v2 else prev_cruise_v2
+            move.set_junction(cruise_v2 if cruise_v2 < start_v2 else start_v2, cruise_v2,
+                              cruise_v2 if cruise_v2 < next_start_v2 else next_start_v2)
             prev_cruise_v2 = cruise_v2
         # Remove processed moves from the queue
         res = queue[:flush_count]
@@ -238,10 +270,11 @@ class LookAheadQueue:
 
     def add_move(self, move: Move) -> bool:
         """Queue a move; True when enough time is queued for a lazy flush."""
-        self.queue.append(move)
-        if len(self.queue) == 1:
+        queue = self.queue
+        queue.append(move)
+        if len(queue) == 1:
             return False
-        move.calc_junction(self.queue[-2])
+        move.calc_junction(queue[-2])
         self.junction_flush -= move.min_move_t
         # Check if enough moves have been queued to reach the target flush time.
         return self.junction_flush <= 0.0

@@ -259,6 +259,12 @@ def test_relative_arcs_and_r_arcs_are_rejected_like_klipper() -> None:
     assert len(g2_warnings) == 1 and g2_warnings[0].endswith("(1 more like it)")
 
 
+def test_absurdly_long_arcs_are_refused_instead_of_hanging() -> None:
+    est = estimate_text("G1 X0 Y0 F3000\nG2 X0 Y0 I5000000 J0\nG1 X10\n", CORPUS_LIMITS)
+    assert est.n_moves == 1
+    assert any("segments" in w and "<text>:2:" in w for w in est.warnings)
+
+
 def test_arcs_without_gcode_arcs_are_unknown_commands() -> None:
     est = estimate_text("G2 X10 Y0 I5 J0\n", CORPUS_LIMITS.replace(arcs_enabled=False))
     assert est.n_moves == 0

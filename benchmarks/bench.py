@@ -1,0 +1,185 @@
+"""Throughput and memory of `kestimator inject` and `estimate` against a plain line copy.
+
+Each measurement runs in a fresh child process, so its peak RSS is that child's alone
+(`ru_maxrss` of RUSAGE_CHILDREN, read right after the one child has exited). Case 1 is
+the large PrusaSlicer file; case 2 is that file concatenated with itself 4 times (written
+to a temporary directory and deleted afterwards), to show memory does not grow with size.
+A dated row per case is appended to benchmarks/RESULTS.md.
+
+    python benchmarks/bench.py [--python PYTHON] [--no-concat] [--no-record] [--note TEXT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+DEFAULT_FILE = os.path.join(ROOT, "..", "shared", "corpus", "gcode", "prusaslicer",
+                            "ps25_bunny120_fast_fwretract_large.gcode")
+RESULTS = os.path.join(HERE, "RESULTS.md")
+CONCAT_COPIES = 4
+MIB = 1024 * 1024
+
+# The baseline: the cheapest honest pure-Python pass over the same lines.
+COPY_SRC = """
+import sys
+with open(sys.argv[1], "rb") as inp, open(sys.argv[2], "wb") as out:
+    for line in inp:
+        out.write(line)
+"""
+WRAP_SRC = """
+import resource, subprocess, sys, time
+with open(sys.argv[1], "wb") as out:
+    t0 = time.perf_counter()
+    rc = subprocess.call(sys.argv[2:], stdout=out)
+    wall = time.perf_counter() - t0
+ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+print(wall, ru.ru_maxrss, rc, ru.ru_utime + ru.ru_stime)
+"""
+
+
+def measure(python: str, argv: list[str], stdout_path: str) -> tuple[float, float, float]:
+    """Wall seconds, peak RSS (MiB) and CPU seconds of `python argv...` in a fresh process.
+
+    A wrapper process starts exactly one child, so RUSAGE_CHILDREN's ru_maxrss (kB on
+    Linux) is that child's own peak.
+    """
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.run([sys.executable, "-c", WRAP_SRC, stdout_path, python] + argv,
+                          stdout=subprocess.PIPE, env=env, check=True)
+    wall_s, rss_kb, rc, cpu_s = proc.stdout.split()
+    if rc != b"0":
+        sys.exit("benchmark run failed (rc %s): %s %s" % (rc.decode(), python, " ".join(argv)))
+    return float(wall_s), int(rss_kb) / 1024.0, float(cpu_s)
+
+
+def bench_case(python: str, path: str, tmpdir: str, repeat: int) -> dict[str, object]:
+    size_mb = os.path.getsize(path) / 1e6
+    out = os.path.join(tmpdir, "out.gcode")
+    stdout_path = os.path.join(tmpdir, "stdout")
+    runs = {
+        "copy": [python, "-c", COPY_SRC, path, out],
+        "estimate": [python, "-m", "kestimator", "estimate", path, "--json"],
+        "inject": [python, "-m", "kestimator", "inject", path, "-o", out, "-q"],
+    }
+    res: dict[str, object] = {"size_mb": size_mb}
+    for name, argv in runs.items():
+        best = None
+        for _ in range(repeat):
+            wall, rss, cpu = measure(python, argv[1:], stdout_path)
+            if best is None or wall < best[0]:
+                best = (wall, max(rss, best[1]) if best else rss, cpu)
+        res[name] = best
+        if name == "estimate":
+            with open(stdout_path, encoding="utf-8") as f:
+                doc = json.load(f)
+            res["n_moves"] = doc["n_moves"]
+            res["total_s"] = doc["total_s"]
+        if os.path.exists(out):
+            os.unlink(out)
+    return res
+
+
+def report(label: str, res: dict[str, object]) -> list[str]:
+    copy_t = res["copy"][0]  # type: ignore[index]
+    rows = []
+    for name in ("copy", "estimate", "inject"):
+        wall, rss, cpu = res[name]  # type: ignore[misc]
+        rows.append((name, wall, res["n_moves"] / wall, res["size_mb"] / wall,  # type: ignore[operator]
+                     wall / copy_t, rss, cpu))
+    lines = ["%s: %.1f MB, %d moves, total_s %r" % (label, res["size_mb"], res["n_moves"],
+                                                   res["total_s"])]
+    for name, wall, mps, mbs, ratio, rss, cpu in rows:
+        lines.append("  %-8s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
+                     "  (CPU %.2f s)" % (name, wall, mps, mbs, ratio, rss, cpu))
+    return lines
+
+
+def md_row(label: str, python: str, res: dict[str, object], note: str) -> str:
+    copy_t = res["copy"][0]  # type: ignore[index]
+    est_t, est_rss, _cpu = res["estimate"]  # type: ignore[misc]
+    inj_t, inj_rss, _cpu = res["inject"]  # type: ignore[misc]
+    return ("| %s | %s | %s | %.1f | %.2f | %.2f (%.1fx) | %.2f (%.1fx) | %.0f / %.0f | "
+            "%.0f | %s |" % (
+                datetime.date.today().isoformat(), python_name(python), label,
+                res["size_mb"], copy_t, est_t, est_t / copy_t, inj_t, inj_t / copy_t,
+                est_rss, inj_rss, res["n_moves"] / est_t, note))  # type: ignore[operator]
+
+
+def python_name(python: str) -> str:
+    out = subprocess.run([python, "-c", "import platform;print(platform."
+                          "python_implementation(), platform.python_version())"],
+                         stdout=subprocess.PIPE, check=True)
+    return out.stdout.decode().strip()
+
+
+HEADER = """# Benchmarks
+
+Produced by `python benchmarks/bench.py`. Times are the best of the runs, each in a fresh
+process; RSS is that process's peak. Ratios are to a plain Python line copy of the same file
+in the same run. Targets (issue 8): inject <= 8x, estimate <= 6x (CPython), PyPy <= 4x,
+peak RSS <= 64 MiB on both cases.
+
+"""
+TABLE_HEAD = ("| date | python | case | MB | copy s | estimate s (ratio) | inject s (ratio) "
+              "| RSS est / inj MiB | moves/s (est) | note |\n"
+              "|---|---|---|---|---|---|---|---|---|---|\n")
+
+
+def append_rows(rows: list[str]) -> None:
+    if not os.path.exists(RESULTS):
+        with open(RESULTS, "w", encoding="utf-8") as f:
+            f.write(HEADER + TABLE_HEAD)
+    with open(RESULTS, encoding="utf-8") as f:
+        text = f.read()
+    # Rows go at the end of the table, before any notes that follow it.
+    marker = "\n## "
+    cut = text.find(marker)
+    table, rest = (text, "") if cut < 0 else (text[:cut], text[cut:])
+    table = table.rstrip("\n") + "\n" + "\n".join(rows) + "\n"
+    with open(RESULTS, "w", encoding="utf-8") as f:
+        f.write(table + rest)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--file", default=DEFAULT_FILE)
+    parser.add_argument("--python", default=sys.executable)
+    parser.add_argument("--repeat", type=int, default=1)
+    parser.add_argument("--no-concat", action="store_true")
+    parser.add_argument("--no-record", action="store_true")
+    parser.add_argument("--note", default="")
+    args = parser.parse_args()
+    path = os.path.abspath(args.file)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="kestimator-bench-") as tmpdir:
+        res = bench_case(args.python, path, tmpdir, args.repeat)
+        print("\n".join(report("1x", res)), flush=True)
+        rows.append(md_row("1x", args.python, res, args.note))
+        if not args.no_concat:
+            big = os.path.join(tmpdir, "concat4.gcode")
+            with open(big, "wb") as out:
+                for _ in range(CONCAT_COPIES):
+                    with open(path, "rb") as inp:
+                        shutil.copyfileobj(inp, out, 1 << 20)
+            res4 = bench_case(args.python, big, tmpdir, args.repeat)
+            os.unlink(big)
+            print("\n".join(report("%dx" % CONCAT_COPIES, res4)), flush=True)
+            rows.append(md_row("%dx" % CONCAT_COPIES, args.python, res4, args.note))
+    if not args.no_record:
+        append_rows(rows)
+    print("host:", platform.node(), platform.processor() or platform.machine())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
