@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import math
 import os
 from array import array
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import parse_line
+from kestimator.gcode import parse_line, parse_plain_move
 from kestimator.interpreter import CommandError, Interpreter
 from kestimator.limits import Limits
 from kestimator.planner import Move
@@ -89,13 +90,19 @@ def iter_lines(path: str | os.PathLike[str]) -> Iterator[bytes]:
         raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
 
 
+# Called with each batch of planned moves and the time the first of them starts.
+MoveObserver = Callable[[list[Move], float], None]
+
+
 class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
     def __init__(self, limits: Limits, path: str = "<input>", homing_time: float = 0.0,
                  heat_time: float = 0.0, sample: bool = False,
-                 mark_prefixes: tuple[str, ...] = ()) -> None:
+                 mark_prefixes: tuple[str, ...] = (),
+                 observer: MoveObserver | None = None) -> None:
         self.path = path
+        self.observer = observer
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
         self.warnings: list[str] = []
         self.warnings_dropped = 0
@@ -140,6 +147,8 @@ class Timeline:
                 self._add_sample(move.tag, t)
         self._feature = feature
         self.n_moves += len(moves)
+        if self.observer is not None:
+            self.observer(moves, start_t)
 
     def _add_sample(self, line: int, t: float) -> None:
         lines, times = self.sample_lines, self.sample_times
@@ -186,6 +195,19 @@ class Timeline:
     def feed(self, raw: bytes) -> None:
         """Process one line (bytes, with or without its line ending)."""
         self.lineno += 1
+        values = parse_plain_move(raw)
+        if values is not None:
+            # A plain G0/G1 line: the same effect as below, without building a Command.
+            if self.first_command_line is None:
+                self.first_command_line = self.lineno
+            interp = self.interp
+            interp.tag = self.lineno
+            try:
+                interp.plain_move(*values)
+            except MoveError as exc:
+                interp.reset_last_position()
+                self._reject(raw.decode("utf-8", "replace").strip(), exc)
+            return
         text = raw.decode("utf-8", "replace")
         stripped = text.strip()
         if not stripped:
@@ -206,6 +228,11 @@ class Timeline:
         except (CommandError, MoveError) as exc:
             self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
                       "reject:" + cmd.name)
+
+    def _reject(self, stripped: str, exc: Exception) -> None:
+        """Warn that Klipper rejects this plain move line (as `execute` would report it)."""
+        self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
+                  "reject:" + stripped[:2])
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
@@ -279,29 +306,45 @@ def _looks_like_gcode(name: str) -> bool:
 
 def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>",
                    homing_time: float = 0.0, heat_time: float = 0.0, sample: bool = False,
-                   mark_prefixes: tuple[str, ...] = ()) -> Estimate:
+                   mark_prefixes: tuple[str, ...] = (),
+                   observer: MoveObserver | None = None) -> Estimate:
     """Estimate from an iterable of byte lines (split at LF).
 
     With `sample`, progress samples for M73 placement are kept; comment lines starting
-    with one of `mark_prefixes` get their exact time in `Estimate.marks`.
+    with one of `mark_prefixes` get their exact time in `Estimate.marks`; `observer` sees
+    every planned move (with its start time) as the planner releases them.
     """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
-                        sample=sample, mark_prefixes=mark_prefixes)
+                        sample=sample, mark_prefixes=mark_prefixes, observer=observer)
     feed = timeline.feed
-    for raw in lines:
-        feed(raw)
-    return timeline.finish()
+    try:
+        for raw in lines:
+            feed(raw)
+        est = timeline.finish()
+    except (ArithmeticError, ValueError) as exc:
+        # Values Klipper accepts one by one can still break its arithmetic together (a
+        # velocity so small its square is 0); Klipper would shut down, we name the line.
+        raise KestimatorError("the planner cannot compute a time at or before this line "
+                              "(%s: %s)" % (type(exc).__name__, exc), path,
+                              timeline.lineno or None) from None
+    if not math.isfinite(est.total_s):
+        # A move longer than a float can square (X with 155 digits) takes forever.
+        raise KestimatorError("a move at or before this line is too long to time (%s s)"
+                              % est.total_s, path, est.last_move_line or est.n_lines or None)
+    return est
 
 
 def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: float = 0.0,
                   heat_time: float = 0.0, sample: bool = False,
-                  mark_prefixes: tuple[str, ...] = ()) -> Estimate:
+                  mark_prefixes: tuple[str, ...] = (),
+                  observer: MoveObserver | None = None) -> Estimate:
     """Estimate a G-code file in one streaming pass."""
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
         raise KestimatorError("is a directory, not a G-code file", path_s)
     return estimate_lines(iter_lines(path_s), limits, path_s, homing_time=homing_time,
-                          heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes)
+                          heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes,
+                          observer=observer)
 
 
 def estimate_text(text: str, limits: Limits, **options: float) -> Estimate:

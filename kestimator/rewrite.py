@@ -17,10 +17,13 @@ Inserted lines take the line ending of the line they stand next to. A second run
 its own lines and writes them again, so it is byte-identical. The output goes to a
 temporary file in the destination's directory, is fsynced, and replaces the destination
 atomically; on any error the destination is untouched and the temporary file is removed.
+Two in-place runs on one file take turns under an exclusive flock on it, and a file that
+changed under us (size, mtime or inode) is never replaced (see `_exclusive`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import re
@@ -28,6 +31,11 @@ import stat
 import tempfile
 from array import array
 from collections.abc import Iterable, Iterator
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; the compare-before-replace check still holds
+    fcntl = None  # type: ignore[assignment]
 
 from kestimator import __version__
 from kestimator.errors import KestimatorError
@@ -44,6 +52,7 @@ MARKER_SEARCH_BYTES = 1 << 20
 BGCODE_MAGIC = b"GCDE"
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
+_NO_LINE_LIMIT = 1 << 62
 
 
 def _is_m73(code: bytes) -> bool:
@@ -128,6 +137,11 @@ class Rewriter:
         self._started = False
         self._prefixes = plan.adapter.time_comment_prefixes
         self.m73_written = 0
+        # Fast path: up to this line, a line starting with "G" is copied as it is (no
+        # progress sample is crossed and the last move is not reached before it).
+        self._quiet_until = 0
+        # The last line copied by the fast path: its line ending becomes `eol` lazily.
+        self._eol_line: bytes | None = None
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
         self._last_pr = (percent, minutes)
@@ -147,9 +161,26 @@ class Rewriter:
         self._t = self.plan.sample_times[i - 1]
         return True
 
+    def _set_quiet_until(self) -> None:
+        lines = self.plan.sample_lines
+        i = self._sample
+        quiet = lines[i] if i < len(lines) else _NO_LINE_LIMIT
+        last = self.plan.last_move_line
+        if last is not None and last > self.lineno and last - 1 < quiet:
+            quiet = last - 1
+        self._quiet_until = quiet
+
     def process(self, raw: bytes) -> list[bytes]:
         """The output for one input line (with its line ending, if it has one)."""
-        self.lineno += 1
+        lineno = self.lineno = self.lineno + 1
+        if lineno <= self._quiet_until and raw[:1] == b"G":
+            self._eol_line = raw
+            return [raw]
+        pending = self._eol_line
+        if pending is not None:
+            # Not the last line of the file, so it ends in LF.
+            self._eol_line = None
+            self.eol = b"\r\n" if pending.endswith(b"\r\n") else b"\n"
         if raw.endswith(b"\n"):
             eol = b"\r\n" if raw.endswith(b"\r\n") else b"\n"
             self.eol = eol
@@ -174,6 +205,7 @@ class Rewriter:
             pr = progress_pr(self._t, plan.total_s)
             if pr != self._last_pr:
                 out.append(self._m73(pr[0], pr[1], line_eol))
+        self._set_quiet_until()
         if self.lineno == plan.last_move_line:
             if eol:
                 out.append(raw)
@@ -267,13 +299,53 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial."""
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
-    before = check_gcode_file(src)
-    plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                            heat_time)
-    rewriter = Rewriter(plan)
-    _write_atomically(src, dest, rewriter, before)
+    check_gcode_file(src)
+    in_place = os.path.abspath(dest) == os.path.abspath(src)
+    with _exclusive(src) if in_place else contextlib.nullcontext():
+        before = check_gcode_file(src)
+        plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
+                                                heat_time)
+        rewriter = Rewriter(plan)
+        _write_atomically(src, dest, rewriter, before)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,
                         slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
+
+
+@contextlib.contextmanager
+def _exclusive(path: str) -> Iterator[None]:
+    """Hold an exclusive flock on the file `path` names while it is rewritten in place.
+
+    Two in-place runs on one file take turns: the second waits, then reads the first's
+    output (inject is idempotent, so the bytes come out the same). The lock belongs to
+    the inode, which os.replace swaps: after the wait, a path that names another file
+    now is locked afresh. Writers that take no lock (a slicer still saving) are caught by
+    the size/mtime/inode comparison just before the replace.
+    """
+    locked = None
+    while fcntl is not None:
+        try:
+            f = open(path, "rb")
+        except OSError as exc:
+            raise KestimatorError("cannot read file: %s" % (exc.strerror or exc),
+                                  path) from None
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        except OSError:
+            f.close()  # no flock on this filesystem (some network mounts)
+            break
+        try:
+            same = os.stat(path).st_ino == os.fstat(f.fileno()).st_ino
+        except OSError:
+            same = False
+        if same:
+            locked = f
+            break
+        f.close()
+    try:
+        yield
+    finally:
+        if locked is not None:
+            locked.close()
 
 
 def _write_atomically(src: str, dest: str, rewriter: Rewriter,
