@@ -1,0 +1,90 @@
+"""kestimator.pyz, built by tools/build_zipapp.py: one file any python3 >= 3.10 runs, no install.
+
+Users without pip paste `/path/to/python3 /path/to/kestimator.pyz inject ...` into their
+slicer. These tests build it into a temporary folder and pin that it holds the package's
+sources and nothing else, that it runs with no site-packages at all (`-I -S`) and writes the
+same bytes as the installed command, and that a too old python3 gets one readable line.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from kestimator import __version__
+
+from .conftest import PROJECT
+from .test_hook_checks import build_zipapp, installed_command, isolated_environment
+
+EXAMPLE = PROJECT / "examples" / "hex_nut_prusaslicer.gcode"
+PRINTER_CFG = PROJECT / "examples" / "printer.cfg"
+# No site-packages, no user site, no PYTHONPATH: only the standard library and the archive.
+BARE_PYTHON = (sys.executable, "-I", "-S")
+RUN_TIMEOUT_S = 300
+
+
+@pytest.fixture(scope="module")
+def zipapp(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return build_zipapp(tmp_path_factory.mktemp("pyz"))
+
+
+def run(*args: str | Path, env: dict[str, str] | None = None
+        ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(a) for a in args], env=env, capture_output=True, text=True,
+                          timeout=RUN_TIMEOUT_S)
+
+
+def test_the_zipapp_holds_the_package_sources_and_its_entry_only(zipapp: Path) -> None:
+    sources = {"kestimator/" + p.relative_to(PROJECT / "kestimator").as_posix(): p
+               for p in (PROJECT / "kestimator").rglob("*.py") if "__pycache__" not in p.parts}
+    with zipfile.ZipFile(zipapp) as archive:
+        files = {name for name in archive.namelist() if not name.endswith("/")}
+        assert files == set(sources) | {"__main__.py"}
+        for name, path in sources.items():
+            assert archive.read(name) == path.read_bytes(), name
+        assert "kestimator.cli" in archive.read("__main__.py").decode()
+
+
+def test_the_zipapp_needs_no_installed_package(zipapp: Path) -> None:
+    # The premise: this interpreter, bare, cannot import kestimator from anywhere else.
+    assert run(*BARE_PYTHON, "-c", "import kestimator").returncode != 0
+    proc = run(*BARE_PYTHON, zipapp, "--version")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "kestimator " + __version__
+
+
+def test_the_zipapp_and_the_installed_command_write_the_same_bytes(
+        zipapp: Path, tmp_path: Path) -> None:
+    via_zipapp = tmp_path / "zipapp.gcode"
+    via_command = tmp_path / "command.gcode"
+    shutil.copyfile(EXAMPLE, via_zipapp)
+    shutil.copyfile(EXAMPLE, via_command)
+
+    env = isolated_environment(tmp_path)
+    first = run(*BARE_PYTHON, zipapp, "inject", via_zipapp, "--printer-cfg", PRINTER_CFG,
+                env=env)
+    second = run(installed_command(), "inject", via_command, "--printer-cfg", PRINTER_CFG,
+                 env=env)
+
+    assert first.returncode == 0, first.stderr
+    assert second.returncode == 0, second.stderr
+    assert via_zipapp.read_bytes() != EXAMPLE.read_bytes()
+    assert via_zipapp.read_bytes() == via_command.read_bytes()
+
+
+def test_a_too_old_python3_gets_one_line_saying_what_is_needed(zipapp: Path) -> None:
+    # macOS's own /usr/bin/python3 is 3.9: pretend to be it, and run the archive as python does.
+    pretend = ("import runpy, sys\n"
+               "archive = sys.argv[1]\n"
+               "sys.version_info = (3, 9, 6, 'final', 0)\n"
+               "sys.argv = [archive, 'inject', 'print.gcode']\n"
+               "runpy.run_path(archive, run_name='__main__')\n")
+    proc = run(*BARE_PYTHON, "-c", pretend, zipapp)
+    assert proc.returncode == 1
+    assert proc.stderr.splitlines() == [
+        "kestimator: error: needs Python 3.10 or newer, but %s is 3.9" % sys.executable]
