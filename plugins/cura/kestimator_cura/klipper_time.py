@@ -1,0 +1,75 @@
+"""One slice's Klipper time, computed once and applied at save; no Cura needed.
+
+Owns the unit of work the Cura-facing layer runs in the background when slicing finishes
+(`compute`: limits, pass 1 and pass 2 over a snapshot of the chunk list) and at save time
+(`apply_to`: put the rewritten chunks into Cura's own list, in place), plus the text shown
+to the user. A result applies only to the exact chunks it was computed from (`matches`):
+when anything changed them since (a post-processing script, a new slice), it is computed
+again from what is there now.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+
+from kestimator.cli import format_duration
+
+from .chunks import ChunkPlan, file_ends, plan_chunks, rewrite_chunks, same_chunks
+from .machine import ChosenLimits, LimitsChoice, choose_limits
+
+MAX_NOTES_SHOWN = 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """Klipper's times for one chunk list and that list rewritten."""
+
+    source_chunks: tuple[str, ...]
+    rewritten: tuple[str, ...]
+    plan: ChunkPlan
+    limits: ChosenLimits
+
+    @property
+    def total_s(self) -> float:
+        """Klipper's print time in seconds."""
+        return self.plan.total_s
+
+    def matches(self, chunks: Sequence[str]) -> bool:
+        """True if ``chunks`` are the very chunks this was computed from."""
+        return same_chunks(chunks, self.source_chunks)
+
+    def apply_to(self, gcode_list: list[str]) -> None:
+        """Write the rewritten chunks into Cura's list in place (same list, same length)."""
+        if not self.matches(gcode_list):
+            raise ValueError("the G-code changed since its Klipper time was computed")
+        for index, chunk in enumerate(self.rewritten):
+            if gcode_list[index] is not chunk:
+                gcode_list[index] = chunk
+
+    def summary(self) -> str:
+        """What the user reads in Cura."""
+        lines = ["Klipper print time: %s" % format_duration(self.total_s)]
+        slicer_s = self.plan.slicer_estimate_s
+        if slicer_s is not None and self.total_s > 0:
+            lines.append("Cura estimated %s (%+.0f %%)." % (
+                format_duration(slicer_s), 100.0 * (slicer_s - self.total_s) / self.total_s))
+        first_layer_s = self.plan.estimate.first_layer_s
+        if first_layer_s is not None:
+            lines.append("First layer: %s." % format_duration(first_layer_s))
+        lines.append("Limits: %s." % self.limits.source)
+        lines.extend(self.limits.notes[:MAX_NOTES_SHOWN])
+        lines.append("Saved G-code gets M73 progress and these times.")
+        return "\n".join(lines)
+
+
+def compute(chunks: Sequence[str], choice: LimitsChoice, settings: Mapping[str, object],
+            environ: Mapping[str, str] | None = None) -> Outcome:
+    """Limits, estimate and rewrite for ``chunks`` (seconds of work: run it off the GUI
+    thread). Raises KestimatorError when the limits or the G-code cannot be used."""
+    snapshot = tuple(chunks)
+    limits = choose_limits(choice, settings, *file_ends(snapshot), environ=environ)
+    plan = plan_chunks(snapshot, limits.limits, limits.source)
+    rewritten = rewrite_chunks(snapshot, plan.plan)
+    return Outcome(source_chunks=snapshot, rewritten=tuple(rewritten), plan=plan,
+                   limits=limits)
