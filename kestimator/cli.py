@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import traceback
 from collections.abc import Sequence
@@ -21,15 +22,19 @@ from kestimator import __version__
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
 from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
+from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import SlicerInfo, detect_file
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+# PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
+SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
 JSON_SCHEMA_VERSION = 1
 
 EPILOG = """examples:
@@ -54,7 +59,8 @@ def _build_parser() -> argparse.ArgumentParser:
     est.add_argument("file", help="the G-code file")
     _add_limit_options(est)
     est.add_argument("--json", action="store_true", help="print one JSON object")
-    est.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    est.add_argument("--debug", dest="sub_debug", action="store_true",
+                     help=argparse.SUPPRESS)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
         description="Rewrite a G-code file so M73 progress lines and the slicer's time "
@@ -67,7 +73,8 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_limit_options(inj)
     inj.add_argument("--json", action="store_true", help="print a JSON summary")
     inj.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
-    inj.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    inj.add_argument("--debug", dest="sub_debug", action="store_true",
+                     help=argparse.SUPPRESS)
     lim = sub.add_parser(
         "limits", help="show the printer limits a file would be timed with, and their sources",
         description="Print every printer limit kestimator would use for FILE and where each "
@@ -79,8 +86,26 @@ def _build_parser() -> argparse.ArgumentParser:
                           "config is known)")
     _add_limit_options(lim, with_times=False)
     lim.add_argument("--json", action="store_true", help="print one JSON object")
-    lim.add_argument("--debug", action="store_true", help=argparse.SUPPRESS)
+    lim.add_argument("--debug", dest="sub_debug", action="store_true",
+                     help=argparse.SUPPRESS)
+    rep = sub.add_parser(
+        "report", help="write an HTML report with charts (time per layer, progress, ...)",
+        description="Write one self-contained HTML page (no network, no scripts) with "
+                    "Klipper's time per layer, progress against the slicer's own M73, time "
+                    "per feature and the speed moves reach against the speed they ask for.",
+        epilog=REPORT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    rep.add_argument("file", help="the G-code file")
+    rep.add_argument("-o", "--output", metavar="HTML", required=True,
+                     help="where to write the page")
+    _add_limit_options(rep)
+    rep.add_argument("--debug", dest="sub_debug", action="store_true",
+                     help=argparse.SUPPRESS)
     return parser
+
+
+REPORT_EPILOG = """examples:
+  kestimator report print.gcode -o report.html --printer-cfg printer.cfg
+"""
 
 
 LIMITS_EPILOG = """examples:
@@ -171,18 +196,6 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
     }
-
-
-def format_duration(seconds: float) -> str:
-    """1h 02m 03s style, for people."""
-    s = int(round(seconds))
-    h, rem = divmod(s, 3600)
-    m, sec = divmod(rem, 60)
-    if h:
-        return "%dh %02dm %02ds" % (h, m, sec)
-    if m:
-        return "%dm %02ds" % (m, sec)
-    return "%ds" % sec
 
 
 def _print_text(doc: dict[str, Any], out: Any) -> None:
@@ -334,6 +347,34 @@ def cmd_limits(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_report(args: argparse.Namespace) -> int:
+    """`kestimator report`."""
+    check_gcode_file(args.file)
+    limits, source, _warnings = resolve_limits(args, args.file)
+    _check_time_options(args)
+    data = collect(args.file, limits, source, homing_time=args.homing_time,
+                   heat_time=args.heat_time)
+    page = render_html(data)
+    try:
+        with open(args.output, "w", encoding="utf-8") as out:
+            out.write(page)
+    except OSError as exc:
+        raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
+                              args.output) from None
+    sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
+                     % (args.output, format_duration(data.estimate.total_s)))
+    return EXIT_OK
+
+
+def _error_text(exc: KestimatorError) -> str:
+    """One line; names the slicer's final file when we ran on its temporary copy."""
+    text = str(exc)
+    final_name = os.environ.get(SLICER_OUTPUT_NAME_ENV)
+    if final_name and exc.path and os.path.basename(final_name) != os.path.basename(exc.path):
+        text = "%s (slicer output %s)%s" % (exc.path, final_name, text[len(exc.path):])
+    return text.replace("\n", " ")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status."""
     parser = _build_parser()
@@ -348,11 +389,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_inject(args)
         if args.command == "limits":
             return cmd_limits(args)
+        if args.command == "report":
+            return cmd_report(args)
     except KestimatorError as exc:
-        if args.debug:
+        if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()
-        sys.stderr.write("kestimator: error: %s\n" % exc)
+        sys.stderr.write("kestimator: error: %s\n" % _error_text(exc))
         return EXIT_FAILURE
+    except BrokenPipeError:
+        # The reader went away (`kestimator estimate --json | head`): not our failure.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE

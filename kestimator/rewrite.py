@@ -39,9 +39,9 @@ except ImportError:  # Windows: no flock; the compare-before-replace check still
 
 from kestimator import __version__
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_file
+from kestimator.estimate import Estimate, estimate_lines, iter_lines
 from kestimator.limits import Limits
-from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect_file
+from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import KlipperTimes
 
 MARKER_PREFIX = "; kestimator "
@@ -81,10 +81,8 @@ def marker_line(total_s: float, slicer_s: float | None, limits_source: str) -> s
         limits_source.replace("\n", " ") or "unknown")
 
 
-def original_slicer_estimate(path: str, detected: SlicerInfo) -> float | None:
-    """The slicer's own estimate: from our marker if a previous run rewrote it."""
-    with open(path, "rb") as f:
-        head = f.read(MARKER_SEARCH_BYTES)
+def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None:
+    """The slicer's own estimate: from our marker in `head` if a previous run rewrote it."""
     match = _MARKER_SLICER_RE.search(head)
     if match is None:
         return detected.estimate_s
@@ -95,6 +93,13 @@ def original_slicer_estimate(path: str, detected: SlicerInfo) -> float | None:
         return float(value)
     except ValueError:
         return detected.estimate_s
+
+
+def original_slicer_estimate(path: str, detected: SlicerInfo) -> float | None:
+    """The slicer's own estimate of a file, looking through our marker if present."""
+    with open(path, "rb") as f:
+        head = f.read(MARKER_SEARCH_BYTES)
+    return slicer_estimate_from_head(head, detected)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -279,18 +284,35 @@ def check_gcode_file(path: str) -> os.stat_result:
     return st
 
 
-def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-              heat_time: float = 0.0) -> tuple[InjectPlan, Estimate, SlicerInfo, float | None]:
-    """Pass 1: estimate with progress samples and build the rewrite plan."""
-    slicer = detect_file(path)
+PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
+
+
+def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
+               limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
+               path: str = "<input>") -> PlanResult:
+    """Pass 1 over byte lines: estimate with progress samples, build the rewrite plan.
+
+    `head` and `tail` are the first and last MiB (the same bytes for small input); they
+    tell the slicer and its own estimate. Hosts that hold G-code in memory (Cura's layer
+    chunks) call this; `plan_file` is the same for a file.
+    """
+    slicer = detect(head, tail)
     adapter = adapter_for(slicer.family)
-    slicer_s = original_slicer_estimate(path, slicer)
-    est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
-                        sample=True, mark_prefixes=adapter.mark_prefixes)
+    slicer_s = slicer_estimate_from_head(head, slicer)
+    est = estimate_lines(lines, limits, path, homing_time=homing_time, heat_time=heat_time,
+                         sample=True, mark_prefixes=adapter.mark_prefixes)
     if est.last_move_line is None:
         raise KestimatorError("the file has no moves: nothing to estimate", path)
     plan = InjectPlan.from_estimate(est, adapter, slicer_s, limits_source)
     return plan, est, slicer, slicer_s
+
+
+def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
+              heat_time: float = 0.0) -> PlanResult:
+    """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
+    head, tail = read_file_ends(path)
+    return plan_lines(iter_lines(path), head, tail, limits, limits_source, homing_time,
+                      heat_time, path)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,

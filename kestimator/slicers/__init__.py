@@ -38,6 +38,7 @@ __all__ = [
     "adapter_for",
     "detect",
     "detect_file",
+    "read_file_ends",
     "format_prusa_duration",
     "parse_prusa_duration",
     "read_slicer_settings",
@@ -84,7 +85,7 @@ def _whole_lines_to_end(data: bytes) -> bytes:
     return b"" if start < 0 else data[start + 1:]
 
 
-def _read_window_bytes(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
+def read_file_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
     """The first and last MiB of the file at ``path`` in whole lines (the same bytes twice if
     it is small). Raises ``KestimatorError`` if the file cannot be read."""
     try:
@@ -109,7 +110,7 @@ def detect_file(path: str | os.PathLike[str]) -> SlicerInfo:
     Lines cut by a window's edge are left out, so a half line never passes for a whole one.
     Raises ``KestimatorError`` if the file cannot be read.
     """
-    return detect(*_read_window_bytes(path))
+    return detect(*read_file_ends(path))
 
 
 ENVIRONMENT_ORIGIN = "SLIC3R_* environment"
@@ -127,7 +128,7 @@ def read_slicer_settings(path: str | os.PathLike[str] | None,
     say) takes its family from the environment. Never fails on content; raises
     ``KestimatorError`` only if the file cannot be read.
     """
-    ends = FileEnds.from_bytes(*_read_window_bytes(path)) if path is not None else None
+    ends = FileEnds.from_bytes(*read_file_ends(path)) if path is not None else None
     info = UNKNOWN
     if ends is not None:
         info = next((found for adapter in ADAPTERS

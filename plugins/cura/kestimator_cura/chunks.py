@@ -18,14 +18,12 @@ from __future__ import annotations
 
 import dataclasses
 import io
-import re
 from collections.abc import Iterator, Sequence
 
-from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_lines
+from kestimator.estimate import Estimate
 from kestimator.limits import Limits
-from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter
-from kestimator.slicers import SlicerInfo, adapter_for, detect
+from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter, plan_lines
+from kestimator.slicers import SlicerInfo, detect
 from kestimator.slicers.base import DETECT_WINDOW_BYTES
 
 # Cura decodes the engine's bytes as UTF-8 with "replace"; surrogateescape round-trips
@@ -36,11 +34,6 @@ SOURCE_NAME = "<Cura G-code>"
 """What messages call the G-code: it is not a file yet."""
 GENERATED_WITH = ";Generated with Cura_SteamEngine"
 LAYER_PREFIX = ";LAYER:"
-
-# The slicer's own estimate a previous run kept in its marker (as the core's
-# ``original_slicer_estimate`` reads it from a file), so a second run writes the same marker.
-_MARKER_SLICER_RE = re.compile(
-    rb"^" + re.escape(MARKER_PREFIX.encode()) + rb"\S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
 
 _Pieces = list[tuple[int, bytes]]
 """One line as (chunk index, bytes) pieces: one piece unless the line spans chunks."""
@@ -123,19 +116,6 @@ def file_ends(chunks: Sequence[str]) -> tuple[bytes, bytes]:
     return _head_and_tail(chunks)
 
 
-def original_slicer_estimate(head: bytes, detected: SlicerInfo) -> float | None:
-    """The slicer's own estimate: from kestimator's marker if the chunks were rewritten."""
-    match = _MARKER_SLICER_RE.search(head)
-    if match is None:
-        return detected.estimate_s
-    if match.group(1) == b"none":
-        return None
-    try:
-        return float(match.group(1))
-    except ValueError:
-        return detected.estimate_s
-
-
 @dataclasses.dataclass(frozen=True)
 class ChunkPlan:
     """Pass 1 over a chunk list: what Klipper computes and how pass 2 rewrites it."""
@@ -156,18 +136,12 @@ class ChunkPlan:
 def plan_chunks(chunks: Sequence[str], limits: Limits, limits_source: str) -> ChunkPlan:
     """Pass 1: estimate the chunks with progress samples and build the rewrite plan.
 
-    The same steps as the core's ``plan_file``, on lines instead of a file. Raises
-    KestimatorError when the G-code has no moves or the planner cannot time it.
+    The core's ``plan_lines`` on the joined lines. Raises KestimatorError when the G-code
+    has no moves or the planner cannot time it.
     """
     head, tail = _head_and_tail(chunks)
-    slicer = detect(head, tail)
-    adapter = adapter_for(slicer.family)
-    slicer_s = original_slicer_estimate(head, slicer)
-    est = estimate_lines(iter_lines(chunks), limits, SOURCE_NAME, sample=True,
-                         mark_prefixes=adapter.mark_prefixes)
-    if est.last_move_line is None:
-        raise KestimatorError("the G-code has no moves: nothing to estimate", SOURCE_NAME)
-    plan = InjectPlan.from_estimate(est, adapter, slicer_s, limits_source)
+    plan, est, slicer, slicer_s = plan_lines(iter_lines(chunks), head, tail, limits,
+                                             limits_source, path=SOURCE_NAME)
     return ChunkPlan(plan=plan, estimate=est, slicer=slicer, slicer_estimate_s=slicer_s,
                      limits_source=limits_source)
 
