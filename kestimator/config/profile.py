@@ -24,6 +24,7 @@ machine: its ``[limits]`` only decide what no printer.cfg or Moonraker decides.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
 import sys
 from collections.abc import Mapping
@@ -136,6 +137,13 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
                    moonraker=settings.get("moonraker"), api_key=settings.get("api_key"),
                    moonraker_timeout_s=None if timeout_s is None else float(timeout_s),
                    limits=limits, limit_sources=limit_sources)
+
+
+def toml_available() -> bool:
+    """True when a profile can be read (Python 3.11+, or tomli installed)."""
+    if sys.version_info >= (3, 11):
+        return True
+    return importlib.util.find_spec("tomli") is not None
 
 
 def _toml_reader(path: str) -> ModuleType:

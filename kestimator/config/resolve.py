@@ -6,10 +6,12 @@ Precedence, highest first:
 2. the real machine: a Klipper printer.cfg or Moonraker (one of them). It decides every setting
    Klipper's configuration holds: the values it sets, and Klipper's defaults for those it leaves
    out, as the printer itself would;
-3. the user's profile (``[limits]``; the profile may also name the machine);
-4. the slicer's settings embedded in the file, or its ``SLIC3R_*`` post-processing environment:
+3. a klipper_estimator config file (``LimitRequest.estimator_config``, JSON or JSON5): the values
+   it holds, each a stand-in like the ones below (``kestimator.config.klipper_estimator``);
+4. the user's profile (``[limits]``; the profile may also name the machine);
+5. the slicer's settings embedded in the file, or its ``SLIC3R_*`` post-processing environment:
    guesses about the printer (docs/LIMITS.md);
-5. defaults: Klipper's, plus, when no machine config is known, kestimator's assumption that a
+6. defaults: Klipper's, plus, when no machine config is known, kestimator's assumption that a
    file using G2/G3 or G10/G11 is meant for a printer with [gcode_arcs] / [firmware_retraction].
 
 So the profile and the slicer only stand in where no printer.cfg or Moonraker is known, except
@@ -24,11 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 from collections.abc import Mapping
 from pathlib import Path
 from typing import cast
 
 from kestimator.config.fields import SourcedValues, check_limit_value, parse_limit_text
+from kestimator.config.klipper_estimator import estimator_config_values
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S, default_cache_dir, moonraker_values
 from kestimator.config.printer_cfg import (
     ABSENT_PROVENANCE,
@@ -37,10 +41,20 @@ from kestimator.config.printer_cfg import (
     REQUIRED_FALLBACK,
     printer_cfg_values,
 )
-from kestimator.config.profile import Profile, default_profile_path, load_profile
+from kestimator.config.profile import (
+    Profile,
+    default_profile_path,
+    load_profile,
+    toml_available,
+)
 from kestimator.errors import KestimatorError
 from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
-from kestimator.slicers import SlicerInfo, SlicerSettings, read_slicer_settings
+from kestimator.slicers import (
+    FILE_ORIGIN,
+    SlicerInfo,
+    SlicerSettings,
+    read_slicer_settings,
+)
 from kestimator.slicers.settings import NO_SETTINGS
 
 API_KEY_ENVIRONMENT = "MOONRAKER_API_KEY"
@@ -62,8 +76,10 @@ MACHINE_FIELDS = frozenset(Limits.field_names()) - {"klipper_generation"}
 """What a printer.cfg or Moonraker decides, by its values or Klipper's defaults."""
 
 # Ranks of the sources, highest first.
-LEVEL_SET, LEVEL_MACHINE, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED = range(5)
-_STAND_INS = frozenset((LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED))
+LEVEL_SET, LEVEL_MACHINE, LEVEL_ESTIMATOR, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED = range(6)
+_STAND_INS = frozenset((LEVEL_ESTIMATOR, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED))
+ESTIMATOR_SOURCE_PREFIX = "klipper_estimator config "
+
 
 
 @dataclasses.dataclass(frozen=True)
@@ -86,6 +102,8 @@ class LimitRequest:
     read_slicer_environment: bool = True
     cache_directory: Path | None = None
     """Moonraker's cache; None means ``$XDG_CACHE_HOME/kestimator``."""
+    estimator_config: str | os.PathLike[str] | None = None
+    """A klipper_estimator config file (JSON/JSON5): a stand-in below the machine."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,10 +138,17 @@ class ResolvedLimits:
         used = set(self.sources.values())
         parts = [self.machine] if self.machine is not None else []
         if self.machine is None:
+            estimator = [s.partition(": ")[0] for s in used
+                         if s.startswith(ESTIMATOR_SOURCE_PREFIX)]
+            if estimator:
+                parts.append(estimator[0])
             if self.profile is not None and any(s.startswith("profile ") for s in used):
                 parts.append(self.profile)
             if any(s.startswith("slicer:") for s in used) and self.slicer is not None:
-                parts.append(f"{self.slicer.name} settings in the file (guesses)")
+                where = self.slicer_settings.origin or "settings in the file"
+                if where == FILE_ORIGIN:
+                    where = "settings in the file"
+                parts.append(f"{self.slicer.name} {where} (guesses)")
             parts.append("defaults")
         if SET_SOURCE in used:
             parts.append(SET_SOURCE)
@@ -145,11 +170,18 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
     if request.gcode is not None:
         slicer, slicer_settings = read_slicer_settings(
             request.gcode, environ if request.read_slicer_environment else None)
-    profile = _profile(request, environ, slicer_settings.printer_preset)
+    warnings: list[str] = []
+    profile = _profile(request, environ, slicer_settings.printer_preset, warnings)
     machine = _machine(request, profile, environ)
-    warnings = list(machine.warnings) if machine is not None else []
+    if machine is not None:
+        warnings += machine.warnings
+    estimator = None
+    if request.estimator_config is not None:
+        estimator = estimator_config_values(request.estimator_config)
+        warnings += estimator.warnings
 
-    candidates = _candidates(overrides, machine, profile, slicer_settings, warnings)
+    candidates = _candidates(overrides, machine, profile, slicer_settings, warnings,
+                             estimator)
     chosen: dict[str, Candidate] = {}
     shadowed: dict[str, tuple[Candidate, ...]] = {}
     for field in Limits.field_names():
@@ -168,6 +200,8 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
     if machine is None:
         levels = {c.level for c in chosen.values()}
         stand_ins = [text for level, text in ((LEVEL_SET, "--set"),
+                                              (LEVEL_ESTIMATOR,
+                                               "the klipper_estimator config's"),
                                               (LEVEL_PROFILE, "the profile's"),
                                               (LEVEL_SLICER, "the slicer's guesses"))
                      if level in levels] + ["Klipper's defaults"]
@@ -194,7 +228,7 @@ def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:
 
 
 def _profile(request: LimitRequest, environ: Mapping[str, str],
-             slicer_preset: str | None) -> Profile | None:
+             slicer_preset: str | None, warnings: list[str]) -> Profile | None:
     if not request.use_profile:
         if request.printer is not None:
             raise KestimatorError("--printer names a table of the profile, which is not read")
@@ -206,6 +240,12 @@ def _profile(request: LimitRequest, environ: Mapping[str, str],
         if not path.is_file():
             if request.printer is not None:
                 raise KestimatorError(f"--printer needs a profile, and there is none at {path}")
+            return None
+        if not toml_available() and request.printer is None:
+            # A slicer hook run by a Python without tomli must not fail every export
+            # because a profile exists; the warning says why it was not used.
+            warnings.append(f"profile {path} not read: Python {sys.version_info[0]}."
+                            f"{sys.version_info[1]} needs the tomli package for it")
             return None
     return load_profile(path, printer=request.printer, slicer_preset=slicer_preset)
 
@@ -233,7 +273,8 @@ def _machine(request: LimitRequest, profile: Profile | None,
 
 def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
                 profile: Profile | None, slicer: SlicerSettings,
-                warnings: list[str]) -> dict[str, list[Candidate]]:
+                warnings: list[str], estimator: SourcedValues | None = None
+                ) -> dict[str, list[Candidate]]:
     """Field -> what each source proposes, highest rank first."""
     found: dict[str, list[Candidate]] = {}
 
@@ -245,6 +286,9 @@ def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
     if machine is not None:
         for field, value in machine.values.items():
             add(field, value, machine.sources[field], LEVEL_MACHINE)
+    if estimator is not None:
+        for field, value in estimator.values.items():
+            add(field, value, estimator.sources[field], LEVEL_ESTIMATOR)
     if profile is not None:
         for field, value in profile.limits.items():
             add(field, value, profile.limit_sources[field], LEVEL_PROFILE)
