@@ -1,0 +1,279 @@
+"""`kestimator-compat`: klipper_estimator's command line, answered by kestimator.
+
+Owns the contract Moonraker's ``[analysis]`` component (Arksine/moonraker,
+moonraker/components/analysis.py, 0.11) has with the program it runs from
+``<data_path>/tools/klipper_estimator/klipper_estimator_<platform>``:
+
+- Moonraker runs ``--version`` and ``estimate`` with stderr merged into stdout, so those two
+  write nothing to stderr unless they fail;
+- ``--version`` prints ``klipper_estimator <version> ...``; Moonraker matches
+  ``klipper_estimator (v?\\d+(?:\\.\\d+)*)`` at the start of stdout and refuses a program that
+  does not answer so. The version printed is kestimator's own (the line says so);
+- ``--config_file FILE post-process PATH`` rewrites PATH in place: kestimator's real job
+  (`kestimator.rewrite.inject_file`: true ``M73 P R`` lines, the slicer's time comments, the
+  ``; kestimator ...`` marker), then the line Moonraker recognises a processed file by,
+  ``; Processed by klipper_estimator <version>, ...`` (regex ``IDENT_REGEX``, looked for in the
+  last 64 KiB), as the file's last line. The source is replaced atomically;
+- ``--config_file FILE estimate -f json PATH`` prints ``{"sequences": [{...}]}`` with
+  klipper_estimator's fields (``total_time``, ``total_distance``, ``total_extrude_distance``,
+  ``num_moves``, ``total_z_time``, ``phase_times``, ``kind_times``, ``layer_times``); Moonraker
+  answers ``/server/analysis/estimate`` with ``sequences[0]``, so there is exactly one;
+- ``[--config_file FILE] --config_moonraker_url URL [--config_moonraker_api_key KEY] dump-config``
+  prints a klipper_estimator config (JSON) from the limits resolved from Moonraker.
+
+Limits come from `kestimator.config.resolve.resolve_limits`: the config file is a
+klipper_estimator config source, a URL the machine, and kestimator's profile (if any) as
+everywhere else. Exit codes: 0 success, 1 the input could not be processed, 2 a wrong
+command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import stat
+import sys
+import tempfile
+from collections import defaultdict
+from collections.abc import Sequence
+from typing import Any, BinaryIO, TextIO
+
+from kestimator import __version__
+from kestimator.config.klipper_estimator import dump_config
+from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
+from kestimator.errors import KestimatorError
+from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
+from kestimator.planner import Move
+from kestimator.rewrite import check_gcode_file, inject_file
+
+EXIT_OK = 0
+EXIT_FAILURE = 1
+EXIT_USAGE = 2
+PROGRAM = "klipper_estimator"
+VERSION_LINE = "%s %s (kestimator-compat: this is kestimator %s, not klipper_estimator)" % (
+    PROGRAM, __version__, __version__)
+IDENT_PREFIX = "; Processed by klipper_estimator "
+IDENT_LINE = "%s%s, kestimator %s (Klipper times; see the '; kestimator' line)" % (
+    IDENT_PREFIX, __version__, __version__)
+IDENT_REGEX = re.compile(r"^; Processed by klipper_estimator (?P<version>v?\d+(?:\.\d+)*)",
+                         re.MULTILINE)
+"""Moonraker's ``analysis.IDENT_REGEX``: a file whose last 64 KiB match is not processed again."""
+IDENT_SEARCH_BYTES = 64 * 1024
+# klipper_estimator's name for moves before any feature marker (its `kind_times`).
+OTHER_KIND = "Other"
+# A move is on a layer when its start and end Z agree this closely (klipper_estimator's
+# f64::EPSILON test); layers are keyed by Z rounded to the micrometre, as it does.
+SAME_Z_MM = sys.float_info.epsilon
+LAYER_Z_DECIMALS = 3
+STDIN_NAME = "-"
+
+
+class MoveTotals:
+    """klipper_estimator's per-sequence sums, gathered from kestimator's planned moves."""
+
+    def __init__(self) -> None:
+        self.total_distance = 0.0
+        self.total_extrude_distance = 0.0
+        self.total_z_time = 0.0
+        self.acceleration = 0.0
+        self.cruise = 0.0
+        self.deceleration = 0.0
+        self.layer_times: dict[float, float] = defaultdict(float)
+
+    def __call__(self, moves: list[Move], start_t: float) -> None:
+        for move in moves:
+            move_t = move.accel_t + move.cruise_t + move.decel_t
+            self.total_distance += move.move_d
+            self.total_extrude_distance += move.axes_d[3]
+            self.acceleration += move.accel_t
+            self.cruise += move.cruise_t
+            self.deceleration += move.decel_t
+            start_z, end_z = move.start_pos[2], move.end_pos[2]
+            if abs(start_z - end_z) < SAME_Z_MM:
+                self.layer_times[round(start_z, LAYER_Z_DECIMALS)] += move_t
+            else:
+                self.total_z_time += move_t
+
+
+def estimate_document(est: Estimate, totals: MoveTotals, limits_source: str,
+                      warnings: Sequence[str] = ()) -> dict[str, Any]:
+    """``estimate -f json`` output: one klipper_estimator sequence holding the whole file."""
+    kinds = {OTHER_KIND if name == NO_FEATURE else name: t
+             for name, t in est.features.items()}
+    return {"sequences": [{
+        "total_time": est.total_s,
+        "total_distance": totals.total_distance,
+        "total_extrude_distance": totals.total_extrude_distance,
+        "num_moves": est.n_moves,
+        "total_z_time": totals.total_z_time,
+        "phase_times": {"acceleration": totals.acceleration, "cruise": totals.cruise,
+                        "deceleration": totals.deceleration},
+        "kind_times": dict(sorted(kinds.items())),
+        "layer_times": [[z, t] for z, t in sorted(totals.layer_times.items())],
+        "kestimator_version": __version__,
+        "limits_source": limits_source,
+        "kestimator_warnings": list(warnings) + est.warnings,
+    }]}
+
+
+def _build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="kestimator-compat",
+        description="klipper_estimator's command line, answered by kestimator (for "
+                    "Moonraker's [analysis]; see plugins/moonraker/README.md).")
+    parser.add_argument("-V", "--version", action="store_true",
+                        help="print 'klipper_estimator <version>' as Moonraker expects")
+    parser.add_argument("--config_file", metavar="FILE",
+                        help="a klipper_estimator config (JSON or JSON5) to take limits from")
+    parser.add_argument("--config_moonraker_url", metavar="URL",
+                        help="read the printer's Klipper settings from this Moonraker")
+    parser.add_argument("--config_moonraker_api_key", "--api_key", dest="api_key",
+                        metavar="KEY", help="Moonraker's API key")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    est = sub.add_parser("estimate", help="print the time of a G-code file")
+    est.add_argument("-f", "--format", choices=("human", "json"), default="human")
+    est.add_argument("input", help="the G-code file ('-' reads standard input)")
+    post = sub.add_parser("post-process",
+                          help="rewrite a G-code file in place with Klipper's times")
+    post.add_argument("filename", help="the G-code file")
+    sub.add_parser("dump-config", help="print a klipper_estimator config of the limits")
+    return parser
+
+
+def _request(args: argparse.Namespace, gcode: str | None) -> LimitRequest:
+    return LimitRequest(gcode=gcode, moonraker_url=args.config_moonraker_url,
+                        api_key=args.api_key, estimator_config=args.config_file,
+                        read_slicer_environment=False)
+
+
+def _warn(resolved: ResolvedLimits, err: TextIO) -> None:
+    for warning in resolved.warnings:
+        err.write("kestimator-compat: warning: %s\n" % warning)
+
+
+def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
+                 stdin: BinaryIO) -> int:
+    """``estimate [-f json] INPUT``."""
+    from_stdin = args.input == STDIN_NAME
+    resolved = resolve_limits(_request(args, None if from_stdin else args.input))
+    totals = MoveTotals()
+    if from_stdin:
+        est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals)
+    else:
+        check_gcode_file(args.input)
+        est = estimate_file(args.input, resolved.limits, observer=totals)
+    doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
+    if args.format == "json":
+        # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
+        # without log_stderr): the warnings go into the document, nothing to stderr.
+        json.dump(doc, out, indent=2)
+        out.write("\n")
+        return EXIT_OK
+    seq = doc["sequences"][0]
+    lines = ["Sequences:", " Run 0:",
+             "  Total moves: %d" % seq["num_moves"],
+             "  Total distance: %.3fmm" % seq["total_distance"],
+             "  Total extrude distance: %.3fmm" % seq["total_extrude_distance"],
+             "  Klipper time: %.3fs (kestimator %s; limits: %s)"
+             % (seq["total_time"], __version__, resolved.summary)]
+    out.write("\n".join(lines + ["  warning: " + w for w in resolved.warnings]) + "\n")
+    return EXIT_OK
+
+
+def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
+    """``post-process PATH``: inject kestimator's times, then the line Moonraker looks for."""
+    path = args.filename
+    before = check_gcode_file(path)
+    resolved = resolve_limits(_request(args, path))
+    _warn(resolved, err)
+    directory = os.path.dirname(os.path.abspath(path))
+    try:
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".",
+                                   suffix=".kestimator-compat", dir=directory)
+    except OSError as exc:
+        raise KestimatorError("cannot write next to the file: %s" % (exc.strerror or exc),
+                              path) from None
+    os.close(fd)
+    try:
+        result = inject_file(path, resolved.limits, output=tmp,
+                             limits_source=resolved.summary)
+        append_ident_line(tmp)
+        now = os.stat(path)
+        if (now.st_size, now.st_mtime_ns, now.st_ino) != (
+                before.st_size, before.st_mtime_ns, before.st_ino):
+            raise KestimatorError("the file changed while it was being processed; it was "
+                                  "left as it is now", path)
+        os.chmod(tmp, stat.S_IMODE(before.st_mode))
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              path) from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)\n"
+              % (path, result.estimate.total_s, result.m73_written, resolved.summary))
+    return EXIT_OK
+
+
+def append_ident_line(path: str) -> bool:
+    """End the file with ``IDENT_LINE`` unless its last line already is it; True if added.
+
+    The line takes the line ending of the file's last line; a file not ending in one gets
+    one first, so the marker stands on its own line.
+    """
+    with open(path, "rb+") as f:
+        size = f.seek(0, os.SEEK_END)
+        f.seek(max(0, size - IDENT_SEARCH_BYTES))
+        tail = f.read()
+        lines = tail.splitlines(keepends=True)
+        last = lines[-1] if lines else b""
+        if last.rstrip(b"\r\n") == IDENT_LINE.encode():
+            return False
+        ended = [line for line in lines[-2:] if line.endswith(b"\n")]
+        eol = b"\r\n" if ended and ended[-1].endswith(b"\r\n") else b"\n"
+        text = b"" if not tail or tail.endswith(b"\n") else eol
+        f.write(text + IDENT_LINE.encode() + eol)
+        f.flush()
+        os.fsync(f.fileno())
+    return True
+
+
+def cmd_dump_config(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
+    """``dump-config``: the resolved limits as a klipper_estimator config."""
+    resolved = resolve_limits(_request(args, None))
+    _warn(resolved, err)
+    json.dump(dump_config(resolved.limits, resolved.sources), out, indent=2)
+    out.write("\n")
+    return EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of `kestimator-compat`; returns the exit status."""
+    parser = _build_parser()
+    args = parser.parse_args(argv)
+    out, err = sys.stdout, sys.stderr
+    if args.version:
+        out.write(VERSION_LINE + "\n")
+        return EXIT_OK
+    if args.command is None:
+        parser.print_help(err)
+        return EXIT_USAGE
+    try:
+        if args.command == "estimate":
+            return cmd_estimate(args, out, err, sys.stdin.buffer)
+        if args.command == "post-process":
+            return cmd_post_process(args, out, err)
+        return cmd_dump_config(args, out, err)
+    except KestimatorError as exc:
+        err.write("kestimator-compat: error: %s\n" % exc)
+        return EXIT_FAILURE
+    except KeyboardInterrupt:
+        err.write("kestimator-compat: interrupted\n")
+        return EXIT_FAILURE
+
+
+if __name__ == "__main__":
+    sys.exit(main())
