@@ -1,16 +1,21 @@
 """The `kestimator` command: a thin layer over the library API.
 
-Owns argument parsing, output formatting (JSON and text) and exit codes. It computes
-nothing itself: estimates come from `kestimator.estimate`, limits from
-`kestimator.config`, slicer facts from `kestimator.slicers`.
+Owns argument parsing, exit codes, one-line errors, the progress bar and the `rich`
+rendering of results. It computes nothing itself: estimates come from
+`kestimator.estimate`, limits from `kestimator.config`, slicer facts from
+`kestimator.slicers`; the `--json` document and the plain text are built in
+`kestimator.cli_output`. `rich` is imported only here, only when drawing, and only if it is
+installed: without it (or when stdout is not a terminal) the output is plain text.
 
-Exit codes: 0 success; 1 the input could not be processed (the message names file and
-line); 2 the command line was wrong.
+Exit codes (docs/CLI.md): 0 success; 1 the input could not be processed (one line on
+stderr names file and line); 2 the command line was wrong; 3 kestimator itself failed (a
+bug: one line, the traceback with --debug).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
@@ -19,46 +24,100 @@ from collections.abc import Sequence
 from typing import Any
 
 from kestimator import __version__
+from kestimator.cli_output import (
+    JSON_SCHEMA_VERSION,
+    difference_text,
+    estimate_to_json,
+    feature_rows,
+    filament_text,
+    print_text,
+    set_slicer_estimate,
+    slicer_label,
+)
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
 from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_file
+from kestimator.estimate import estimate_file
 from kestimator.limits import Limits
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
-from kestimator.slicers import SlicerInfo, detect_file
+from kestimator.slicers import detect_file
+
+__all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
+           "estimate_to_json", "main"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+EXIT_INTERNAL = 3
 # PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
 SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
-JSON_SCHEMA_VERSION = 1
+# "1" draws with rich even when stdout is not a terminal, "0" never (docs/CLI.md).
+RICH_ENV = "KESTIMATOR_RICH"
+# Files at least this large get a progress bar (when stderr is a terminal).
+PROGRESS_MIN_BYTES = 5 * 1024 * 1024
+BAR_WIDTH = 20
+# The slicer's estimate is drawn green within this many percent of Klipper's, red beyond
+# the second.
+DIFFERENCE_OK_PCT = 5.0
+DIFFERENCE_BAD_PCT = 20.0
+
+DESCRIPTION = ("Print-time estimates equal to what Klipper's motion planner computes, "
+               "written back into your G-code.")
 
 EPILOG = """examples:
   kestimator estimate print.gcode --printer-cfg ~/printer_data/config/printer.cfg
+  kestimator estimate print.gcode --layers             also a table of layer times
+  kestimator estimate print.gcode --json > times.json  one JSON object (docs/CLI.md)
+  kestimator estimate print.gcode -q                   just the seconds, for scripts
+  kestimator inject print.gcode --printer-cfg printer.cfg
+  kestimator report print.gcode -o report.html
+
+exit status: 0 success, 1 the file or settings could not be used (one line on stderr
+names file and line), 2 a wrong command line, 3 a bug in kestimator.
+Output is drawn with rich on a terminal when it is installed; set KESTIMATOR_RICH=0 for
+plain text or KESTIMATOR_RICH=1 to force rich. --debug shows tracebacks.
+"""
+
+ESTIMATE_EPILOG = """examples:
+  kestimator estimate print.gcode --printer-cfg ~/printer_data/config/printer.cfg
+  kestimator estimate print.gcode --moonraker http://voron.local:7125 --layers
   kestimator estimate print.gcode --json > times.json
+  seconds=$(kestimator estimate print.gcode -q)
+
+--json prints one object whose fields docs/CLI.md documents (schema 1); -q prints only
+Klipper's total in seconds. Exit status: 0 success, 1 the file or settings could not be
+used, 2 a wrong command line, 3 a bug in kestimator.
 """
 
 
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kestimator",
-        description="Print-time estimates equal to what Klipper's motion planner computes.",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version="kestimator " + __version__)
+        description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("-V", "--version", action="version",
+                        version="kestimator " + __version__)
     parser.add_argument("--debug", action="store_true",
                         help="show a traceback when something fails")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     est = sub.add_parser(
         "estimate", help="print Klipper's time for a G-code file",
-        description="Replay a G-code file through Klipper's planner and print the time.",
-        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description="Replay a G-code file through Klipper's planner and print its time, the "
+                    "slicer's own estimate and the difference, first-layer time, layers, "
+                    "filament, where the limits came from, warnings and the time per "
+                    "feature.",
+        epilog=ESTIMATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     est.add_argument("file", help="the G-code file")
     _add_limit_options(est)
-    est.add_argument("--json", action="store_true", help="print one JSON object")
+    output = est.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true",
+                        help="print one JSON object (fields in docs/CLI.md)")
+    output.add_argument("-q", "--quiet", action="store_true",
+                        help="print only Klipper's total time in seconds")
+    est.add_argument("--layers", action="store_true", help="also show the time of every layer")
     est.add_argument("--debug", dest="sub_debug", action="store_true",
                      help=argparse.SUPPRESS)
     inj = sub.add_parser(
@@ -71,8 +130,11 @@ def _build_parser() -> argparse.ArgumentParser:
     inj.add_argument("-o", "--output", metavar="OUT",
                      help="write the result here and leave FILE untouched")
     _add_limit_options(inj)
-    inj.add_argument("--json", action="store_true", help="print a JSON summary")
-    inj.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
+    output = inj.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true",
+                        help="print the estimate's JSON object plus output and m73_written")
+    output.add_argument("-q", "--quiet", action="store_true",
+                        help="print nothing on success")
     inj.add_argument("--debug", dest="sub_debug", action="store_true",
                      help=argparse.SUPPRESS)
     lim = sub.add_parser(
@@ -97,6 +159,7 @@ def _build_parser() -> argparse.ArgumentParser:
     rep.add_argument("file", help="the G-code file")
     rep.add_argument("-o", "--output", metavar="HTML", required=True,
                      help="where to write the page")
+    rep.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     _add_limit_options(rep)
     rep.add_argument("--debug", dest="sub_debug", action="store_true",
                      help=argparse.SUPPRESS)
@@ -175,58 +238,90 @@ def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitReq
                         printer=args.printer)
 
 
-def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
-                     extra_warnings: list[str]) -> dict[str, Any]:
-    """The documented `--json` object (schema version JSON_SCHEMA_VERSION)."""
-    return {
-        "schema": JSON_SCHEMA_VERSION,
-        "kestimator": __version__,
-        "file": est.path,
-        "total_s": round(est.total_s, 6),
-        "first_layer_s": None if est.first_layer_s is None else round(est.first_layer_s, 6),
-        "layer_count": len(est.layers),
-        "layers": [{"line": line, "t": round(t, 6)} for line, t in est.layers],
-        "features": {name: round(t, 6) for name, t in est.features.items()},
-        "slicer": {"name": slicer.name, "version": slicer.version,
-                   "estimate_s": slicer.estimate_s},
-        "limits_source": limits_source,
-        "n_moves": est.n_moves,
-        "n_lines": est.n_lines,
-        "ignored_commands": est.ignored_commands,
-        "warnings": extra_warnings + est.warnings,
-        "warnings_dropped": est.warnings_dropped,
-    }
+def _rich_console(stderr: bool = False) -> Any:
+    """A rich Console for stdout (or stderr), or None for plain text.
+
+    Rich is used when it is installed and the stream is a terminal; $KESTIMATOR_RICH=1
+    forces it (a pager, a test), $KESTIMATOR_RICH=0 turns it off.
+    """
+    wanted = os.environ.get(RICH_ENV, "").strip()
+    stream = sys.stderr if stderr else sys.stdout
+    if wanted == "0" or (wanted != "1" and not _is_terminal(stream)):
+        return None
+    try:
+        from rich.console import Console
+    except ImportError:
+        return None
+    return Console(file=stream, force_terminal=True if wanted == "1" else None,
+                   highlight=False, soft_wrap=False)
 
 
-def _print_text(doc: dict[str, Any], out: Any) -> None:
-    total = doc["total_s"]
-    lines = ["%s" % doc["file"],
-             "  Klipper time : %s (%.3f s)" % (format_duration(total), total)]
-    slicer = doc["slicer"]
-    name = slicer["name"] + (" " + slicer["version"] if slicer["version"] else "")
-    if slicer["estimate_s"] is not None:
-        diff = slicer["estimate_s"] - total
-        pct = 100.0 * diff / total if total else 0.0
-        lines.append("  %-13s: %s (%+.1f %% vs Klipper)" % (
-            "Slicer", format_duration(slicer["estimate_s"]), pct))
-        lines.append("  %-13s  %s" % ("", name))
-    else:
-        lines.append("  %-13s: %s, no estimate in the file" % ("Slicer", name))
-    if doc["first_layer_s"] is not None:
-        lines.append("  First layer  : %s" % format_duration(doc["first_layer_s"]))
-    lines.append("  Layers       : %d" % doc["layer_count"])
-    lines.append("  Limits from  : %s" % doc["limits_source"])
-    if doc["features"]:
-        lines.append("  Time per feature:")
-        for feature, t in sorted(doc["features"].items(), key=lambda kv: -kv[1]):
-            share = 100.0 * t / total if total else 0.0
-            lines.append("    %-28s %10s %5.1f %%" % (feature[:28], format_duration(t), share))
-    if doc["ignored_commands"]:
-        lines.append("  Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in doc["ignored_commands"].items()))
-    for warning in doc["warnings"]:
-        lines.append("  warning: " + warning)
-    out.write("\n".join(lines) + "\n")
+def _is_terminal(stream: Any) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):
+        return False
+
+
+class _ProgressBar:
+    """Bytes read, drawn on stderr: with rich when installed, else one rewritten line.
+
+    Shown only for files of at least PROGRESS_MIN_BYTES when stderr is a terminal; calling
+    it is then `progress(bytes_done)`. Used as a context manager, it clears itself.
+    """
+
+    def __init__(self, label: str, total_bytes: int) -> None:
+        self.label = label
+        self.total = max(total_bytes, 1)
+        self._rich: Any = None
+        self._task: Any = None
+        self._last_pct = -1
+
+    def __enter__(self) -> _ProgressBar:
+        console = _rich_console(stderr=True)
+        if console is not None:
+            from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
+            self._rich = Progress(TextColumn("{task.description}"), BarColumn(),
+                                  TaskProgressColumn(), console=console, transient=True)
+            self._rich.start()
+            self._task = self._rich.add_task(self.label, total=self.total)
+        return self
+
+    def __call__(self, done: int) -> None:
+        if self._rich is not None:
+            self._rich.update(self._task, completed=min(done, self.total))
+            return
+        pct = min(100, 100 * done // self.total)
+        if pct != self._last_pct:
+            self._last_pct = pct
+            sys.stderr.write("\r%s %3d %%" % (self.label, pct))
+            sys.stderr.flush()
+
+    def __exit__(self, *exc: object) -> None:
+        if self._rich is not None:
+            self._rich.stop()
+        elif self._last_pct >= 0:
+            sys.stderr.write("\r%s\r" % (" " * (len(self.label) + 6)))
+            sys.stderr.flush()
+
+
+def _progress(args: argparse.Namespace, label: str, passes: int = 1
+              ) -> contextlib.AbstractContextManager[_ProgressBar | None]:
+    """A progress bar for a large file on a terminal, else a context yielding None."""
+    if args.json or args.quiet or not _is_terminal(sys.stderr):
+        return contextlib.nullcontext()
+    try:
+        size = os.path.getsize(args.file)
+    except OSError:
+        return contextlib.nullcontext()
+    if size < PROGRESS_MIN_BYTES:
+        return contextlib.nullcontext()
+    return _ProgressBar("%s %s" % (label, os.path.basename(args.file)), size * passes)
+
+
+def _write_json(doc: dict[str, Any]) -> None:
+    json.dump(doc, sys.stdout, indent=1)
+    sys.stdout.write("\n")
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
@@ -234,33 +329,113 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     limits, source, warnings = resolve_limits(args, args.file)
     _check_time_options(args)
     check_gcode_file(args.file)
-    est = estimate_file(args.file, limits, homing_time=args.homing_time,
-                        heat_time=args.heat_time)
+    with _progress(args, "timing") as progress:
+        est = estimate_file(args.file, limits, homing_time=args.homing_time,
+                            heat_time=args.heat_time, progress=progress)
     if est.last_move_line is None:
         warnings = warnings + ["the file has no moves: there is nothing to time"]
     slicer = detect_file(args.file)
     doc = estimate_to_json(est, slicer, source, warnings)
     if args.json:
-        json.dump(doc, sys.stdout, indent=1)
-        sys.stdout.write("\n")
+        _write_json(doc)
+    elif args.quiet:
+        sys.stdout.write("%.3f\n" % doc["total_s"])
     else:
-        _print_text(doc, sys.stdout)
+        console = _rich_console()
+        if console is None:
+            print_text(doc, sys.stdout, layers=args.layers)
+        else:
+            _print_rich(doc, console, layers=args.layers)
     return EXIT_OK
+
+
+def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None:
+    """The summary, feature table, optional layer table and warnings, drawn with rich."""
+    from rich import box
+    from rich.panel import Panel
+    from rich.table import Table
+    from rich.text import Text
+
+    total = doc["total_s"]
+    grid = Table.grid(padding=(0, 2))
+    grid.add_column(style="bold")
+    grid.add_column()
+    grid.add_row("Klipper time", Text.assemble((format_duration(total), "bold green"),
+                                               ("  %.3f s" % total, "dim")))
+    slicer = doc["slicer"]
+    if slicer["estimate_s"] is None:
+        grid.add_row("Slicer", Text.assemble(slicer_label(doc),
+                                             ("  no estimate in the file", "dim")))
+    else:
+        pct = abs(slicer["difference_pct"] or 0.0)
+        style = "green" if pct < DIFFERENCE_OK_PCT else "yellow" if pct < DIFFERENCE_BAD_PCT \
+            else "red"
+        grid.add_row("Slicer", Text.assemble(format_duration(slicer["estimate_s"]),
+                                             ("  " + slicer_label(doc), "dim")))
+        grid.add_row("Difference", Text(difference_text(doc), style=style))
+    if doc["first_layer_s"] is not None:
+        grid.add_row("First layer", format_duration(doc["first_layer_s"]))
+    grid.add_row("Layers", str(doc["layer_count"]))
+    grid.add_row("Filament", Text(filament_text(doc).replace("cm3", "cm³")))
+    grid.add_row("Limits from", Text(doc["limits_source"]))
+    console.print(Panel(grid, title=Text(os.path.basename(doc["file"]), style="bold"),
+                        title_align="left", subtitle="kestimator " + __version__,
+                        subtitle_align="right", expand=False, border_style="blue"))
+    rows = feature_rows(doc)
+    if rows:
+        table = Table(title="Time per feature", title_justify="left", box=box.SIMPLE_HEAD)
+        table.add_column("Feature")
+        table.add_column("Time", justify="right")
+        table.add_column("Share", justify="right")
+        table.add_column("", no_wrap=True)
+        for name, t, share in rows:
+            table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
+                          Text(_bar(share, 100.0), style="cyan"))
+        console.print(table)
+    if layers and doc["layers"]:
+        longest = max(layer["duration_s"] for layer in doc["layers"])
+        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
+        for title in ("Layer", "Line", "Starts at", "Takes"):
+            table.add_column(title, justify="right")
+        table.add_column("", no_wrap=True)
+        for number, layer in enumerate(doc["layers"], 1):
+            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
+                          format_duration(layer["duration_s"]),
+                          Text(_bar(layer["duration_s"], longest), style="magenta"))
+        console.print(table)
+    if doc["ignored_commands"]:
+        console.print(Text("Not Klipper commands (0 s): " + ", ".join(
+            "%s x%d" % kv for kv in doc["ignored_commands"].items()), style="dim"))
+    for warning in doc["warnings"]:
+        console.print(Text.assemble(("warning: ", "bold yellow"), warning))
+    if doc["warnings_dropped"]:
+        console.print(Text("warning: %d more warnings not shown" % doc["warnings_dropped"],
+                           style="yellow"))
+
+
+def _bar(value: float, full: float) -> str:
+    """A bar of block characters, BAR_WIDTH long when value == full."""
+    if full <= 0:
+        return ""
+    eighths = int(round(BAR_WIDTH * 8 * min(max(value / full, 0.0), 1.0)))
+    whole, part = divmod(eighths, 8)
+    return "█" * whole + (" ▏▎▍▌▋▊▉"[part] if part else "")
 
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """`kestimator inject`."""
     limits, source, warnings = resolve_limits(args, args.file)
     _check_time_options(args)
-    result = inject_file(args.file, limits, output=args.output, limits_source=source,
-                         homing_time=args.homing_time, heat_time=args.heat_time)
-    doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
-    doc["slicer"]["estimate_s"] = result.slicer_estimate_s
-    doc["output"] = result.output
-    doc["m73_written"] = result.m73_written
+    with _progress(args, "rewriting", passes=2) as progress:
+        result = inject_file(args.file, limits, output=args.output, limits_source=source,
+                             homing_time=args.homing_time, heat_time=args.heat_time,
+                             progress=progress)
     if args.json:
-        json.dump(doc, sys.stdout, indent=1)
-        sys.stdout.write("\n")
+        doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
+        set_slicer_estimate(doc, result.slicer_estimate_s)
+        doc["output"] = result.output
+        doc["m73_written"] = result.m73_written
+        _write_json(doc)
     elif not args.quiet:
         total = result.estimate.total_s
         slicer_s = result.slicer_estimate_s
@@ -269,7 +444,6 @@ def cmd_inject(args: argparse.Namespace) -> int:
         sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
             result.output, format_duration(total), said, result.m73_written))
     return EXIT_OK
-
 
 def _check_time_options(args: argparse.Namespace) -> None:
     for name in ("homing_time", "heat_time"):
@@ -361,8 +535,9 @@ def cmd_report(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
                               args.output) from None
-    sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
-                     % (args.output, format_duration(data.estimate.total_s)))
+    if not args.quiet:
+        sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
+                         % (args.output, format_duration(data.estimate.total_s)))
     return EXIT_OK
 
 
@@ -404,5 +579,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE
+    except Exception as exc:  # a bug: still one line for the user, the traceback on request
+        if args.debug or getattr(args, "sub_debug", False):
+            traceback.print_exc()
+        sys.stderr.write("kestimator: internal error: %s: %s (run with --debug for the "
+                         "traceback and please report it)\n"
+                         % (type(exc).__name__, str(exc).replace("\n", " ")))
+        return EXIT_INTERNAL
     parser.error("unknown command %r" % args.command)
     return EXIT_USAGE

@@ -37,6 +37,8 @@ READ_BUFFER_BYTES = 1 << 20
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES = 65536
 FIRST_SAMPLE_SPACING_S = 0.01
+# A progress callback hears about once per this many bytes read.
+PROGRESS_EVERY_BYTES = 1 << 20
 
 
 @dataclasses.dataclass
@@ -60,6 +62,8 @@ class Estimate:
     marks: dict[int, float]
     first_command_line: int | None
     last_move_line: int | None
+    # Net filament the moves push (mm of E, after M221; retractions count negative).
+    filament_mm: float = 0.0
 
     @property
     def first_layer_s(self) -> float | None:
@@ -92,6 +96,22 @@ def iter_lines(path: str | os.PathLike[str]) -> Iterator[bytes]:
 
 # Called with each batch of planned moves and the time the first of them starts.
 MoveObserver = Callable[[list[Move], float], None]
+# Called with the number of bytes read so far (about once per PROGRESS_EVERY_BYTES).
+ProgressCallback = Callable[[int], None]
+
+
+def counted_lines(lines: Iterable[bytes], progress: ProgressCallback,
+                  start: int = 0) -> Iterator[bytes]:
+    """`lines` unchanged; `progress(start + bytes so far)` about once per MiB and at the end."""
+    done = start
+    next_report = start + PROGRESS_EVERY_BYTES
+    for raw in lines:
+        done += len(raw)
+        if done >= next_report:
+            progress(done)
+            next_report = done + PROGRESS_EVERY_BYTES
+        yield raw
+    progress(done)
 
 
 class Timeline:
@@ -127,6 +147,7 @@ class Timeline:
         self._sample_spacing = FIRST_SAMPLE_SPACING_S
         self._next_sample_t = 0.0
         self.n_moves = 0
+        self.filament_mm = 0.0
         self.lineno = 0
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
@@ -137,15 +158,18 @@ class Timeline:
         changes = self._feature_changes
         feature = self._feature
         t = start_t
+        filament = self.filament_mm
         for move in moves:
             while changes and changes[0][0] <= move.tag:
                 feature = changes.popleft()[1]
             dt = move.accel_t + move.cruise_t + move.decel_t
             feature_time[feature] += dt
             t += dt
+            filament += move.axes_d[3]
             if self.sample and t >= self._next_sample_t:
                 self._add_sample(move.tag, t)
         self._feature = feature
+        self.filament_mm = filament
         self.n_moves += len(moves)
         if self.observer is not None:
             self.observer(moves, start_t)
@@ -297,7 +321,7 @@ class Timeline:
             warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
             marks=dict(self.marks), first_command_line=self.first_command_line,
-            last_move_line=self.toolhead.last_move_line)
+            last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm)
 
 
 def _looks_like_gcode(name: str) -> bool:
@@ -337,12 +361,16 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
 def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: float = 0.0,
                   heat_time: float = 0.0, sample: bool = False,
                   mark_prefixes: tuple[str, ...] = (),
-                  observer: MoveObserver | None = None) -> Estimate:
-    """Estimate a G-code file in one streaming pass."""
+                  observer: MoveObserver | None = None,
+                  progress: ProgressCallback | None = None) -> Estimate:
+    """Estimate a G-code file in one streaming pass (`progress` hears the bytes read)."""
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
         raise KestimatorError("is a directory, not a G-code file", path_s)
-    return estimate_lines(iter_lines(path_s), limits, path_s, homing_time=homing_time,
+    lines: Iterable[bytes] = iter_lines(path_s)
+    if progress is not None:
+        lines = counted_lines(lines, progress)
+    return estimate_lines(lines, limits, path_s, homing_time=homing_time,
                           heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes,
                           observer=observer)
 

@@ -39,7 +39,13 @@ except ImportError:  # Windows: no flock; the compare-before-replace check still
 
 from kestimator import __version__
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_lines, iter_lines
+from kestimator.estimate import (
+    Estimate,
+    ProgressCallback,
+    counted_lines,
+    estimate_lines,
+    iter_lines,
+)
 from kestimator.limits import Limits
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import KlipperTimes
@@ -308,17 +314,25 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-              heat_time: float = 0.0) -> PlanResult:
+              heat_time: float = 0.0, progress: ProgressCallback | None = None) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
-    return plan_lines(iter_lines(path), head, tail, limits, limits_source, homing_time,
+    lines: Iterable[bytes] = iter_lines(path)
+    if progress is not None:
+        lines = counted_lines(lines, progress)
+    return plan_lines(lines, head, tail, limits, limits_source, homing_time,
                       heat_time, path)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
                 limits_source: str = "", homing_time: float = 0.0,
-                heat_time: float = 0.0) -> InjectResult:
-    """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial."""
+                heat_time: float = 0.0,
+                progress: ProgressCallback | None = None) -> InjectResult:
+    """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
+
+    `progress` hears the bytes read so far over both passes: the file is read twice, so
+    the count ends at twice its size.
+    """
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
     check_gcode_file(src)
@@ -326,9 +340,9 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     with _exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                                heat_time)
+                                                heat_time, progress)
         rewriter = Rewriter(plan)
-        _write_atomically(src, dest, rewriter, before)
+        _write_atomically(src, dest, rewriter, before, progress)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,
                         slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
 
@@ -370,8 +384,8 @@ def _exclusive(path: str) -> Iterator[None]:
             locked.close()
 
 
-def _write_atomically(src: str, dest: str, rewriter: Rewriter,
-                      before: os.stat_result) -> None:
+def _write_atomically(src: str, dest: str, rewriter: Rewriter, before: os.stat_result,
+                      progress: ProgressCallback | None = None) -> None:
     dest_dir = os.path.dirname(os.path.abspath(dest))
     try:
         fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(dest) + ".",
@@ -383,7 +397,10 @@ def _write_atomically(src: str, dest: str, rewriter: Rewriter,
         with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
             process = rewriter.process
             write = out.writelines
-            for raw in inp:
+            lines: Iterable[bytes] = inp
+            if progress is not None:
+                lines = counted_lines(inp, progress, before.st_size)
+            for raw in lines:
                 write(process(raw))
             out.flush()
             os.fsync(out.fileno())
