@@ -375,6 +375,8 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
                           observer=observer)
 
 
-def estimate_text(text: str, limits: Limits, **options: float) -> Estimate:
+def estimate_text(text: str, limits: Limits, homing_time: float = 0.0,
+                  heat_time: float = 0.0) -> Estimate:
     """Estimate G-code given as a string (for tests and embedding)."""
-    return estimate_lines(io.BytesIO(text.encode("utf-8")), limits, "<text>", **options)
+    return estimate_lines(io.BytesIO(text.encode("utf-8")), limits, "<text>",
+                          homing_time=homing_time, heat_time=heat_time)

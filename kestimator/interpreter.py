@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from typing import overload
 
 from kestimator.gcode import Command, extended_params
 from kestimator.limits import Limits
@@ -51,6 +52,18 @@ WarnFn = Callable[[str, "str | None"], None]
 
 class CommandError(Exception):
     """Klipper would answer this command with an error and not run it."""
+
+
+@overload
+def _float(params: dict[str, str], name: str, default: float, *,
+           minval: float | None = None, above: float | None = None,
+           below: float | None = None) -> float: ...
+
+
+@overload
+def _float(params: dict[str, str], name: str, default: None = None, *,
+           minval: float | None = None, above: float | None = None,
+           below: float | None = None) -> float | None: ...
 
 
 def _float(params: dict[str, str], name: str, default: float | None = None, *,

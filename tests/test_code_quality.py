@@ -24,6 +24,17 @@ def test_ruff_finds_nothing() -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
+def test_package_type_checks_with_mypy() -> None:
+    if importlib.util.find_spec("mypy") is None:
+        if IN_CI:
+            pytest.fail("mypy is not installed (it is part of the test extras)")
+        pytest.skip("mypy is not installed")
+    proc = subprocess.run([sys.executable, "-m", "mypy", "kestimator",
+                           "--ignore-missing-imports", "--no-error-summary"],
+                          cwd=PROJECT, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
 def test_core_imports_only_the_standard_library() -> None:
     offenders = []
     for path in sorted((PROJECT / "kestimator").rglob("*.py")):
