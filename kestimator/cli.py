@@ -118,8 +118,7 @@ def _build_parser() -> argparse.ArgumentParser:
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print only Klipper's total time in seconds")
     est.add_argument("--layers", action="store_true", help="also show the time of every layer")
-    est.add_argument("--debug", dest="sub_debug", action="store_true",
-                     help=argparse.SUPPRESS)
+    _add_debug_option(est)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
         description="Rewrite a G-code file so M73 progress lines and the slicer's time "
@@ -135,8 +134,7 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="print the estimate's JSON object plus output and m73_written")
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print nothing on success")
-    inj.add_argument("--debug", dest="sub_debug", action="store_true",
-                     help=argparse.SUPPRESS)
+    _add_debug_option(inj)
     lim = sub.add_parser(
         "limits", help="show the printer limits a file would be timed with, and their sources",
         description="Print every printer limit kestimator would use for FILE and where each "
@@ -148,8 +146,7 @@ def _build_parser() -> argparse.ArgumentParser:
                           "config is known)")
     _add_limit_options(lim, with_times=False)
     lim.add_argument("--json", action="store_true", help="print one JSON object")
-    lim.add_argument("--debug", dest="sub_debug", action="store_true",
-                     help=argparse.SUPPRESS)
+    _add_debug_option(lim)
     rep = sub.add_parser(
         "report", help="write an HTML report with charts (time per layer, progress, ...)",
         description="Write one self-contained HTML page (no network, no scripts) with "
@@ -161,8 +158,7 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="where to write the page")
     rep.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     _add_limit_options(rep)
-    rep.add_argument("--debug", dest="sub_debug", action="store_true",
-                     help=argparse.SUPPRESS)
+    _add_debug_option(rep)
     return parser
 
 
@@ -184,6 +180,12 @@ INJECT_EPILOG = """examples:
 As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line is:
   kestimator inject --printer-cfg /path/to/printer.cfg
 """
+
+
+def _add_debug_option(parser: argparse.ArgumentParser) -> None:
+    """--debug after the command name too (its own dest, so the top-level one survives)."""
+    parser.add_argument("--debug", dest="sub_debug", action="store_true",
+                        help=argparse.SUPPRESS)
 
 
 def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True) -> None:

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -26,3 +28,13 @@ def corpus_root() -> Path:
             pytest.fail("the shared corpus is missing at %s" % CORPUS)
         pytest.skip("the shared corpus is not beside this checkout")
     return CORPUS
+
+
+def load_cura_build_script() -> Any:
+    """plugins/cura/build.py, under a name no installed module has."""
+    spec = importlib.util.spec_from_file_location(
+        "kestimator_cura_build", PROJECT / "plugins" / "cura" / "build.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -2,33 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 import kestimator
 
-from .conftest import CORPUS_CFG, PROJECT
+from .conftest import CORPUS_CFG, PROJECT, load_cura_build_script
 
-
-def _load_build_script() -> Any:
-    """plugins/cura/build.py, under a name no installed module has."""
-    spec = importlib.util.spec_from_file_location(
-        "kestimator_cura_build", PROJECT / "plugins" / "cura" / "build.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-build = _load_build_script()
+build = load_cura_build_script()
 PLUGIN_ID = "kestimator_cura"
 BASE = "files/plugins/%s/" % PLUGIN_ID
 

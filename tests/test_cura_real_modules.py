@@ -9,7 +9,6 @@ checkout's core on the path) and from the built .curapackage (its vendored core 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -19,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from .conftest import CORPUS_CFG, IN_CI, PROJECT
+from .conftest import CORPUS_CFG, IN_CI, PROJECT, load_cura_build_script
 
 sys.path.insert(0, str(PROJECT / "plugins" / "cura"))
 sys.path.insert(0, str(PROJECT / "plugins" / "cura" / "harness"))
@@ -35,17 +34,7 @@ HARNESS_TIMEOUT_S = 300
 PAUSE_SCRIPT_LINE = "G4 P1000 ;added by a post-processing script\n"
 
 
-def _load_build_script() -> Any:
-    """plugins/cura/build.py, under a name no installed module has."""
-    spec = importlib.util.spec_from_file_location(
-        "kestimator_cura_build", PROJECT / "plugins" / "cura" / "build.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-build = _load_build_script()
+build = load_cura_build_script()
 
 
 def _require(ok: bool, what: str) -> None:
