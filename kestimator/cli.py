@@ -212,17 +212,23 @@ def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True)
                              "`kestimator limits` shows them, e.g. max_accel=5000 or "
                              "klipper_generation=mcr); repeatable")
     if with_times:
-        parser.add_argument("--homing-time", type=float, default=0.0, metavar="S",
-                            help="seconds each G28 takes on your printer (default 0)")
-        parser.add_argument("--heat-time", type=float, default=0.0, metavar="S",
+        parser.add_argument("--homing-time", type=float, default=None, metavar="S",
+                            help="seconds each G28 takes on your printer (default: the "
+                                 "profile's homing_time_s, else 0)")
+        parser.add_argument("--heat-time", type=float, default=None, metavar="S",
                             help="seconds each heater wait (M109/M190/TEMPERATURE_WAIT) takes "
-                                 "(default 0)")
+                                 "(default: the profile's heat_time_s, else 0)")
 
 
 def resolve_limits(args: argparse.Namespace,
                    gcode_path: str | None) -> tuple[Limits, str, list[str]]:
     """Limits for a run, a one-line description of their source, and warnings."""
     resolved = resolve.resolve_limits(_limit_request(args, gcode_path))
+    # Durations the file cannot tell: the command line, else the profile, else 0 s.
+    for name, from_profile in (("homing_time", resolved.homing_time_s),
+                               ("heat_time", resolved.heat_time_s)):
+        if getattr(args, name, 0.0) is None:
+            setattr(args, name, from_profile if from_profile is not None else 0.0)
     return resolved.limits, resolved.summary, list(resolved.warnings)
 
 

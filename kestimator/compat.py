@@ -160,10 +160,14 @@ def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
     resolved = resolve_limits(_request(args, None if from_stdin else args.input))
     totals = MoveTotals()
     if from_stdin:
-        est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals)
+        est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals,
+                             homing_time=resolved.homing_time_s or 0.0,
+                             heat_time=resolved.heat_time_s or 0.0)
     else:
         check_gcode_file(args.input)
-        est = estimate_file(args.input, resolved.limits, observer=totals)
+        est = estimate_file(args.input, resolved.limits, observer=totals,
+                            homing_time=resolved.homing_time_s or 0.0,
+                            heat_time=resolved.heat_time_s or 0.0)
     doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
     if args.format == "json":
         # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
@@ -198,7 +202,9 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     os.close(fd)
     try:
         result = inject_file(path, resolved.limits, output=tmp,
-                             limits_source=resolved.summary)
+                             limits_source=resolved.summary,
+                             homing_time=resolved.homing_time_s or 0.0,
+                             heat_time=resolved.heat_time_s or 0.0)
         append_ident_line(tmp)
         now = os.stat(path)
         if (now.st_size, now.st_mtime_ns, now.st_ino) != (

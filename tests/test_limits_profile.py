@@ -122,3 +122,36 @@ def test_an_explicit_profile_must_exist_and_printer_needs_a_profile(tmp_path: Pa
                                     environ={"HOME": str(tmp_path)}))
     with pytest.raises(KestimatorError, match="--printer needs a profile"):
         resolve_limits(LimitRequest(printer="voron", environ={"HOME": str(tmp_path)}))
+
+
+def test_homing_and_heat_times_come_from_the_profile_unless_given(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    from .conftest import PROJECT
+
+    config_home = tmp_path / "config"
+    (config_home / "kestimator").mkdir(parents=True)
+    (config_home / "kestimator" / "config.toml").write_text(
+        'printer_cfg = "%s"\nhoming_time_s = 20\nheat_time_s = 100\n' % CORPUS_CFG)
+    gcode = tmp_path / "print.gcode"
+    gcode.write_text("G28\nM109 S200\nM83\nG1 X10 E1 F3000\n")
+    env = dict(os.environ, PYTHONPATH=str(PROJECT), XDG_CONFIG_HOME=str(config_home))
+
+    def total(*extra: str) -> float:
+        proc = subprocess.run([sys.executable, "-m", "kestimator", "estimate", str(gcode),
+                               "-q", *extra], capture_output=True, text=True, env=env)
+        assert proc.returncode == 0, proc.stderr
+        return float(proc.stdout)
+
+    plain = total("--no-profile", "--printer-cfg", str(CORPUS_CFG))
+    assert total() == pytest.approx(plain + 120.0, abs=1e-6)
+    assert total("--homing-time", "0", "--heat-time", "1") == pytest.approx(plain + 1.0,
+                                                                           abs=1e-6)
+
+
+def test_negative_profile_durations_are_errors(tmp_path: Path) -> None:
+    path = profile(tmp_path, "heat_time_s = -5\n")
+    with pytest.raises(KestimatorError, match="heat_time_s"):
+        load_profile(path)

@@ -10,6 +10,8 @@ and its ``[limits]`` add to the top-level ``[limits]``::
     printer_cfg = "~/printer_data/config/printer.cfg"  # or: moonraker = "http://voron.local"
     api_key = "..."                                    # Moonraker's, if it asks for one
     moonraker_timeout_s = 3
+    homing_time_s = 25          # what one G28 takes on this printer (default 0)
+    heat_time_s = 90            # what one heater wait takes (default 0)
 
     [limits]                     # any Limits field (docs/LIMITS.md), e.g.
     klipper_generation = "mcr"
@@ -38,7 +40,11 @@ from kestimator.errors import KestimatorError
 PROFILE_RELATIVE_PATH = Path("kestimator") / "config.toml"
 _MACHINE_KEYS = ("printer_cfg", "moonraker")
 _TEXT_KEYS = ("printer_cfg", "moonraker", "api_key")
-_TOP_KEYS = frozenset((*_TEXT_KEYS, "moonraker_timeout_s", "limits", "printers"))
+# Durations the file cannot tell (seconds per G28, per heater wait); the command line's
+# --homing-time / --heat-time win over them.
+DURATION_KEYS = ("homing_time_s", "heat_time_s")
+_TOP_KEYS = frozenset((*_TEXT_KEYS, *DURATION_KEYS, "moonraker_timeout_s", "limits",
+                       "printers"))
 _TABLE_KEYS = _TOP_KEYS - {"printers"}
 
 
@@ -57,6 +63,8 @@ class Profile:
     limits: Mapping[str, object]
     limit_sources: Mapping[str, str]
     """Field -> ``profile <path>`` (with the table, if the value is the table's)."""
+    homing_time_s: float | None = None
+    heat_time_s: float | None = None
 
     @property
     def description(self) -> str:
@@ -129,6 +137,13 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
     if timeout_s is not None and (isinstance(timeout_s, bool) or not isinstance(
             timeout_s, (int, float)) or not 0.0 < timeout_s < float("inf")):
         raise KestimatorError("moonraker_timeout_s must be a number of seconds above 0", name)
+    durations: dict[str, float | None] = {}
+    for key in DURATION_KEYS:
+        value = settings.get(key)
+        if value is not None and (isinstance(value, bool) or not isinstance(
+                value, (int, float)) or not 0.0 <= value < float("inf")):
+            raise KestimatorError(f"{key} must be a number of seconds, 0 or more", name)
+        durations[key] = None if value is None else float(value)
     printer_cfg = settings.get("printer_cfg")
     if printer_cfg is not None:
         printer_cfg = os.path.join(os.path.dirname(os.path.abspath(name)),
@@ -136,7 +151,9 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
     return Profile(path=name, printer=chosen, printer_cfg=printer_cfg,
                    moonraker=settings.get("moonraker"), api_key=settings.get("api_key"),
                    moonraker_timeout_s=None if timeout_s is None else float(timeout_s),
-                   limits=limits, limit_sources=limit_sources)
+                   limits=limits, limit_sources=limit_sources,
+                   homing_time_s=durations["homing_time_s"],
+                   heat_time_s=durations["heat_time_s"])
 
 
 def toml_available() -> bool:

@@ -131,6 +131,10 @@ class ResolvedLimits:
     slicer: SlicerInfo | None
     slicer_settings: SlicerSettings
     warnings: tuple[str, ...]
+    homing_time_s: float | None = None
+    """Seconds per G28 from the profile (None: not set there)."""
+    heat_time_s: float | None = None
+    """Seconds per heater wait from the profile (None: not set there)."""
 
     @property
     def summary(self) -> str:
@@ -214,7 +218,9 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         limits=limits, sources=sources, shadowed=shadowed,
         machine=machine.description if machine is not None else None,
         profile=profile.description if profile is not None else None,
-        slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings))
+        slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings),
+        homing_time_s=profile.homing_time_s if profile is not None else None,
+        heat_time_s=profile.heat_time_s if profile is not None else None)
 
 
 def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:
