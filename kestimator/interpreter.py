@@ -587,27 +587,9 @@ class Interpreter:
     def _g1_values(self, x: float, y: float, z: float, e: float | None,
                    f: float | None) -> None:
         """cmd_G1 with numeric parameters (what gcode_arcs sends)."""
-        lp = self.last_position
-        base = self.base_position
-        if self.absolute_coord:
-            lp[0] = x + base[0]
-            lp[1] = y + base[1]
-            lp[2] = z + base[2]
-        else:
-            lp[0] += x
-            lp[1] += y
-            lp[2] += z
-        if e is not None:
-            e *= self.extrude_factor
-            if self.absolute_coord and self.absolute_extrude:
-                lp[3] = e + base[3]
-            else:
-                lp[3] += e
-        if f is not None:
-            if not f > 0.0:
-                raise CommandError("Invalid speed in arc (F%s)" % f)
-            self.speed = f * self.speed_factor
-        self._move(self.speed)
+        if f is not None and not f > 0.0:
+            raise CommandError("Invalid speed in arc (F%s)" % f)
+        self.plain_move(x, y, z, e, f)
 
     # Firmware retraction (firmware_retraction.py)
     def cmd_G10(self, cmd: Command) -> None:
