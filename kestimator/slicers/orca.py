@@ -39,9 +39,9 @@ from kestimator.slicers.prusaslicer import (
     map_slic3r_settings,
     read_slic3r_environment,
     rewrite_estimated_time_line,
+    slic3r_machine_rules,
 )
 from kestimator.slicers.settings import (
-    LeastOf,
     SlicerConfig,
     SlicerLimit,
     SlicerSettings,
@@ -72,16 +72,7 @@ CONFIG_BLOCK_START = "; CONFIG_BLOCK_START"
 CONFIG_BLOCK_END = "; CONFIG_BLOCK_END"
 
 ORCA_DIALECT = Slic3rDialect(
-    machine_rules=(
-        LeastOf("max_velocity", ("machine_max_speed_x", "machine_max_speed_y")),
-        LeastOf("max_accel", ("machine_max_acceleration_extruding", "machine_max_acceleration_x",
-                              "machine_max_acceleration_y")),
-        LeastOf("max_z_velocity", ("machine_max_speed_z",)),
-        LeastOf("max_z_accel", ("machine_max_acceleration_z",)),
-        LeastOf("max_extrude_only_velocity", ("machine_max_speed_e",)),
-        LeastOf("max_extrude_only_accel", ("machine_max_acceleration_retracting",)),
-        LeastOf("square_corner_velocity", ("machine_max_jerk_x", "machine_max_jerk_y")),
-    ),
+    machine_rules=slic3r_machine_rules("machine_max_speed_"),
     retract_length=("filament_retraction_length", "retraction_length"),
     retract_speed=("filament_retraction_speed", "retraction_speed"),
     deretract_speed=("filament_deretraction_speed", "deretraction_speed"),

@@ -113,17 +113,26 @@ class Slic3rDialect:
     ignores (it needs ``M204 S``, or P and T on one line)."""
 
 
-PRUSASLICER_DIALECT = Slic3rDialect(
-    machine_rules=(
-        LeastOf("max_velocity", ("machine_max_feedrate_x", "machine_max_feedrate_y")),
+def slic3r_machine_rules(speed_key: str) -> tuple[LeastOf, ...]:
+    """The lineage's machine limits, Klipper's settings they stand for (each a guess).
+
+    Only the speed keys differ by branch: PrusaSlicer's ``machine_max_feedrate_<axis>``,
+    OrcaSlicer's ``machine_max_speed_<axis>`` (``speed_key`` is the part before the axis).
+    """
+    return (
+        LeastOf("max_velocity", (speed_key + "x", speed_key + "y")),
         LeastOf("max_accel", ("machine_max_acceleration_extruding", "machine_max_acceleration_x",
                               "machine_max_acceleration_y")),
-        LeastOf("max_z_velocity", ("machine_max_feedrate_z",)),
+        LeastOf("max_z_velocity", (speed_key + "z",)),
         LeastOf("max_z_accel", ("machine_max_acceleration_z",)),
-        LeastOf("max_extrude_only_velocity", ("machine_max_feedrate_e",)),
+        LeastOf("max_extrude_only_velocity", (speed_key + "e",)),
         LeastOf("max_extrude_only_accel", ("machine_max_acceleration_retracting",)),
         LeastOf("square_corner_velocity", ("machine_max_jerk_x", "machine_max_jerk_y")),
-    ),
+    )
+
+
+PRUSASLICER_DIALECT = Slic3rDialect(
+    machine_rules=slic3r_machine_rules("machine_max_feedrate_"),
     retract_length=("filament_retract_length", "retract_length"),
     retract_speed=("filament_retract_speed", "retract_speed"),
     deretract_speed=("filament_deretract_speed", "deretract_speed"),
