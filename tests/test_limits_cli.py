@@ -15,7 +15,7 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.limits import Limits
 
 from .conftest import CORPUS, CORPUS_CFG, corpus_files
-from .test_limits_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
+from .fake_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
 
 MANUAL_SOURCES = ("--set", "klipper default", "derived from ", "kestimator ", "slicer: ",
                   "guessed: ")

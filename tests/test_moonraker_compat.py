@@ -20,7 +20,7 @@ from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.estimate import estimate_file
 
 from .conftest import CORPUS_CFG
-from .test_limits_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
+from .fake_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
 
 NUT = "prusaslicer/ps25_nut_accelA_small.gcode"
 # Moonraker's analysis.py: _detect_estimator_version and IDENT_REGEX.
