@@ -12,8 +12,8 @@ moonraker/components/analysis.py, 0.11) has with the program it runs from
 - ``--config_file FILE post-process PATH`` rewrites PATH in place: kestimator's real job
   (`kestimator.rewrite.inject_file`: true ``M73 P R`` lines, the slicer's time comments, the
   ``; kestimator ...`` marker), then the line Moonraker recognises a processed file by,
-  ``; Processed by klipper_estimator <version>, ...`` (regex ``IDENT_REGEX``, looked for in the
-  last 64 KiB), as the file's last line. The source is replaced atomically;
+  ``; Processed by klipper_estimator <version>, ...`` (Moonraker's ``IDENT_REGEX``, looked
+  for in the last 64 KiB), as the file's last line. The source is replaced atomically;
 - ``--config_file FILE estimate -f json PATH`` prints ``{"sequences": [{...}]}`` with
   klipper_estimator's fields (``total_time``, ``total_distance``, ``total_extrude_distance``,
   ``num_moves``, ``total_z_time``, ``phase_times``, ``kind_times``, ``layer_times``); Moonraker
@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import stat
 import sys
 import tempfile
@@ -57,9 +56,8 @@ VERSION_LINE = "%s %s (kestimator-compat: this is kestimator %s, not klipper_est
 IDENT_PREFIX = "; Processed by klipper_estimator "
 IDENT_LINE = "%s%s, kestimator %s (Klipper times; see the '; kestimator' line)" % (
     IDENT_PREFIX, __version__, __version__)
-IDENT_REGEX = re.compile(r"^; Processed by klipper_estimator (?P<version>v?\d+(?:\.\d+)*)",
-                         re.MULTILINE)
-"""Moonraker's ``analysis.IDENT_REGEX``: a file whose last 64 KiB match is not processed again."""
+# Moonraker's analysis.IDENT_REGEX matches IDENT_LINE; a file whose last 64 KiB hold it is
+# not processed again.
 IDENT_SEARCH_BYTES = 64 * 1024
 # klipper_estimator's name for moves before any feature marker (its `kind_times`).
 OTHER_KIND = "Other"

@@ -125,8 +125,3 @@ class Limits:
     def replace(self, **changes: Any) -> "Limits":
         """A copy with some values changed (no re-derivation of defaults)."""
         return dataclasses.replace(self, **changes)
-
-
-def default_limits() -> Limits:
-    """Klipper's defaults with the stand-in velocity and acceleration."""
-    return Limits.from_values({})

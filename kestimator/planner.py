@@ -98,10 +98,6 @@ class Move:
         self.delta_v2 = 2.0 * self.move_d * self.accel
         self.mcr_delta_v2 = min(self.mcr_delta_v2, self.delta_v2)
 
-    def limit_next_junction_speed(self, speed: float) -> None:
-        """Cap the speed at the junction after this move."""
-        self.next_junction_v2 = min(self.next_junction_v2, speed**2)
-
     def calc_junction(self, prev_move: "Move") -> None:
         """Maximum start speed from the corner with `prev_move` (junction deviation)."""
         if not self.is_kinematic_move or not prev_move.is_kinematic_move:
@@ -187,11 +183,6 @@ class LookAheadQueue:
 
     def __init__(self) -> None:
         self.queue: list[Move] = []
-        self.junction_flush = LOOKAHEAD_FLUSH_TIME
-
-    def reset(self) -> None:
-        """Drop every pending move."""
-        del self.queue[:]
         self.junction_flush = LOOKAHEAD_FLUSH_TIME
 
     def set_flush_time(self, flush_time: float) -> None:

@@ -53,8 +53,6 @@ from kestimator.slicers.base import KlipperTimes
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
 _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
-# How far into a file the marker is looked for (it stands before the first command).
-MARKER_SEARCH_BYTES = 1 << 20
 BGCODE_MAGIC = b"GCDE"
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
@@ -99,13 +97,6 @@ def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None
         return float(value)
     except ValueError:
         return detected.estimate_s
-
-
-def original_slicer_estimate(path: str, detected: SlicerInfo) -> float | None:
-    """The slicer's own estimate of a file, looking through our marker if present."""
-    with open(path, "rb") as f:
-        head = f.read(MARKER_SEARCH_BYTES)
-    return slicer_estimate_from_head(head, detected)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -247,14 +238,6 @@ class Rewriter:
                     indent = raw[:len(raw) - len(code)]
                     return [indent + new.encode("utf-8", "surrogateescape") + eol]
         return [raw]
-
-
-def rewrite_lines(lines: Iterable[bytes], plan: InjectPlan) -> Iterator[bytes]:
-    """Pass 2 over byte lines (split at LF, endings kept)."""
-    rewriter = Rewriter(plan)
-    process = rewriter.process
-    for raw in lines:
-        yield from process(raw)
 
 
 @dataclasses.dataclass(frozen=True)
