@@ -17,7 +17,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import parse_line, parse_plain_move
+from kestimator.gcode import Command, parse_line, parse_plain_move
 from kestimator.interpreter import CommandError, Interpreter
 from kestimator.limits import Limits
 from kestimator.planner import Move
@@ -37,6 +37,9 @@ READ_BUFFER_BYTES = 1 << 20
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES = 65536
 FIRST_SAMPLE_SPACING_S = 0.01
+# Parsed commands kept for lines that repeat (memory stays bounded: the cache is emptied
+# when full).
+MAX_CACHED_COMMANDS = 4096
 # A progress callback hears about once per this many bytes read.
 PROGRESS_EVERY_BYTES = 1 << 20
 
@@ -151,6 +154,7 @@ class Timeline:
         self.lineno = 0
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
+        self._commands: dict[str, Command] = {}
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
@@ -217,21 +221,146 @@ class Timeline:
 
     # Per line
     def feed(self, raw: bytes) -> None:
-        """Process one line (bytes, with or without its line ending)."""
+        """Process one line (bytes, with or without its line ending).
+
+        The reference path, one line at a time; `feed_lines` gives the same result faster.
+        """
         self.lineno += 1
         values = parse_plain_move(raw)
-        if values is not None:
-            # A plain G0/G1 line: the same effect as below, without building a Command.
-            if self.first_command_line is None:
-                self.first_command_line = self.lineno
-            interp = self.interp
-            interp.tag = self.lineno
-            try:
-                interp.plain_move(*values)
-            except MoveError as exc:
-                interp.reset_last_position()
-                self._reject(raw.decode("utf-8", "replace").strip(), exc)
+        if values is None:
+            self._feed_other(raw)
             return
+        # A plain G0/G1 line: the same effect as `_feed_other`, without building a Command.
+        if self.first_command_line is None:
+            self.first_command_line = self.lineno
+        interp = self.interp
+        interp.tag = self.lineno
+        try:
+            interp.plain_move(*values)
+        except MoveError as exc:
+            interp.reset_last_position()
+            self._reject(raw.decode("utf-8", "replace").strip(), exc)
+
+    def feed_lines(self, lines: Iterable[bytes]) -> None:
+        """Process every line of `lines`: the hot loop, with the same result as `feed`.
+
+        Plain G0/G1 lines (nearly all of a file) run `Interpreter.plain_move`,
+        `ToolHead.move` and `LookAheadQueue.add_move` written out in one loop, in the same
+        order and with the same arithmetic, so no per-line method calls are paid; the
+        G-code state lives in locals and is written back before any other line runs
+        through `_feed_other` (which may change it) and read again after.
+        tests/test_estimate_fast_loop.py pins this loop against `feed` on the corpus.
+        """
+        interp = self.interp
+        toolhead = self.toolhead
+        lookahead = toolhead.lookahead
+        queue = lookahead.queue
+        parse = parse_plain_move
+        other = self._feed_other
+        check_extruder = toolhead._check_extruder_move
+        process_lookahead = toolhead._process_lookahead
+        z_limited = toolhead._z_limited
+        max_extrude_ratio = toolhead._max_extrude_ratio
+        lineno = self.lineno
+        need_first = self.first_command_line is None
+        # gcode_move state, read again after every line `_feed_other` runs.
+        lp = interp.last_position
+        base = interp.base_position
+        absolute = interp.absolute_coord
+        absolute_e = absolute and interp.absolute_extrude
+        extrude_factor = interp.extrude_factor
+        speed = interp.speed
+        speed_factor = interp.speed_factor
+        e_mode_set = interp.extrude_mode_set
+        try:
+            for raw in lines:
+                lineno += 1
+                values = parse(raw)
+                if values is None:
+                    self.lineno = lineno
+                    interp.speed = speed
+                    other(raw)
+                    need_first = self.first_command_line is None
+                    lp = interp.last_position
+                    base = interp.base_position
+                    absolute = interp.absolute_coord
+                    absolute_e = absolute and interp.absolute_extrude
+                    extrude_factor = interp.extrude_factor
+                    speed = interp.speed
+                    speed_factor = interp.speed_factor
+                    e_mode_set = interp.extrude_mode_set
+                    continue
+                if need_first:
+                    self.first_command_line = lineno
+                    need_first = False
+                # Interpreter.plain_move
+                x, y, z, e, f = values
+                if absolute:
+                    if x is not None:
+                        lp[0] = x + base[0]
+                    if y is not None:
+                        lp[1] = y + base[1]
+                    if z is not None:
+                        lp[2] = z + base[2]
+                else:
+                    if x is not None:
+                        lp[0] += x
+                    if y is not None:
+                        lp[1] += y
+                    if z is not None:
+                        lp[2] += z
+                if e is not None:
+                    e *= extrude_factor
+                    if absolute_e:
+                        lp[3] = e + base[3]
+                    else:
+                        lp[3] += e
+                    if not e_mode_set:
+                        interp.moved_e_before_mode = True
+                if f is not None:
+                    speed = f * speed_factor
+                # ToolHead.move
+                move = Move(toolhead.commanded_pos, (lp[0], lp[1], lp[2], lp[3]), speed,
+                            toolhead.max_velocity, toolhead.max_accel,
+                            toolhead.junction_deviation, toolhead.mcr_pseudo_accel,
+                            toolhead._instant_corner_v, lineno)
+                if not move.move_d:
+                    continue
+                axes_d = move.axes_d
+                if move.is_kinematic_move and axes_d[2] and z_limited:
+                    z_ratio = move.move_d / abs(axes_d[2])
+                    move.limit_speed(toolhead._max_z_velocity * z_ratio,
+                                     toolhead._max_z_accel * z_ratio)
+                if axes_d[3]:
+                    # ToolHead._check_extruder_move does nothing for a printing move
+                    # within max_extrude_ratio: only call it for the other moves.
+                    axis_r = move.axes_r[3]
+                    if (not axes_d[0] and not axes_d[1]) or not 0.0 <= axis_r <= (
+                            max_extrude_ratio):
+                        try:
+                            check_extruder(move)
+                        except MoveError as exc:
+                            self.lineno = lineno
+                            interp.reset_last_position()
+                            lp = interp.last_position
+                            self._reject(raw.decode("utf-8", "replace").strip(), exc)
+                            continue
+                toolhead.commanded_pos = move.end_pos
+                toolhead.last_move_line = lineno
+                # LookAheadQueue.add_move
+                queue.append(move)
+                if len(queue) == 1:
+                    continue
+                move.calc_junction(queue[-2])
+                lookahead.junction_flush -= move.min_move_t
+                if lookahead.junction_flush <= 0.0:
+                    process_lookahead(lazy=True)
+        finally:
+            self.lineno = lineno
+            interp.speed = speed
+
+    def _feed_other(self, raw: bytes) -> None:
+        """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""
         text = raw.decode("utf-8", "replace")
         stripped = text.strip()
         if not stripped:
@@ -239,7 +368,16 @@ class Timeline:
         if stripped[0] == ";":
             self._comment(stripped)
             return
-        cmd = parse_line(stripped)
+        # Lines other than plain moves repeat (G10/G11, M204 S.., fan and temperature
+        # commands): parse each distinct text once. A Command is never changed after
+        # parsing, so one can serve every line with that text.
+        commands = self._commands
+        cmd = commands.get(stripped)
+        if cmd is None:
+            cmd = parse_line(stripped)
+            if len(commands) >= MAX_CACHED_COMMANDS:
+                commands.clear()
+            commands[stripped] = cmd
         if not cmd.name:
             if cmd.comment is not None:
                 self._comment(";" + cmd.comment)
@@ -340,10 +478,8 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
     """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer)
-    feed = timeline.feed
     try:
-        for raw in lines:
-            feed(raw)
+        timeline.feed_lines(lines)
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a
