@@ -14,22 +14,24 @@ reads. The API key is never written anywhere and never part of a message.
 from __future__ import annotations
 
 import datetime
-import hashlib
-import http.client
 import json
 import math
 import os
 import tempfile
-import urllib.error
 import urllib.parse
-import urllib.request
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from kestimator.config.fields import SourcedValues
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
 from kestimator.errors import KestimatorError
+
+if TYPE_CHECKING:
+    import urllib.error
+# urllib.request and http.client are imported where a request is made: they take longer
+# to import (0.1 s under PyPy) than a small file takes to estimate, and most runs have no
+# Moonraker to ask.
 
 DEFAULT_TIMEOUT_S = 3.0
 QUERY_PATH = "/printer/objects/query?configfile=settings"
@@ -49,14 +51,6 @@ Settings = dict[str, dict[str, Any]]
 
 class MoonrakerUnreachableError(KestimatorError):
     """Moonraker did not answer, or Klipper behind it was not ready: the cache may stand in."""
-
-
-class _NoRedirect(urllib.request.HTTPRedirectHandler):
-    """Refuse redirects: a redirected request would carry the API key to another address."""
-
-    def redirect_request(self, req: urllib.request.Request, fp: Any, code: int, msg: str,
-                         headers: Any, newurl: str) -> None:
-        return None
 
 
 def normalise_url(url: str) -> str:
@@ -86,6 +80,8 @@ def default_cache_dir(environ: Mapping[str, str]) -> Path:
 
 def cache_path(url: str, directory: Path) -> Path:
     """The cache file of one (normalised) Moonraker URL."""
+    import hashlib  # here: under PyPy it loads OpenSSL, which most runs never need
+
     digest = hashlib.sha256(url.encode("utf-8")).hexdigest()[:16]
     return directory / f"moonraker-{digest}.json"
 
@@ -98,10 +94,21 @@ def fetch_settings(url: str, api_key: str | None = None,
     that Klipper is not ready (5xx), and KestimatorError when it refuses the request (a
     missing or wrong API key) or answers something else than settings.
     """
+    import http.client
+    import urllib.error
+    import urllib.request
+
+    class NoRedirect(urllib.request.HTTPRedirectHandler):
+        """Refuse redirects: a redirected request would carry the API key elsewhere."""
+
+        def redirect_request(self, req: urllib.request.Request, fp: Any, code: int,
+                             msg: str, headers: Any, newurl: str) -> None:
+            return None
+
     request = urllib.request.Request(url + QUERY_PATH, headers={"Accept": "application/json"})
     if api_key:
         request.add_header(API_KEY_HEADER, api_key)
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), _NoRedirect())
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect())
     try:
         with opener.open(request, timeout=timeout_s) as response:
             body = response.read(MAX_ANSWER_BYTES + 1)
