@@ -94,12 +94,15 @@ class _FullDisk:
         self._real = real
         self._room = room
 
+    def write(self, chunk: bytes) -> int:
+        if len(chunk) > self._room:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        self._room -= len(chunk)
+        return self._real.write(chunk)
+
     def writelines(self, chunks) -> None:  # type: ignore[no-untyped-def]
         for chunk in chunks:
-            if len(chunk) > self._room:
-                raise OSError(errno.ENOSPC, "No space left on device")
-            self._room -= len(chunk)
-            self._real.write(chunk)
+            self.write(chunk)
 
     def __getattr__(self, name: str):  # type: ignore[no-untyped-def]
         return getattr(self._real, name)
