@@ -31,6 +31,7 @@ import stat
 import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
+from typing import BinaryIO
 
 try:
     import fcntl
@@ -54,6 +55,10 @@ MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
 _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
 BGCODE_MAGIC = b"GCDE"
+# Pass 2 reads the file in blocks of this size.
+COPY_BLOCK_BYTES = 1 << 20
+# A line that does not start with "G" (found after the LF that ends the line before).
+_NOT_G_LINE = re.compile(rb"\n[^G]")
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
 _NO_LINE_LIMIT = 1 << 62
@@ -144,6 +149,8 @@ class Rewriter:
         self._quiet_until = 0
         # The last line copied by the fast path: its line ending becomes `eol` lazily.
         self._eol_line: bytes | None = None
+        # (last progress written, index of the first sample showing other progress).
+        self._quiet_scan: tuple[tuple[int, int] | None, int] = (None, 0)
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
         self._last_pr = (percent, minutes)
@@ -164,10 +171,29 @@ class Rewriter:
         return True
 
     def _set_quiet_until(self) -> None:
-        lines = self.plan.sample_lines
+        """Up to which line no M73 is due: until the progress shown would change.
+
+        Progress only grows, so the first sample at or after the pointer whose whole
+        percent or minute differs from the last M73 written is the first one that can
+        put an M73 before a command; lines up to its line are quiet. (A layer-marker M73
+        in between only makes the quiet stretch end early, never late: the line that
+        ends it is then processed in full and writes no M73 if none is due.)
+        """
+        plan = self.plan
+        lines = plan.sample_lines
         i = self._sample
-        quiet = lines[i] if i < len(lines) else _NO_LINE_LIMIT
-        last = self.plan.last_move_line
+        n = len(lines)
+        last_pr = self._last_pr
+        scan_pr, j = self._quiet_scan
+        if scan_pr != last_pr or j < i:
+            j = i
+        times = plan.sample_times
+        total_s = plan.total_s
+        while j < n and progress_pr(times[j], total_s) == last_pr:
+            j += 1
+        self._quiet_scan = (last_pr, j)
+        quiet = lines[j] if j < n else _NO_LINE_LIMIT
+        last = plan.last_move_line
         if last is not None and last > self.lineno and last - 1 < quiet:
             quiet = last - 1
         self._quiet_until = quiet
@@ -221,31 +247,70 @@ class Rewriter:
         return out
 
     def write_all(self, lines: Iterable[bytes], write: Callable[[bytes], object]) -> None:
-        """`write` the output of every line: the same bytes as `process` line by line.
-
-        The hot loop of pass 2: a move line before the next progress sample is written
-        as it is without a call to `process` (its fast path, written out here).
-        """
+        """`write` the output of every line: the same bytes as `process` line by line."""
         process = self.process
-        lineno = self.lineno
-        quiet_until = self._quiet_until
-        pending = None
         for raw in lines:
-            lineno += 1
-            if lineno <= quiet_until and raw[:1] == b"G":
-                pending = raw
-                write(raw)
-                continue
-            self.lineno = lineno - 1
-            if pending is not None:
-                self._eol_line = pending
-                pending = None
             for piece in process(raw):
                 write(piece)
-            quiet_until = self._quiet_until
-        self.lineno = lineno
-        if pending is not None:
-            self._eol_line = pending
+
+    def copy_stream(self, inp: BinaryIO, write: Callable[[bytes], object],
+                    progress: Callable[[int], None] | None = None) -> None:
+        """Pass 2 over a whole file: the same bytes as `process` line by line, faster.
+
+        Reads blocks; a run of quiet lines (move lines before the next change of
+        progress, see `process`) is found with C-level searches and written as one
+        slice, so Python code runs only for the other lines: comments, other commands
+        and the lines where an M73 is due. `progress` hears the bytes read so far.
+        """
+        process = self.process
+        carry = b""
+        done = 0
+        while True:
+            block = inp.read(COPY_BLOCK_BYTES)
+            if not block:
+                break
+            done += len(block)
+            data = carry + block if carry else block
+            end = data.rfind(b"\n") + 1
+            if not end:
+                carry = data
+                continue
+            carry = data[end:]
+            pos = 0
+            while pos < end:
+                pos = self._copy_quiet(data, pos, end, write)
+                if pos >= end:
+                    break
+                nl = data.index(b"\n", pos) + 1
+                for piece in process(data[pos:nl]):
+                    write(piece)
+                pos = nl
+            if progress is not None:
+                progress(done)
+        if carry:
+            for piece in process(carry):
+                write(piece)
+
+    def _copy_quiet(self, data: bytes, pos: int, end: int,
+                    write: Callable[[bytes], object]) -> int:
+        """Write the quiet lines from `pos` on as they are; where the next line starts."""
+        allowed = self._quiet_until - self.lineno
+        if allowed <= 0 or data[pos] != 71:  # "G"
+            return pos
+        # Every line from pos up to the next line that does not start with "G".
+        match = _NOT_G_LINE.search(data, pos, end)
+        stop = end if match is None else match.start() + 1
+        count = data.count(b"\n", pos, stop)
+        if count > allowed:
+            count = allowed
+            stop = pos
+            for _ in range(allowed):
+                stop = data.index(b"\n", stop) + 1
+        write(data[pos:stop])
+        self.lineno += count
+        # The last line copied decides the line ending of a later inserted line.
+        self._eol_line = data[stop - 2:stop]
+        return stop
 
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
         if code.startswith(_MARKER_PREFIX_B):
@@ -405,10 +470,11 @@ def _write_atomically(src: str, dest: str, rewriter: Rewriter, before: os.stat_r
                               % (exc.strerror or exc), dest) from None
     try:
         with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
-            lines: Iterable[bytes] = inp
+            copied = None
             if progress is not None:
-                lines = counted_lines(inp, progress, before.st_size)
-            rewriter.write_all(lines, out.write)
+                def copied(done: int) -> None:
+                    progress(before.st_size + done)
+            rewriter.copy_stream(inp, out.write, copied)
             out.flush()
             os.fsync(out.fileno())
         if dest == src:
