@@ -163,6 +163,7 @@ class Timeline:
         feature = self._feature
         t = start_t
         filament = self.filament_mm
+        next_sample_t = self._next_sample_t if self.sample else math.inf
         for move in moves:
             while changes and changes[0][0] <= move.tag:
                 feature = changes.popleft()[1]
@@ -170,8 +171,9 @@ class Timeline:
             feature_time[feature] += dt
             t += dt
             filament += move.axes_d[3]
-            if self.sample and t >= self._next_sample_t:
+            if t >= next_sample_t:
                 self._add_sample(move.tag, t)
+                next_sample_t = self._next_sample_t
         self._feature = feature
         self.filament_mm = filament
         self.n_moves += len(moves)
