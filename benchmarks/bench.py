@@ -6,7 +6,13 @@ the large PrusaSlicer file; case 2 is that file concatenated with itself 4 times
 to a temporary directory and deleted afterwards), to show memory does not grow with size.
 A dated row per case is appended to benchmarks/RESULTS.md.
 
-    python benchmarks/bench.py [--python PYTHON] [--no-concat] [--no-record] [--note TEXT]
+    python benchmarks/bench.py [--python PYTHON] [--env KEY=VALUE ...] [--no-concat]
+                               [--no-record] [--note TEXT]
+
+`--env` sets a variable for every measured run (the copy too), e.g. PyPy's nursery:
+`--python pypy3 --env PYPY_GC_NURSERY=16M`. PyPy sizes its nursery to half the last-level
+cache it detects; this VM reports a 480 MiB L3, so PyPy's default nursery is 240 MiB,
+which costs RSS and time on every run (a desktop CPU's L3 gives 4-16 MiB).
 """
 
 from __future__ import annotations
@@ -47,13 +53,15 @@ print(wall, ru.ru_maxrss, rc, ru.ru_utime + ru.ru_stime)
 """
 
 
-def measure(python: str, argv: list[str], stdout_path: str) -> tuple[float, float, float]:
+def measure(python: str, argv: list[str], stdout_path: str,
+            extra_env: dict[str, str] | None = None) -> tuple[float, float, float]:
     """Wall seconds, peak RSS (MiB) and CPU seconds of `python argv...` in a fresh process.
 
     A wrapper process starts exactly one child, so RUSAGE_CHILDREN's ru_maxrss (kB on
     Linux) is that child's own peak.
     """
     env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env.update(extra_env or {})
     proc = subprocess.run([sys.executable, "-c", WRAP_SRC, stdout_path, python] + argv,
                           stdout=subprocess.PIPE, env=env, check=True)
     wall_s, rss_kb, rc, cpu_s = proc.stdout.split()
@@ -62,7 +70,8 @@ def measure(python: str, argv: list[str], stdout_path: str) -> tuple[float, floa
     return float(wall_s), int(rss_kb) / 1024.0, float(cpu_s)
 
 
-def bench_case(python: str, path: str, tmpdir: str, repeat: int) -> dict[str, object]:
+def bench_case(python: str, path: str, tmpdir: str, repeat: int,
+               extra_env: dict[str, str] | None = None) -> dict[str, object]:
     size_mb = os.path.getsize(path) / 1e6
     out = os.path.join(tmpdir, "out.gcode")
     stdout_path = os.path.join(tmpdir, "stdout")
@@ -75,7 +84,7 @@ def bench_case(python: str, path: str, tmpdir: str, repeat: int) -> dict[str, ob
     for name, argv in runs.items():
         best = None
         for _ in range(repeat):
-            wall, rss, cpu = measure(python, argv[1:], stdout_path)
+            wall, rss, cpu = measure(python, argv[1:], stdout_path, extra_env)
             if best is None or wall < best[0]:
                 best = (wall, max(rss, best[1]) if best else rss, cpu)
         res[name] = best
@@ -158,23 +167,27 @@ def main() -> int:
     parser.add_argument("--no-concat", action="store_true")
     parser.add_argument("--no-record", action="store_true")
     parser.add_argument("--note", default="")
+    parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
+                        help="set for every measured run (repeatable)")
     args = parser.parse_args()
     path = os.path.abspath(args.file)
+    extra_env = dict(item.split("=", 1) for item in args.env)
+    note = "; ".join(filter(None, [" ".join(args.env), args.note]))
     rows = []
     with tempfile.TemporaryDirectory(prefix="kestimator-bench-") as tmpdir:
-        res = bench_case(args.python, path, tmpdir, args.repeat)
+        res = bench_case(args.python, path, tmpdir, args.repeat, extra_env)
         print("\n".join(report("1x", res)), flush=True)
-        rows.append(md_row("1x", args.python, res, args.note))
+        rows.append(md_row("1x", args.python, res, note))
         if not args.no_concat:
             big = os.path.join(tmpdir, "concat4.gcode")
             with open(big, "wb") as out:
                 for _ in range(CONCAT_COPIES):
                     with open(path, "rb") as inp:
                         shutil.copyfileobj(inp, out, 1 << 20)
-            res4 = bench_case(args.python, big, tmpdir, args.repeat)
+            res4 = bench_case(args.python, big, tmpdir, args.repeat, extra_env)
             os.unlink(big)
             print("\n".join(report("%dx" % CONCAT_COPIES, res4)), flush=True)
-            rows.append(md_row("%dx" % CONCAT_COPIES, args.python, res4, args.note))
+            rows.append(md_row("%dx" % CONCAT_COPIES, args.python, res4, note))
     if not args.no_record:
         append_rows(rows)
     print("host:", platform.node(), platform.processor() or platform.machine())
