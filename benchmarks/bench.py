@@ -149,14 +149,15 @@ def append_rows(rows: list[str]) -> None:
         with open(RESULTS, "w", encoding="utf-8") as f:
             f.write(HEADER + TABLE_HEAD)
     with open(RESULTS, encoding="utf-8") as f:
-        text = f.read()
-    # Rows go at the end of the table, before any notes that follow it.
-    marker = "\n## "
-    cut = text.find(marker)
-    table, rest = (text, "") if cut < 0 else (text[:cut], text[cut:])
-    table = table.rstrip("\n") + "\n" + "\n".join(rows) + "\n"
+        lines = f.read().splitlines(keepends=True)
+    # Rows go right after the last row of the first table (notes may follow it).
+    start = next(i for i, line in enumerate(lines) if line.startswith("| date |"))
+    end = start
+    while end < len(lines) and lines[end].startswith("|"):
+        end += 1
+    lines[end:end] = [row + "\n" for row in rows]
     with open(RESULTS, "w", encoding="utf-8") as f:
-        f.write(table + rest)
+        f.write("".join(lines))
 
 
 def main() -> int:

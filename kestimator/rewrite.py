@@ -57,8 +57,27 @@ _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MUL
 BGCODE_MAGIC = b"GCDE"
 # Pass 2 reads the file in blocks of this size.
 COPY_BLOCK_BYTES = 1 << 20
-# A line that does not start with "G" (found after the LF that ends the line before).
-_NOT_G_LINE = re.compile(rb"\n[^G]")
+# Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
+# our marker) and M73 lines (dropped), as `process` recognises them after lstrip().
+_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|[Mm]73(?:[ \t;\r\n]|\Z))"
+_attention_at = re.compile(_ATTENTION).match
+# The next such line, found by the LF that ends the line before it.
+_next_attention = re.compile(rb"\n" + _ATTENTION).search
+# Skip 2**k whole lines (k = 0..20; a block of 1 MiB holds at most 2**20 lines).
+_SKIP_LINES = tuple(re.compile(rb"(?:[^\n]*\n){%d}" % (1 << k)).match for k in range(21))
+
+
+def _after_lines(data: bytes, pos: int, count: int) -> int:
+    """Where the line `count` lines after the one at `pos` starts (they all end in LF)."""
+    k = 0
+    while count:
+        if count & 1:
+            match = _SKIP_LINES[k](data, pos)
+            assert match is not None
+            pos = match.end()
+        count >>= 1
+        k += 1
+    return pos
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
 _NO_LINE_LIMIT = 1 << 62
@@ -143,6 +162,8 @@ class Rewriter:
         self._last_pr: tuple[int, int] | None = None
         self._started = False
         self._prefixes = plan.adapter.time_comment_prefixes
+        # The same prefixes as UTF-8: a line is decoded only if its bytes start with one.
+        self._prefixes_b = tuple(prefix.encode("utf-8") for prefix in self._prefixes)
         self.m73_written = 0
         # Fast path: up to this line, a line starting with "G" is copied as it is (no
         # progress sample is crossed and the last move is not reached before it).
@@ -257,10 +278,10 @@ class Rewriter:
                     progress: Callable[[int], None] | None = None) -> None:
         """Pass 2 over a whole file: the same bytes as `process` line by line, faster.
 
-        Reads blocks; a run of quiet lines (move lines before the next change of
-        progress, see `process`) is found with C-level searches and written as one
-        slice, so Python code runs only for the other lines: comments, other commands
-        and the lines where an M73 is due. `progress` hears the bytes read so far.
+        Reads blocks; a run of quiet lines (before the next change of progress, see
+        `_copy_quiet`) is found with C-level searches and written as one slice, so Python
+        code runs only for comments, M73 lines and the lines where an M73 is due.
+        `progress` hears the bytes read so far.
         """
         process = self.process
         carry = b""
@@ -293,19 +314,22 @@ class Rewriter:
 
     def _copy_quiet(self, data: bytes, pos: int, end: int,
                     write: Callable[[bytes], object]) -> int:
-        """Write the quiet lines from `pos` on as they are; where the next line starts."""
+        """Write the quiet lines from `pos` on as they are; where the next line starts.
+
+        Before the next change of progress and before the last move, `process` writes
+        every line as it is except comments and M73 lines (and the lines it skips over
+        leave no state behind that a later line would not catch up on), so the run up to
+        the next such line is copied in one slice.
+        """
         allowed = self._quiet_until - self.lineno
-        if allowed <= 0 or data[pos] != 71:  # "G"
+        if allowed <= 0 or _attention_at(data, pos) is not None:
             return pos
-        # Every line from pos up to the next line that does not start with "G".
-        match = _NOT_G_LINE.search(data, pos, end)
+        match = _next_attention(data, pos, end)
         stop = end if match is None else match.start() + 1
         count = data.count(b"\n", pos, stop)
         if count > allowed:
             count = allowed
-            stop = pos
-            for _ in range(allowed):
-                stop = data.index(b"\n", stop) + 1
+            stop = _after_lines(data, pos, allowed)
         write(data[pos:stop])
         self.lineno += count
         # The last line copied decides the line ending of a later inserted line.
@@ -321,7 +345,7 @@ class Rewriter:
             if eol:
                 return [raw, self._m73(pr[0], pr[1], eol)]
             return [self._m73(pr[0], pr[1], self.eol), raw]
-        if self._prefixes:
+        if self._prefixes and code.startswith(self._prefixes_b):
             text = code.decode("utf-8", "surrogateescape").rstrip("\r\n")
             if text.startswith(self._prefixes):
                 new = self.plan.adapter.rewrite_time_comment(text, self.lineno,
