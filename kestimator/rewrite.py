@@ -267,13 +267,6 @@ class Rewriter:
         out.append(raw)
         return out
 
-    def write_all(self, lines: Iterable[bytes], write: Callable[[bytes], object]) -> None:
-        """`write` the output of every line: the same bytes as `process` line by line."""
-        process = self.process
-        for raw in lines:
-            for piece in process(raw):
-                write(piece)
-
     def copy_stream(self, inp: BinaryIO, write: Callable[[bytes], object],
                     progress: Callable[[int], None] | None = None) -> None:
         """Pass 2 over a whole file: the same bytes as `process` line by line, faster.
