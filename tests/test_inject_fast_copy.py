@@ -79,6 +79,8 @@ def test_lines_straddling_blocks_come_out_the_same(block: int, limits: Limits,
     b";LAYER_CHANGE\nG1 X10 F600\n" + b"G1 X50 E1\nG1 X0 E1\n;WIDTH:0.4\nM106 S3\n" * 300
     + b";LAYER_CHANGE\nG1 Z5\nM73 P100 R0\n; end\n",
     b"G1 X1 F60\nG1 X2\nG1 X3\n",
+    b";LAYER_CHANGE\nG1 X1 F60\n" + b"G1 X2 ; M73 in a comment; and ;\n  ;indented\n"
+    b"G1 X3\n\tM73 P1\nM117 M73\nm73 P2\nG1 X4 E1\nM73\n" * 200,
 ])
 def test_crlf_missing_final_newline_and_interleaved_lines_come_out_the_same(
         body: bytes, tmp_path: Path, limits: Limits, monkeypatch: pytest.MonkeyPatch) -> None:
