@@ -37,9 +37,10 @@ READ_BUFFER_BYTES = 1 << 20
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES = 65536
 FIRST_SAMPLE_SPACING_S = 0.01
-# Parsed commands kept for lines that repeat (memory stays bounded: the cache is emptied
-# when full).
+# Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
+# kept, and the cache is emptied when full).
 MAX_CACHED_COMMANDS = 4096
+MAX_CACHED_COMMAND_CHARS = 200
 # A progress callback hears about once per this many bytes read.
 PROGRESS_EVERY_BYTES = 1 << 20
 
@@ -377,9 +378,10 @@ class Timeline:
         cmd = commands.get(stripped)
         if cmd is None:
             cmd = parse_line(stripped)
-            if len(commands) >= MAX_CACHED_COMMANDS:
-                commands.clear()
-            commands[stripped] = cmd
+            if len(stripped) <= MAX_CACHED_COMMAND_CHARS:
+                if len(commands) >= MAX_CACHED_COMMANDS:
+                    commands.clear()
+                commands[stripped] = cmd
         if not cmd.name:
             if cmd.comment is not None:
                 self._comment(";" + cmd.comment)
