@@ -154,3 +154,23 @@ def test_fast_loop_matches_line_by_line_on_fuzzed_programs(program: list[str]) -
             run(lines, limits, fast=True)
         return
     assert_identical(run(lines, limits, fast=True), slow)
+
+
+def test_command_cache_changes_nothing_and_stays_bounded(limits: Limits,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    from kestimator import estimate
+
+    program = []
+    for i in range(3000):
+        program += ["M204 S%d" % (500 + i % 2500), "G1 X%d Y%d F6000" % (i % 50, i % 7), "G10",
+                    "G1 X%d" % (i % 13), "G11", "SET_VELOCITY_LIMIT ACCEL=%d" % (1000 + i)]
+    lines = [(line + "\n").encode() for line in program]
+    timeline = Timeline(limits, "x.gcode", sample=True)
+    timeline.feed_lines(lines)
+    cached = timeline.finish()
+    assert 0 < len(timeline._commands) <= estimate.MAX_CACHED_COMMANDS
+    monkeypatch.setattr(estimate, "MAX_CACHED_COMMAND_CHARS", -1)  # no line is cached
+    timeline = Timeline(limits, "x.gcode", sample=True)
+    timeline.feed_lines(lines)
+    assert not timeline._commands
+    assert_identical(timeline.finish(), cached)
