@@ -277,19 +277,28 @@ class Rewriter:
         `progress` hears the bytes read so far.
         """
         process = self.process
-        carry = b""
+        # The start of a line that continues in the next block (a list, so a line over
+        # many blocks is joined once, not copied again at every block).
+        carry: list[bytes] = []
         done = 0
         while True:
             block = inp.read(COPY_BLOCK_BYTES)
             if not block:
                 break
             done += len(block)
-            data = carry + block if carry else block
-            end = data.rfind(b"\n") + 1
+            end = block.rfind(b"\n") + 1
             if not end:
-                carry = data
+                carry.append(block)
+                if progress is not None:
+                    progress(done)
                 continue
-            carry = data[end:]
+            if carry:
+                carry.append(block)
+                data = b"".join(carry)
+                end += len(data) - len(block)
+            else:
+                data = block
+            carry = [data[end:]] if end < len(data) else []
             pos = 0
             while pos < end:
                 pos = self._copy_quiet(data, pos, end, write)
@@ -302,7 +311,7 @@ class Rewriter:
             if progress is not None:
                 progress(done)
         if carry:
-            for piece in process(carry):
+            for piece in process(b"".join(carry)):
                 write(piece)
 
     def _copy_quiet(self, data: bytes, pos: int, end: int,

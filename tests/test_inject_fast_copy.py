@@ -81,6 +81,8 @@ def test_lines_straddling_blocks_come_out_the_same(block: int, limits: Limits,
     b"G1 X1 F60\nG1 X2\nG1 X3\n",
     b";LAYER_CHANGE\nG1 X1 F60\n" + b"G1 X2 ; M73 in a comment; and ;\n  ;indented\n"
     b"G1 X3\n\tM73 P1\nM117 M73\nm73 P2\nG1 X4 E1\nM73\n" * 200,
+    # Old Mac line endings: Klipper splits at LF only, so this is one long line.
+    b";LAYER_CHANGE\r" + b"G1 X10 F600\rG1 X0\r" * 3000 + b"\nG1 X5\n",
 ])
 def test_crlf_missing_final_newline_and_interleaved_lines_come_out_the_same(
         body: bytes, tmp_path: Path, limits: Limits, monkeypatch: pytest.MonkeyPatch) -> None:
