@@ -55,6 +55,9 @@ MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
 _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
 BGCODE_MAGIC = b"GCDE"
+SECONDS_PER_MINUTE = 60.0
+PERCENT = 100.0
+_NO_LINE_LIMIT = 1 << 62
 # Pass 2 reads the file in blocks of this size.
 COPY_BLOCK_BYTES = 1 << 20
 # Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
@@ -73,14 +76,12 @@ def _after_lines(data: bytes, pos: int, count: int) -> int:
     while count:
         if count & 1:
             match = _SKIP_LINES[k](data, pos)
-            assert match is not None
+            if match is None:
+                raise ValueError("fewer than %d lines after position %d" % (count, pos))
             pos = match.end()
         count >>= 1
         k += 1
     return pos
-SECONDS_PER_MINUTE = 60.0
-PERCENT = 100.0
-_NO_LINE_LIMIT = 1 << 62
 
 
 def _is_m73(code: bytes) -> bool:
