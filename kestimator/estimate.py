@@ -267,14 +267,8 @@ class Timeline:
         lineno = self.lineno
         need_first = self.first_command_line is None
         # gcode_move state, read again after every line `_feed_other` runs.
-        lp = interp.last_position
-        base = interp.base_position
-        absolute = interp.absolute_coord
-        absolute_e = absolute and interp.absolute_extrude
-        extrude_factor = interp.extrude_factor
-        speed = interp.speed
-        speed_factor = interp.speed_factor
-        e_mode_set = interp.extrude_mode_set
+        (lp, base, absolute, absolute_e, extrude_factor, speed, speed_factor,
+         e_mode_set) = self._move_state()
         try:
             for raw in lines:
                 lineno += 1
@@ -284,14 +278,8 @@ class Timeline:
                     interp.speed = speed
                     other(raw)
                     need_first = self.first_command_line is None
-                    lp = interp.last_position
-                    base = interp.base_position
-                    absolute = interp.absolute_coord
-                    absolute_e = absolute and interp.absolute_extrude
-                    extrude_factor = interp.extrude_factor
-                    speed = interp.speed
-                    speed_factor = interp.speed_factor
-                    e_mode_set = interp.extrude_mode_set
+                    (lp, base, absolute, absolute_e, extrude_factor, speed, speed_factor,
+                     e_mode_set) = self._move_state()
                     continue
                 if need_first:
                     self.first_command_line = lineno
@@ -361,6 +349,15 @@ class Timeline:
         finally:
             self.lineno = lineno
             interp.speed = speed
+
+    def _move_state(self) -> tuple[list[float], list[float], bool, bool, float, float,
+                                   float, bool]:
+        """The interpreter's gcode_move state that `feed_lines` keeps in locals."""
+        interp = self.interp
+        absolute = interp.absolute_coord
+        return (interp.last_position, interp.base_position, absolute,
+                absolute and interp.absolute_extrude, interp.extrude_factor, interp.speed,
+                interp.speed_factor, interp.extrude_mode_set)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""

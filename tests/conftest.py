@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,17 @@ def corpus_root() -> Path:
             pytest.fail("the shared corpus is missing at %s" % CORPUS)
         pytest.skip("the shared corpus is not beside this checkout")
     return CORPUS
+
+
+def require_program(name: str) -> str:
+    """The path of a program a test drives: skipped without it, but under CI it must be there
+    (.ci/run installs it)."""
+    found = shutil.which(name)
+    if found is None:
+        if IN_CI:
+            pytest.fail("%s is not installed (.ci/run installs it)" % name)
+        pytest.skip("%s is not installed" % name)
+    return found
 
 
 def load_cura_build_script() -> Any:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import IN_CI, PROJECT
+from .conftest import PROJECT, require_program
 from .test_hook_checks import (
     build_zipapp,
     hook_problems,
@@ -91,12 +91,7 @@ def write_tube_stl(path: Path) -> None:
 
 @pytest.fixture(scope="module")
 def prusa_slicer() -> Path:
-    found = shutil.which("prusa-slicer")
-    if found is None:
-        if IN_CI:
-            pytest.fail("prusa-slicer is not installed (.ci/run installs it)")
-        pytest.skip("prusa-slicer is not installed")
-    return Path(found)
+    return Path(require_program("prusa-slicer"))
 
 
 @pytest.fixture(scope="module")

@@ -9,26 +9,20 @@ what CPython prints, and `inject` must write exactly the same file. Skipped with
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from .conftest import CORPUS_CFG, IN_CI, PROJECT, corpus_files
+from .conftest import CORPUS_CFG, PROJECT, corpus_files, require_program
 
 # Files from every slicer family, small enough to keep this test to seconds.
 MAX_FILE_BYTES = 1_500_000
 
 
 def _pypy() -> str:
-    pypy = shutil.which("pypy3")
-    if pypy is None:
-        if IN_CI:
-            pytest.fail("pypy3 is missing (Debian package pypy3)")
-        pytest.skip("pypy3 is not installed")
-    return pypy
+    return require_program("pypy3")
 
 
 def _run(python: str, *args: str) -> subprocess.CompletedProcess[bytes]:
