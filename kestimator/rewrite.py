@@ -60,9 +60,12 @@ PERCENT = 100.0
 _NO_LINE_LIMIT = 1 << 62
 # Pass 2 reads the file in blocks of this size.
 COPY_BLOCK_BYTES = 1 << 20
+# An M73 command (already left-stripped): M73 alone or followed by a space, tab, ';' or EOL.
+_M73 = rb"[Mm]73(?:[ \t;\r\n]|\Z)"
+_m73_at = re.compile(_M73).match
 # Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
 # our marker) and M73 lines (dropped), as `process` recognises them after lstrip().
-_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|[Mm]73(?:[ \t;\r\n]|\Z))"
+_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s)" % _M73
 _attention_at = re.compile(_ATTENTION).match
 # The next such line, found by the LF that ends the line before it.
 _next_attention = re.compile(rb"\n" + _ATTENTION).search
@@ -86,10 +89,7 @@ def _after_lines(data: bytes, pos: int, count: int) -> int:
 
 def _is_m73(code: bytes) -> bool:
     """True for an M73 command line (already left-stripped)."""
-    if code[:3] not in (b"M73", b"m73"):
-        return False
-    rest = code[3:4]
-    return not rest or rest in b" \t;\r\n"
+    return _m73_at(code) is not None
 
 
 def progress_pr(t: float, total_s: float) -> tuple[int, int]:
