@@ -30,17 +30,20 @@ from kestimator.cli_output import (
     estimate_to_json,
     feature_rows,
     filament_text,
+    parts_rows,
     print_text,
     set_slicer_estimate,
     slicer_label,
+    untimed_commands,
 )
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
 from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import estimate_file
+from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import detect_file
@@ -229,6 +232,7 @@ def resolve_limits(args: argparse.Namespace,
                                ("heat_time", resolved.heat_time_s)):
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
+    args.macros = MacroTimes(macros=dict(resolved.macro_times))
     return resolved.limits, resolved.summary, list(resolved.warnings)
 
 
@@ -339,7 +343,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     check_gcode_file(args.file)
     with _progress(args, "timing") as progress:
         est = estimate_file(args.file, limits, homing_time=args.homing_time,
-                            heat_time=args.heat_time, progress=progress)
+                            heat_time=args.heat_time, progress=progress, macros=args.macros)
     if est.last_move_line is None:
         warnings = warnings + ["the file has no moves: there is nothing to time"]
     slicer = detect_file(args.file)
@@ -368,8 +372,13 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None
     grid = Table.grid(padding=(0, 2))
     grid.add_column(style="bold")
     grid.add_column()
-    grid.add_row("Klipper time", Text.assemble((format_duration(total), "bold green"),
-                                               ("  %.3f s" % total, "dim")))
+    parts = parts_rows(doc)
+    grid.add_row("Total" if parts else "Klipper time",
+                 Text.assemble((format_duration(total), "bold green"),
+                               ("  %.3f s" % total, "dim"),
+                               ("  until the part is done" if parts else "", "")))
+    for label, text in parts[1:]:
+        grid.add_row(label, Text(text))
     slicer = doc["slicer"]
     if slicer["estimate_s"] is None:
         grid.add_row("Slicer", Text.assemble(slicer_label(doc),
@@ -411,9 +420,10 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None
                           format_duration(layer["duration_s"]),
                           Text(_bar(layer["duration_s"], longest), style="magenta"))
         console.print(table)
-    if doc["ignored_commands"]:
+    untimed = untimed_commands(doc)
+    if untimed:
         console.print(Text("Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in doc["ignored_commands"].items()), style="dim"))
+            "%s x%d" % kv for kv in untimed.items()), style="dim"))
     for warning in doc["warnings"]:
         console.print(Text.assemble(("warning: ", "bold yellow"), warning))
     if doc["warnings_dropped"]:
@@ -437,7 +447,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
     with _progress(args, "rewriting", passes=2) as progress:
         result = inject_file(args.file, limits, output=args.output, limits_source=source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
-                             progress=progress)
+                             progress=progress, macros=args.macros)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
         set_slicer_estimate(doc, result.slicer_estimate_s)
@@ -445,13 +455,28 @@ def cmd_inject(args: argparse.Namespace) -> int:
         doc["m73_written"] = result.m73_written
         _write_json(doc)
     elif not args.quiet:
-        total = result.estimate.total_s
+        est = result.estimate
         slicer_s = result.slicer_estimate_s
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
-        sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
-            result.output, format_duration(total), said, result.m73_written))
+        sys.stdout.write("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines\n" % (
+            result.output, format_duration(est.total_s), _parts_text(est), said,
+            result.m73_written))
     return EXIT_OK
+
+def _parts_text(est: Estimate) -> str:
+    """`` (motion 3m 42s + macros and prep 7m 00s, 7m 00s of it before the first
+    extrusion)``, or nothing when no time was added."""
+    parts = est.parts
+    if not est.timed_parts:
+        return ""
+    text = " (motion %s + macros and prep %s" % (format_duration(parts.motion_s),
+                                                 format_duration(parts.added_s))
+    if parts.before_first_extrusion_s:
+        text += ", %s of it before the first extrusion" % format_duration(
+            parts.before_first_extrusion_s)
+    return text + ")"
+
 
 def _check_time_options(args: argparse.Namespace) -> None:
     for name in ("homing_time", "heat_time"):
@@ -535,7 +560,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     limits, source, _warnings = resolve_limits(args, args.file)
     _check_time_options(args)
     data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time)
+                   heat_time=args.heat_time, macros=args.macros)
     page = render_html(data)
     try:
         with open(args.output, "w", encoding="utf-8") as out:

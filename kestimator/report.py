@@ -21,6 +21,7 @@ from kestimator import __version__
 from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.planner import Move
 from kestimator.slicers import SlicerInfo, detect_file
 
@@ -93,10 +94,11 @@ def _time_at_line(est: Estimate, line: int) -> float:
 
 
 def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-            heat_time: float = 0.0) -> ReportData:
+            heat_time: float = 0.0, macros: MacroTimes | None = None) -> ReportData:
     """Estimate the file with move statistics and read the slicer's own M73 progress."""
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
+                        macros=macros,
                         sample=True, observer=speed)
     slicer = detect_file(path)
     progress: list[tuple[float, float]] = []

@@ -49,6 +49,7 @@ from kestimator.config.profile import (
 )
 from kestimator.errors import KestimatorError
 from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
+from kestimator.macros import MacroTime
 from kestimator.slicers import (
     FILE_ORIGIN,
     SlicerInfo,
@@ -135,6 +136,8 @@ class ResolvedLimits:
     """Seconds per G28 from the profile (None: not set there)."""
     heat_time_s: float | None = None
     """Seconds per heater wait from the profile (None: not set there)."""
+    macro_times: Mapping[str, MacroTime] = dataclasses.field(default_factory=dict)
+    """Macro name -> seconds one run takes, from the profile's ``[macros]``."""
 
     @property
     def summary(self) -> str:
@@ -220,7 +223,10 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         profile=profile.description if profile is not None else None,
         slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings),
         homing_time_s=profile.homing_time_s if profile is not None else None,
-        heat_time_s=profile.heat_time_s if profile is not None else None)
+        heat_time_s=profile.heat_time_s if profile is not None else None,
+        macro_times={} if profile is None else {
+            name: MacroTime(seconds, profile.description)
+            for name, seconds in profile.macros.items()})
 
 
 def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:
