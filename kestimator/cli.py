@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from kestimator import __version__
+from kestimator import __version__, learn
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
     difference_text,
@@ -162,6 +162,20 @@ def _build_parser() -> argparse.ArgumentParser:
     rep.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     _add_limit_options(rep)
     _add_debug_option(rep)
+    lrn = sub.add_parser(
+        "learn", help="learn this printer's start, timelapse-frame and tool-change times from "
+                      "its Moonraker job history",
+        description="Read Moonraker's job history, time the file of every completed job with "
+                    "the printer's limits, and learn (median of at least %d jobs, outliers "
+                    "such as paused jobs rejected) the time before the first extrusion, per "
+                    "timelapse frame and per tool change, and whether the printer runs slower "
+                    "than Klipper's planner. Stored beside the Moonraker cache and used by "
+                    "every command whose limits come from that Moonraker (--no-learned: not)."
+                    % learn.MIN_JOBS)
+    _add_limit_options(lrn, with_times=False)
+    lrn.add_argument("--jobs", type=int, default=learn.MAX_HISTORY_JOBS, metavar="N",
+                     help="read the newest N jobs (default %d)" % learn.MAX_HISTORY_JOBS)
+    _add_debug_option(lrn)
     return parser
 
 
@@ -214,6 +228,9 @@ def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True)
                         help="set one limit, above every other source (keys as "
                              "`kestimator limits` shows them, e.g. max_accel=5000 or "
                              "klipper_generation=mcr); repeatable")
+    parser.add_argument("--no-learned", action="store_true",
+                        help="ignore the times learned from the printer's job history "
+                             "(kestimator learn)")
     if with_times:
         parser.add_argument("--homing-time", type=float, default=None, metavar="S",
                             help="seconds each G28 takes on your printer (default: the "
@@ -233,7 +250,27 @@ def resolve_limits(args: argparse.Namespace,
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = MacroTimes(macros=dict(resolved.macro_times))
+    learned = _learned(args, resolved)
+    if learned is not None:
+        args.macros = learned.macro_times(resolved.macro_times)
     return resolved.limits, resolved.summary, list(resolved.warnings)
+
+
+def _moonraker_url(resolved: ResolvedLimits) -> str | None:
+    """The Moonraker the limits came from (also from its offline cache), if any."""
+    machine = resolved.machine or ""
+    if not machine.startswith("moonraker "):
+        return None
+    return machine.split()[1]
+
+
+def _learned(args: argparse.Namespace,
+             resolved: ResolvedLimits) -> learn.LearnedTimes | None:
+    """What `kestimator learn` stored for the Moonraker the limits came from."""
+    url = _moonraker_url(resolved)
+    if url is None or getattr(args, "no_learned", False):
+        return None
+    return learn.load(url)
 
 
 def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitRequest:
@@ -546,11 +583,54 @@ def cmd_limits(args: argparse.Namespace) -> int:
     """`kestimator limits`."""
     resolved = resolve.resolve_limits(_limit_request(args, args.file))
     doc = limits_to_json(resolved, args.file)
+    learned = _learned(args, resolved)
+    doc["macros"] = {name: {"seconds": t.seconds, "source": t.source}
+                     for name, t in sorted(resolved.macro_times.items())}
+    doc["learned"] = None if learned is None else _learned_json(learned)
     if args.json:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
         _print_limits(doc, sys.stdout)
+        for name, entry in doc["macros"].items():
+            sys.stdout.write("  macro %s: %g s (%s)\n" % (name, entry["seconds"],
+                                                          entry["source"]))
+        if learned is not None:
+            sys.stdout.write("Learned from %s's history (%s):\n" % (learned.url,
+                                                                     learned.learned_at))
+            for line in learned.lines():
+                sys.stdout.write("  " + line + "\n")
+    return EXIT_OK
+
+
+def _learned_json(learned: learn.LearnedTimes) -> dict[str, Any]:
+    def value(v: learn.LearnedValue | None) -> dict[str, Any] | None:
+        return None if v is None else {"value": round(v.value, 6), "spread": round(
+            v.spread, 6), "jobs": v.jobs, "rejected": v.rejected}
+    return {"url": learned.url, "learned_at": learned.learned_at,
+            "before_first_extrusion_s": value(learned.before_first_extrusion_s),
+            "per_run_s": {name: value(v) for name, v in sorted(learned.per_run_s.items())},
+            "motion_ratio": value(learned.motion_ratio), "jobs_read": learned.jobs_read,
+            "notes": list(learned.notes)}
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    """`kestimator learn`."""
+    resolved = resolve.resolve_limits(_limit_request(args, None))
+    url = _moonraker_url(resolved)
+    if url is None:
+        raise KestimatorError("learn reads a printer's job history from Moonraker: give "
+                              "--moonraker URL (or name it in the profile)")
+    api_key = args.api_key or os.environ.get(API_KEY_ENVIRONMENT) or None
+    learned = learn.learn_from_moonraker(url, resolved.limits, api_key,
+                                         max_jobs=max(1, args.jobs))
+    path = learn.save(learned)
+    sys.stdout.write("Learned from %s: %d jobs read (%s), stored in %s\n" % (
+        url, learned.jobs_read, learned.learned_at, path))
+    for line in learned.lines():
+        sys.stdout.write("  " + line + "\n")
+    for note in learned.notes:
+        sys.stdout.write("  note: " + note + "\n")
     return EXIT_OK
 
 
@@ -599,6 +679,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_limits(args)
         if args.command == "report":
             return cmd_report(args)
+        if args.command == "learn":
+            return cmd_learn(args)
     except KestimatorError as exc:
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()

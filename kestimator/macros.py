@@ -23,6 +23,8 @@ ADD_TIME_SOURCE = "ESTIMATOR_ADD_TIME"
 HOMING_SOURCE = "homing time (--homing-time / homing_time_s)"
 HEAT_SOURCE = "heat time (--heat-time / heat_time_s)"
 LEARNED_PREP_LABEL = "before the first extrusion"
+# The name under which a time per tool change (any T<n>) is kept.
+TOOL_CHANGE = "T"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,8 +44,12 @@ class MacroTimes:
     before_first_extrusion: MacroTime | None = None
 
     def time_of(self, name: str) -> MacroTime | None:
-        """The time of one run of the command `name`, if known."""
-        return self.macros.get(name)
+        """The time of one run of the command `name`, if known (a tool change T<n> takes
+        the time given for ``T`` when it has none of its own)."""
+        found = self.macros.get(name)
+        if found is None and name[:1] == TOOL_CHANGE and name[1:].isdigit():
+            return self.macros.get(TOOL_CHANGE)
+        return found
 
 
 def check_seconds(value: object) -> float:
