@@ -227,7 +227,7 @@ class Timeline:
         filament = self.filament_mm
         t = start_t
         for move in moves:
-            filament += move.axes_d[3]
+            filament += move.axes_d_e
             if filament >= FIRST_EXTRUSION_MM:
                 self.first_extrusion_t = t
                 return
