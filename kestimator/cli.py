@@ -621,8 +621,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
     if url is None:
         raise KestimatorError("learn reads a printer's job history from Moonraker: give "
                               "--moonraker URL (or name it in the profile)")
-    api_key = args.api_key or os.environ.get(API_KEY_ENVIRONMENT) or None
-    learned = learn.learn_from_moonraker(url, resolved.limits, api_key,
+    learned = learn.learn_from_moonraker(url, resolved.limits, resolved.moonraker_api_key,
                                          max_jobs=max(1, args.jobs))
     path = learn.save(learned)
     sys.stdout.write("Learned from %s: %d jobs read (%s), stored in %s\n" % (

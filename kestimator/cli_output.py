@@ -183,10 +183,8 @@ def parts_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
                                                 format_duration(source["seconds"]),
                                                 source["source"])))
     if parts["before_first_extrusion_s"]:
-        rows.append(("Printing", "%s from the first extrusion, after %s of prep (what "
-                     "print_duration shows, and the file's time comments)" % (
-                         format_duration(parts["print_duration_s"]),
-                         format_duration(parts["before_first_extrusion_s"]))))
+        rows.append(("Printing", "%s after the first extrusion (print_duration; the "
+                     "file's time comments)" % format_duration(parts["print_duration_s"])))
     return rows
 
 

@@ -268,13 +268,29 @@ ul.warn{font-size:.85em;color:#7a4b00;word-break:break-word}
 """
 
 
+def parts_cards(est: Estimate) -> list[tuple[str, str]]:
+    """The parts of the total, when time was added for macros, waits or a learned start."""
+    if not est.timed_parts:
+        return []
+    parts = est.parts
+    cards = [("Motion (Klipper's planner)", format_duration(parts.motion_s)),
+             ("Macros and prep", format_duration(parts.added_s))]
+    cards += [("%s x%d" % (p.name, p.count), "%s, %s" % (format_duration(p.seconds), p.source))
+              for p in est.timed_parts]
+    if parts.before_first_extrusion_s:
+        cards.append(("Before the first extrusion",
+                      format_duration(parts.before_first_extrusion_s)))
+    return cards
+
+
 def render_html(data: ReportData) -> str:
     """The whole page."""
     est = data.estimate
     slicer = data.slicer
-    cards = [("Klipper time", format_duration(est.total_s))]
+    cards = [("Klipper time", format_duration(est.total_s))] + parts_cards(est)
     if slicer.estimate_s is not None:
-        diff = 100.0 * (slicer.estimate_s - est.total_s) / est.total_s if est.total_s else 0.0
+        motion_s = est.parts.motion_s  # the slicer times the moves only
+        diff = 100.0 * (slicer.estimate_s - motion_s) / motion_s if motion_s else 0.0
         said = "%s (%+.0f %%)" % (format_duration(slicer.estimate_s), diff)
         cards.append(("%s said" % slicer.name, said))
     if est.first_layer_s is not None:

@@ -176,3 +176,14 @@ def test_cli_shows_the_parts_and_their_sources(tmp_path: Path,
     assert cli.main(["inject", str(copy), *args[1:]]) == 0
     assert ("Klipper time 10m 42s (motion 3m 42s + macros and prep 7m 00s, 7m 00s of it "
             "before the first extrusion)") in capsys.readouterr().out
+
+
+def test_report_shows_the_parts(tmp_path: Path) -> None:
+    profile = _profile(tmp_path, "[macros]\nPRINT_START = 420\n")
+    out = tmp_path / "report.html"
+    assert cli.main(["report", str(NUT), "-o", str(out), "--printer-cfg", str(CORPUS_CFG),
+                     "--profile", str(profile), "-q"]) == 0
+    page = out.read_text(encoding="utf-8")
+    assert "<span>Motion (Klipper&#x27;s planner)</span><b>3m 42s</b>" in page
+    assert "<span>PRINT_START x1</span><b>7m 00s, profile %s</b>" % profile in page
+    assert "<span>Before the first extrusion</span><b>7m 00s</b>" in page
