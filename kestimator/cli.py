@@ -485,6 +485,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         result = inject_file(args.file, limits, output=args.output, limits_source=source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              progress=progress, macros=args.macros)
+    args.written.append(result.output)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
         set_slicer_estimate(doc, result.slicer_estimate_s)
@@ -662,10 +663,100 @@ def _error_text(exc: KestimatorError) -> str:
     return text.replace("\n", " ")
 
 
+class StdoutError(Exception):
+    """Standard output is closed or cannot take what we write (a full disk, /dev/full)."""
+
+
+class _GuardedStdout:
+    """sys.stdout while a command runs: a failed write or flush becomes `StdoutError`,
+    so the command can still say what happened to the file (a broken pipe stays as it is:
+    the reader went away on purpose)."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        if self._stream is None:
+            raise StdoutError("standard output is closed")
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def flush(self) -> None:
+        if self._stream is None:
+            return
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def isatty(self) -> bool:
+        return self._stream is not None and _is_terminal(self._stream)
+
+    def __getattr__(self, name: str) -> Any:
+        if self._stream is None:
+            raise AttributeError(name)
+        return getattr(self._stream, name)
+
+
+def _quiet_stdout() -> None:
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
+    stream = sys.stdout
+    if isinstance(stream, _GuardedStdout):
+        stream = stream._stream
+    if stream is not None:
+        with contextlib.suppress(Exception):
+            stream.close()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `kestimator` command; returns the exit status."""
+    """Entry point of the `kestimator` command; returns the exit status.
+
+    Standard output failing (closed, full) is reported on stderr as one line; the exit
+    status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
+    """
+    real_stdout = sys.stdout
+    sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
+    written: list[str] = []
+    try:
+        status = _main(argv, written)
+        sys.stdout.flush()
+        return status
+    except StdoutError as exc:
+        _quiet_stdout()
+        if written:
+            sys.stderr.write("kestimator: %s was written; its summary could not be shown: "
+                             "standard output: %s\n" % (printable(written[0]), exc))
+            return EXIT_OK
+        sys.stderr.write("kestimator: error: cannot write to standard output: %s\n" % exc)
+        return EXIT_FAILURE
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_OK
+    finally:
+        sys.stdout = real_stdout
+
+
+def printable(text: str) -> str:
+    """`text` (a path, a message) on one line: control characters shown as escapes."""
+    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in text)
+
+
+def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
+    args.written = written
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
@@ -693,6 +784,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE
+    except StdoutError:
+        raise
     except Exception as exc:  # a bug: still one line for the user, the traceback on request
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()
