@@ -21,6 +21,7 @@ modules (`klipper_time`, `chunks`, `machine`). The flow:
 
 from __future__ import annotations
 
+import gc
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -72,6 +73,18 @@ DIALOG_MOONRAKER_KEY = "Moonraker API key"
 def _qt_widgets() -> Any:
     """QtWidgets of the Qt binding this Cura runs (see `qt_binding_name`)."""
     return qt_module("QtWidgets")
+
+
+def extension_models() -> list[Any]:
+    """The Extensions-menu models (Uranium's ``ExtensionModel``) QML created: in Cura 4 one
+    for the menu bar and one for Cura's own use, in Cura 5 one in ``ExtensionMenu.qml``.
+    QML parents them differently in each version, so they are looked up among the live
+    Python objects rather than in the window's object tree."""
+    try:
+        from UM.Qt.Bindings.ExtensionModel import ExtensionModel
+    except ImportError:
+        return []
+    return [obj for obj in gc.get_objects() if isinstance(obj, ExtensionModel)]
 
 
 class KlipperTimeJob(Job):
@@ -330,21 +343,13 @@ class KestimatorExtension(Extension):
         Logger.log("w", "kestimator: no menu item %r", name)
 
     def _refreshMenu(self) -> None:
-        """Rename the items of the Extensions menu Cura already built (it reads an
-        extension's items once, into a Uranium ListModel per menu)."""
-        try:
-            from UM.Qt.Bindings.ExtensionModel import ExtensionModel
-        except ImportError:
-            return
-        window = getattr(self._application, "getMainWindow", lambda: None)()
-        if window is None:
-            return
-        core = qt_module("QtCore")
+        """Rename the items of the Extensions menus Cura already built: Uranium's
+        ExtensionModel reads an extension's items once, into a ListModel per menu, and has
+        no way to refresh them. Those models are found among the live objects and their rows
+        renamed with ListModel.setProperty (public), the way QML's bindings pick it up."""
         labels = self.menuLabels()
         renamed = 0
-        for model in window.findChildren(core.QObject):
-            if not isinstance(model, ExtensionModel):
-                continue
+        for model in extension_models():
             for item in model.items:
                 actions = item.get("actions")
                 if item.get("extension") is not self or actions is None:
@@ -463,11 +468,12 @@ class PrintInformationPanel:
         self._backend = backend
         signal.connect(self._onPrintDuration)
 
-    def _onPrintDuration(self, plate: int, times: Mapping[str, float],
+    def _onPrintDuration(self, plate: int | None, times: Mapping[str, float] | None,
                          amounts: Any) -> None:
-        if self._emitting:
+        # Cura emits (None, {}, []) when the scene changes: never raise into Cura here.
+        if self._emitting or plate is None:
             return
-        self._cura[int(plate)] = (dict(times), list(amounts or []))
+        self._cura[int(plate)] = (dict(times or {}), list(amounts or []))
         shown = self._shown
         if shown is not None and shown[0] == int(plate) and times:
             self._application.callLater(self.show, shown[0], shown[1])
