@@ -462,6 +462,11 @@ def wait_for(target: CuraTarget, home: Path, what: str, timeout: float,
     return []
 
 
+def _helper_started(target: CuraTarget, home: Path) -> bool:
+    return any(name == "started" and values.get("mode") == "check"
+               for name, values in notes(target.log_text(home)))
+
+
 def _state(found: list[tuple[str, dict[str, object]]], name: str) -> dict[str, object]:
     for what, values in found:
         if what == "state" and values.get("name") == name:
@@ -526,14 +531,25 @@ def run(target: CuraTarget, printer_cfg: Path, keep: Path | None) -> int:
             log = home / ".local/share/cura" / target.config_folder / "cura.log"
             if log.is_file():
                 log.rename(log.with_name("cura-seed.log"))
-            cura = start_cura(target, home, home_inside, "check",
-                              [home_inside + "/cube.stl"], extra)
-            try:
-                found = wait_for(target, home, "done", STEP_TIMEOUT_S, cura)
-                time.sleep(1)
-                found = found and notes(target.log_text(home))
-            finally:
-                stop(cura)
+            for attempt in (1, 2):
+                cura = start_cura(target, home, home_inside, "check",
+                                  [home_inside + "/cube.stl"], extra)
+                try:
+                    found = wait_for(target, home, "done", STEP_TIMEOUT_S, cura)
+                    time.sleep(1)
+                    found = found and notes(target.log_text(home))
+                finally:
+                    stop(cura)
+                if found or attempt == 2 or _helper_started(target, home):
+                    break
+                # Cura died before any plugin code of ours ran past loading (seen rarely:
+                # a crash in Cura 4.13's startup threads on a loaded machine). Once more;
+                # a crash the plugin causes happens again and fails.
+                print("NOTE: Cura exited before starting; once more. Its last output: %s"
+                      % target.log_text(home)[-600:].replace("\n", " | "), flush=True)
+                if log.is_file():
+                    log.rename(log.with_name("cura-crashed.log"))
+                shutil.move(str(home / "cura-stdout.txt"), str(home / "cura-crashed.txt"))
         text = target.log_text(home)
         installed = target.plugins_folder(home) / "kestimator_cura" / "kestimator_cura"
         step("Cura's package manager installed the package", (installed / "plugin.json")
