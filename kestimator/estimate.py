@@ -156,6 +156,11 @@ class Timeline:
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
         self._commands: dict[str, Command] = {}
+        # What the printer's kinematics does that is not modelled: said once, up front;
+        # its commands that change motion are named where they run.
+        for message in self.toolhead.kin.warnings:
+            self.warn(message, None, "kinematics:" + message)
+        self._kin_commands = self.toolhead.kin.commands
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
@@ -262,7 +267,7 @@ class Timeline:
         other = self._feed_other
         check_extruder = toolhead._check_extruder_move
         process_lookahead = toolhead._process_lookahead
-        z_limited = toolhead._z_limited
+        check_move = toolhead.kin.check_move
         max_extrude_ratio = toolhead._max_extrude_ratio
         lineno = self.lineno
         need_first = self.first_command_line is None
@@ -318,10 +323,15 @@ class Timeline:
                 if not move.move_d:
                     continue
                 axes_d = move.axes_d
-                if move.is_kinematic_move and axes_d[2] and z_limited:
-                    z_ratio = move.move_d / abs(axes_d[2])
-                    move.limit_speed(toolhead._max_z_velocity * z_ratio,
-                                     toolhead._max_z_accel * z_ratio)
+                if move.is_kinematic_move:
+                    try:
+                        check_move(move)
+                    except MoveError as exc:
+                        self.lineno = lineno
+                        interp.reset_last_position()
+                        lp = interp.last_position
+                        self._reject(raw.decode("utf-8", "replace").strip(), exc)
+                        continue
                 if axes_d[3]:
                     # ToolHead._check_extruder_move does nothing for a printing move
                     # within max_extrude_ratio: only call it for the other moves.
@@ -385,6 +395,8 @@ class Timeline:
             return
         if self.first_command_line is None:
             self.first_command_line = self.lineno
+        if cmd.name in self._kin_commands:
+            self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
         self.interp.tag = self.lineno
         try:
             self.interp.execute(cmd)
