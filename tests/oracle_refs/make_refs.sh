@@ -38,4 +38,8 @@ delta_tight orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode
 polar slic3r/cancelobj_slic3r1.3.1dev.gcode
 polar snippets/polar_center.gcode
 polar snippets/polar_out_of_range.gcode
+winch snippets/home_then_move.gcode
+winch snippets/z_moves.gcode
+none snippets/home_then_move.gcode
+none snippets/z_moves.gcode
 RUNS
