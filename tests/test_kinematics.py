@@ -62,14 +62,14 @@ def test_every_kinematics_klipper_ships_loads_without_a_printer_cfg() -> None:
         kin = load_kinematics(Limits.from_values({"kinematics": name}))
         assert kin.name == name
         if name in ("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
-                    "none"):
+                    "generic_cartesian", "none"):
             assert not kin.warnings, name
         else:
             # Never a silent number: what is not modelled is named.
             assert kin.warnings and name in kin.warnings[0], name
 
 
-@pytest.mark.parametrize("name", ["deltesian", "rotary_delta", "generic_cartesian"])
+@pytest.mark.parametrize("name", ["deltesian", "rotary_delta"])
 def test_kinematics_not_modelled_are_named_in_the_estimate(name: str) -> None:
     est = estimate_text("G1 X10 Z1 F600\n", Limits.from_values({"kinematics": name}))
     assert any(name in w and "does not model" in w for w in est.warnings)

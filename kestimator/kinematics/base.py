@@ -34,9 +34,15 @@ _TRUE = frozenset(("1", "yes", "true", "on"))
 _FALSE = frozenset(("0", "no", "false", "off"))
 
 
+# Prefixes of the sections generic_cartesian reads ([carriage x], [stepper a], ...).
+MACHINE_SECTION_PREFIXES = ("stepper_", "stepper ", "carriage ", "dual_carriage ",
+                            "extra_carriage ")
+
+
 def is_machine_section(name: str) -> bool:
     """Whether a kinematics reads the section called ``name`` (lower-case)."""
-    return name == "printer" or name.startswith("stepper_") or name in EXTRA_SECTIONS
+    return (name == "printer" or name.startswith(MACHINE_SECTION_PREFIXES)
+            or name in EXTRA_SECTIONS)
 
 
 class MissingSectionError(KestimatorError):
@@ -78,6 +84,16 @@ class MachineConfig:
             if section_name == name:
                 return Section(self, name, {o: (v, s) for o, v, s in options})
         return None
+
+    def get_prefix_sections(self, prefix: str) -> list[Section]:
+        """Every section whose name starts with ``prefix``, in the config's order."""
+        found = []
+        for section_name, _ in self.sections:
+            if section_name.startswith(prefix):
+                section = self.section(section_name)
+                if section is not None:
+                    found.append(section)
+        return found
 
     def has_section(self, name: str) -> bool:
         """Whether the config declares ``[name]``."""
@@ -193,6 +209,7 @@ class Rail:
     position_max: float
     homing_positive_dir: bool
     step_dist: float
+    """mm (or radians) per microstep; 0 for a generic_cartesian carriage (no stepper)."""
 
     def get_range(self) -> tuple[float, float]:
         """(position_min, position_max)."""
@@ -242,10 +259,19 @@ def step_distance(section: Section, units_in_radians: bool | None = None) -> flo
 
 def lookup_rail(config: MachineConfig, name: str, need_position_minmax: bool = True,
                 default_position_endstop: float | None = None,
-                units_in_radians: bool = False) -> Rail:
+                units_in_radians: bool = False, has_stepper: bool = True) -> Rail:
     """`stepper.LookupMultiRail` / `GenericPrinterRail` for ``[name]``: positions, range and
     homing direction, with Klipper's defaults and the checks that stop Klipper starting."""
-    section = config.getsection(name)
+    return rail_from_section(config, config.getsection(name), need_position_minmax,
+                             default_position_endstop, units_in_radians, has_stepper)
+
+
+def rail_from_section(config: MachineConfig, section: Section,
+                      need_position_minmax: bool = True,
+                      default_position_endstop: float | None = None,
+                      units_in_radians: bool = False, has_stepper: bool = True) -> Rail:
+    """`lookup_rail` for a section already looked up."""
+    name = section.name
     position_endstop = _probe_z_offset(config, section)
     if position_endstop is None:
         if default_position_endstop is None:
@@ -277,7 +303,7 @@ def lookup_rail(config: MachineConfig, name: str, need_position_minmax: bool = T
         raise section._error("homing_positive_dir",
                              "Invalid homing_positive_dir / position_endstop in '%s'" % name)
     return Rail(name, position_endstop, position_min, position_max, positive_dir,
-                step_distance(section, units_in_radians))
+                step_distance(section, units_in_radians) if has_stepper else 0.0)
 
 
 class Kinematics:

@@ -1,10 +1,10 @@
 """Stand-ins for the kinematics whose own rules kestimator does not model yet.
 
-`deltesian`, `rotary_delta` and `generic_cartesian` (mainline Klipper 84104bbbd,
+`deltesian` and `rotary_delta` (mainline Klipper 84104bbbd,
 `klippy/kinematics/<name>.py`) check ranges and homing positions we do not reproduce, and
 deltesian and rotary_delta slow moves by their own rules. Their stand-in applies the Z speed
-limit Klipper applies to them (scaled along Z for deltesian and generic_cartesian; rotary_delta
-caps the velocity only), checks no range, homes to 0, and always says so in a warning: never a
+limit Klipper applies to them (scaled along Z for deltesian; rotary_delta caps the velocity
+only), checks no range, homes to 0, and always says so in a warning: never a
 silent number.
 """
 
@@ -22,8 +22,6 @@ WHAT_IS_MISSING = {
     "deltesian": "its X/Z range, homing to the top of the pillars and its slow-down of moves "
                  "near the X extremes",
     "rotary_delta": "its build radius and height, homing to the top and its Z speed rule",
-    "generic_cartesian": "the ranges and homing positions of its [carriage] sections and "
-                         "SET_STEPPER_CARRIAGES",
 }
 
 

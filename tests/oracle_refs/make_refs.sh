@@ -42,4 +42,8 @@ winch snippets/home_then_move.gcode
 winch snippets/z_moves.gcode
 none snippets/home_then_move.gcode
 none snippets/z_moves.gcode
+generic_cartesian cura/cura413_ender3_nut_small.gcode
+generic_cartesian snippets/home_then_move.gcode
+generic_cartesian snippets/z_moves.gcode
+generic_cartesian snippets/out_of_range_x.gcode
 RUNS
