@@ -69,7 +69,7 @@ def test_every_kinematics_klipper_ships_loads_without_a_printer_cfg() -> None:
             assert kin.warnings and name in kin.warnings[0], name
 
 
-@pytest.mark.parametrize("name", ["deltesian", "rotary_delta"])
+@pytest.mark.parametrize("name", ["rotary_delta"])
 def test_kinematics_not_modelled_are_named_in_the_estimate(name: str) -> None:
     est = estimate_text("G1 X10 Z1 F600\n", Limits.from_values({"kinematics": name}))
     assert any(name in w and "does not model" in w for w in est.warnings)

@@ -45,7 +45,7 @@ Z_SCALED = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_
                       "limited_corexy", "limited_corexz"))
 # Kinematics that need the printer's own sections to be modelled.
 _NEED_MACHINE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
-                           "generic_cartesian", "delta", "polar", "winch"))
+                           "generic_cartesian", "delta", "deltesian", "polar", "winch"))
 _CARTESIAN_LIKE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy",
                              "hybrid_corexz", "generic_cartesian"))
 

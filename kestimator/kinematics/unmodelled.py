@@ -1,10 +1,9 @@
 """Stand-ins for the kinematics whose own rules kestimator does not model yet.
 
-`deltesian` and `rotary_delta` (mainline Klipper 84104bbbd,
+`rotary_delta` (mainline Klipper 84104bbbd,
 `klippy/kinematics/<name>.py`) check ranges and homing positions we do not reproduce, and
-deltesian and rotary_delta slow moves by their own rules. Their stand-in applies the Z speed
-limit Klipper applies to them (scaled along Z for deltesian; rotary_delta caps the velocity
-only), checks no range, homes to 0, and always says so in a warning: never a
+rotary_delta limits Z moves by its own rule. The stand-in applies the Z speed limit Klipper
+applies (rotary_delta caps the velocity only), checks no range, homes to 0, and always says so in a warning: never a
 silent number.
 """
 
@@ -19,8 +18,6 @@ if TYPE_CHECKING:
     from kestimator.planner import Move
 
 WHAT_IS_MISSING = {
-    "deltesian": "its X/Z range, homing to the top of the pillars and its slow-down of moves "
-                 "near the X extremes",
     "rotary_delta": "its build radius and height, homing to the top and its Z speed rule",
 }
 

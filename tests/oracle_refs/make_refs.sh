@@ -46,4 +46,6 @@ generic_cartesian cura/cura413_ender3_nut_small.gcode
 generic_cartesian snippets/home_then_move.gcode
 generic_cartesian snippets/z_moves.gcode
 generic_cartesian snippets/out_of_range_x.gcode
+deltesian snippets/deltesian_moves.gcode
+deltesian snippets/deltesian_slow_x.gcode
 RUNS
