@@ -1,10 +1,10 @@
-"""Stand-ins for the kinematics whose own rules kestimator does not model yet.
+"""Stand-ins for kinematics whose own rules kestimator does not model yet, and for printers
+whose [stepper_*] sections are not known.
 
-`rotary_delta` (mainline Klipper 84104bbbd,
-`klippy/kinematics/<name>.py`) check ranges and homing positions we do not reproduce, and
-rotary_delta limits Z moves by its own rule. The stand-in applies the Z speed limit Klipper
-applies (rotary_delta caps the velocity only), checks no range, homes to 0, and always says so in a warning: never a
-silent number.
+`rotary_delta` (mainline Klipper 84104bbbd, `klippy/kinematics/rotary_delta.py`) checks a
+build radius and height and homes to the top, which are not reproduced here; its Z moves are
+capped at max_z_velocity (velocity only). The stand-in does that, checks no range, homes to 0,
+and always says so in a warning: never a silent number.
 """
 
 from __future__ import annotations
