@@ -16,7 +16,7 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg, read_printer_
 from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file, estimate_text
 from kestimator.kinematics import KINEMATICS, load_kinematics
-from kestimator.kinematics.unmodelled import StandInKinematics, UnmodelledKinematics
+from kestimator.kinematics.standin import StandInKinematics
 from kestimator.limits import Limits
 
 REFS = Path(__file__).parent / "oracle_refs"
@@ -69,12 +69,10 @@ def test_every_kinematics_klipper_ships_loads_without_a_printer_cfg() -> None:
             assert kin.warnings and name in kin.warnings[0], name
 
 
-@pytest.mark.parametrize("name", ["rotary_delta"])
-def test_kinematics_not_modelled_are_named_in_the_estimate(name: str) -> None:
-    est = estimate_text("G1 X10 Z1 F600\n", Limits.from_values({"kinematics": name}))
-    assert any(name in w and "does not model" in w for w in est.warnings)
-    kin = load_kinematics(Limits.from_values({"kinematics": name}))
-    assert isinstance(kin, UnmodelledKinematics)
+def test_without_the_printers_sections_other_kinematics_are_named_in_the_estimate() -> None:
+    for name in ("delta", "deltesian", "rotary_delta", "polar", "winch"):
+        est = estimate_text("G1 X10 Z1 F600\n", Limits.from_values({"kinematics": name}))
+        assert any(name in w and "needs the printer's" in w for w in est.warnings), name
 
 
 def test_a_kinematics_mainline_klipper_does_not_ship_is_named() -> None:
@@ -123,3 +121,14 @@ def test_g28_homes_to_max_endstops_and_delta_home_position() -> None:
     delta, _ = limits_from_printer_cfg(REFS / "delta" / "printer.cfg")
     pos, homed = load_kinematics(delta).home((1.0, 2.0, 3.0, 4.0), [0])
     assert homed == "xyz" and pos[3] == 4.0 and 100.0 < pos[2] < 101.0
+
+
+def test_a_dual_carriage_says_what_it_changes_that_is_not_modelled() -> None:
+    limits, _ = limits_from_printer_cfg(REFS / "cartesian_idex" / "printer.cfg")
+    kin = load_kinematics(limits)
+    assert kin.warnings == [
+        "[dual_carriage]: after G28 Klipper narrows X's range by the parked carriage and "
+        "safe_distance (30 mm); moves are range-checked against stepper_x's own range only"]
+    est = estimate_text("G1 X10 F6000\nSET_DUAL_CARRIAGE CARRIAGE=1\nG1 X20 F6000\n", limits)
+    assert any(":2: [dual_carriage]: SET_DUAL_CARRIAGE switches carriages" in w
+               for w in est.warnings)

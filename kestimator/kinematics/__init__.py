@@ -25,7 +25,7 @@ from kestimator.kinematics.base import (
     MoveError,
     move_error,
 )
-from kestimator.kinematics.unmodelled import StandInKinematics
+from kestimator.kinematics.standin import StandInKinematics
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
@@ -43,9 +43,17 @@ KINEMATICS = ("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
 Z_SCALED = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
                       "generic_cartesian", "delta", "deltesian", "polar", "limited_cartesian",
                       "limited_corexy", "limited_corexz"))
+
+
+def _z_rule(name: str) -> str | None:
+    """How the kinematics limits Z moves (for the stand-in)."""
+    if name == "rotary_delta":
+        return "velocity"
+    return "scaled" if name in Z_SCALED else None
 # Kinematics that need the printer's own sections to be modelled.
 _NEED_MACHINE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
-                           "generic_cartesian", "delta", "deltesian", "polar", "winch"))
+                           "generic_cartesian", "delta", "deltesian", "rotary_delta", "polar",
+                           "winch"))
 _CARTESIAN_LIKE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy",
                              "hybrid_corexz", "generic_cartesian"))
 
@@ -63,7 +71,7 @@ def load_kinematics(limits: Limits) -> Kinematics:
     machine = limits.machine
     if name not in KINEMATICS:
         return StandInKinematics(
-            name, limits, name in Z_SCALED,
+            name, limits, _z_rule(name),
             "[printer] kinematics: %s is not a kinematics mainline Klipper ships: moves are "
             "not range-checked, G28 homes to 0%s" % (
                 name, " and only max_z_velocity/max_z_accel are applied" if name in Z_SCALED
@@ -79,12 +87,12 @@ def load_kinematics(limits: Limits) -> Kinematics:
                        "sections (a printer.cfg or Moonraker) to be modelled: without them "
                        "moves are not range-checked, G28 homes to 0 and only the Z speed "
                        "limit is applied, so times may be off" % name)
-        return StandInKinematics(name, limits, name in Z_SCALED, warning)
+        return StandInKinematics(name, limits, _z_rule(name), warning)
     try:
         kin = module.load_kinematics(machine, limits)
     except MissingSectionError as exc:
         return StandInKinematics(
-            name, limits, name in Z_SCALED,
+            name, limits, _z_rule(name),
             "%s: %s: moves are not range-checked, G28 homes to 0 and only the Z speed limit "
             "is applied" % (machine.description, exc.message))
     return kin

@@ -39,9 +39,26 @@ class CartKinematics(Kinematics):
                 raise dc_config._error("axis", "Choice '%s' for option 'axis' is not a valid "
                                        "choice" % axis)
             self.commands["SET_DUAL_CARRIAGE"] = DUAL_CARRIAGE_NOTE
+            self._dual_carriage_range_note(config, axis, dc_config.getfloat(
+                "safe_distance", -1.0))
         self.max_z_velocity = limits.max_z_velocity
         self.max_z_accel = limits.max_z_accel
         self.limits = [UNHOMED] * 3
+
+    def _dual_carriage_range_note(self, config: MachineConfig, axis: str,
+                                  safe_distance: float) -> None:
+        """idex_modes narrows the axis's range after G28 by the parked carriage when the
+        carriages keep a safe distance: said, as it is not modelled."""
+        primary = self.rails["xy".index(axis)]
+        dual = lookup_rail(config, "dual_carriage")
+        if safe_distance < 0.0:
+            safe_distance = min(abs(primary.position_min - dual.position_min),
+                                abs(primary.position_max - dual.position_max))
+        if safe_distance:
+            self.warnings.append(
+                "[dual_carriage]: after G28 Klipper narrows %s's range by the parked carriage "
+                "and safe_distance (%g mm); moves are range-checked against %s's own range "
+                "only" % (axis.upper(), safe_distance, primary.name))
 
     def set_position(self, newpos: Position, homing_axes: str) -> None:
         """Homed axes get their rail's range as limits."""

@@ -48,4 +48,8 @@ generic_cartesian snippets/z_moves.gcode
 generic_cartesian snippets/out_of_range_x.gcode
 deltesian snippets/deltesian_moves.gcode
 deltesian snippets/deltesian_slow_x.gcode
+rotary_delta snippets/rotary_moves.gcode
+rotary_delta snippets/rotary_out.gcode
+cartesian_idex cura/cura413_ender3_nut_small.gcode
+cartesian_idex snippets/out_of_range_x.gcode
 RUNS
