@@ -74,9 +74,10 @@ class CartKinematics(Kinematics):
         return (newpos[0], newpos[1], newpos[2], newpos[3]), "".join("xyz"[a] for a in axes)
 
     def _check_endstops(self, move: Move) -> None:
-        end_pos = move.end_pos
+        end_pos = (move.end_x, move.end_y, move.end_z)
+        axes_d = (move.axes_d_x, move.axes_d_y, move.axes_d_z)
         for i in (0, 1, 2):
-            if (move.axes_d[i]
+            if (axes_d[i]
                     and (end_pos[i] < self.limits[i][0]
                          or end_pos[i] > self.limits[i][1])):
                 if self.limits[i][0] > self.limits[i][1]:
@@ -86,16 +87,16 @@ class CartKinematics(Kinematics):
     def check_move(self, move: Move) -> None:
         """Range checks, and Z moves slowed to max_z_velocity/accel along Z."""
         limits = self.limits
-        xpos, ypos = move.end_pos[0], move.end_pos[1]
+        xpos, ypos = move.end_x, move.end_y
         if (xpos < limits[0][0] or xpos > limits[0][1]
                 or ypos < limits[1][0] or ypos > limits[1][1]):
             self._check_endstops(move)
-        if not move.axes_d[2]:
+        if not move.axes_d_z:
             # Normal XY move - use defaults
             return
         # Move with Z - update velocity and accel for slower Z axis
         self._check_endstops(move)
-        z_ratio = move.move_d / abs(move.axes_d[2])
+        z_ratio = move.move_d / abs(move.axes_d_z)
         move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
 
 

@@ -157,14 +157,13 @@ class DeltaKinematics(Kinematics):
 
     def check_move(self, move: Move) -> None:
         """Range (radius tapered near the top), Z limits, and the slow-down radii."""
-        end_pos = move.end_pos
-        end_xy2 = end_pos[0]**2 + end_pos[1]**2
-        if end_xy2 <= self.limit_xy2 and not move.axes_d[2]:
+        end_x, end_y, end_z = move.end_x, move.end_y, move.end_z
+        end_xy2 = end_x**2 + end_y**2
+        if end_xy2 <= self.limit_xy2 and not move.axes_d_z:
             # Normal XY move
             return
         if self.need_home:
             raise move_error(move, "Must home first")
-        end_z = end_pos[2]
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
             above_z_limit = end_z - self.limit_z
@@ -173,17 +172,17 @@ class DeltaKinematics(Kinematics):
             limit_xy2 = min(limit_xy2, allowed_radius**2)
         if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
             # Move out of range - verify not a homing move
-            if ((end_pos[0], end_pos[1]) != (self.home_position[0], self.home_position[1])
+            if ((end_x, end_y) != (self.home_position[0], self.home_position[1])
                     or end_z < self.min_z or end_z > self.home_position[2]):
                 raise move_error(move)
             limit_xy2 = -1.0
-        if move.axes_d[2]:
-            z_ratio = move.move_d / abs(move.axes_d[2])
+        if move.axes_d_z:
+            z_ratio = move.move_d / abs(move.axes_d_z)
             move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
             limit_xy2 = -1.0
         # Limit the speed/accel of this move if is is at the extreme
         # end of the build envelope
-        extreme_xy2 = max(end_xy2, move.start_pos[0]**2 + move.start_pos[1]**2)
+        extreme_xy2 = max(end_xy2, move.start_x**2 + move.start_y**2)
         if extreme_xy2 > self.slow_xy2:
             r = 0.5
             if extreme_xy2 > self.very_slow_xy2:

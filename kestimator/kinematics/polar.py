@@ -86,26 +86,25 @@ class PolarKinematics(Kinematics):
 
     def check_move(self, move: Move) -> None:
         """The disc, Z's range and speed, and the slow-down near the centre."""
-        end_pos = move.end_pos
-        xy2 = end_pos[0]**2 + end_pos[1]**2
+        end_x, end_y, end_z = move.end_x, move.end_y, move.end_z
+        xy2 = end_x**2 + end_y**2
         if xy2 > self.limit_xy2:
             if self.limit_xy2 < 0.0:
                 raise move_error(move, "Must home axis first")
             raise move_error(move)
-        if move.axes_d[2]:
-            if end_pos[2] < self.limit_z[0] or end_pos[2] > self.limit_z[1]:
+        if move.axes_d_z:
+            if end_z < self.limit_z[0] or end_z > self.limit_z[1]:
                 if self.limit_z[0] > self.limit_z[1]:
                     raise move_error(move, "Must home axis first")
                 raise move_error(move)
             # Move with Z - update velocity and accel for slower Z axis
-            z_ratio = move.move_d / abs(move.axes_d[2])
+            z_ratio = move.move_d / abs(move.axes_d_z)
             move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
         # Slow down near center
-        if move.axes_d[0] or move.axes_d[1]:
+        if move.axes_d_x or move.axes_d_y:
             if self.v_rad_max == 0:
                 return
-            min_dist = distance_to_center((move.start_pos[0], move.start_pos[1]),
-                                          (end_pos[0], end_pos[1]))
+            min_dist = distance_to_center((move.start_x, move.start_y), (end_x, end_y))
             if min_dist == 0:
                 return
             v_angular = math.sqrt(move.max_cruise_v2) / min_dist

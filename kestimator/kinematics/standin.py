@@ -32,10 +32,10 @@ class StandInKinematics(Kinematics):
 
     def check_move(self, move: Move) -> None:
         """Z moves limited as the kinematics limits them."""
-        if not move.axes_d[2] or self.z_rule is None:
+        if not move.axes_d_z or self.z_rule is None:
             return
         if self.z_rule == "velocity":
             move.limit_speed(self.max_z_velocity, move.accel)
             return
-        z_ratio = move.move_d / abs(move.axes_d[2])
+        z_ratio = move.move_d / abs(move.axes_d_z)
         move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
