@@ -15,9 +15,23 @@ head is homed at X=Y=Z=0 (`ToolHead` calls `set_position((0, 0, 0, 0), "xyz")`).
 
 from __future__ import annotations
 
-import importlib
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from kestimator.kinematics import (
+    cartesian,
+    corexy,
+    corexz,
+    delta,
+    deltesian,
+    generic_cartesian,
+    hybrid_corexy,
+    hybrid_corexz,
+    none,
+    polar,
+    rotary_delta,
+    winch,
+)
 from kestimator.kinematics.base import (
     Kinematics,
     MachineConfig,
@@ -33,9 +47,22 @@ if TYPE_CHECKING:
 __all__ = ["KINEMATICS", "Kinematics", "MachineConfig", "MoveError", "load_kinematics",
            "move_error"]
 
-KINEMATICS = ("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
-              "generic_cartesian", "delta", "deltesian", "rotary_delta", "polar", "winch",
-              "none")
+# [printer] kinematics -> its module's load_kinematics(config, limits)
+_LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {
+    "cartesian": cartesian.load_kinematics,
+    "corexy": corexy.load_kinematics,
+    "corexz": corexz.load_kinematics,
+    "hybrid_corexy": hybrid_corexy.load_kinematics,
+    "hybrid_corexz": hybrid_corexz.load_kinematics,
+    "generic_cartesian": generic_cartesian.load_kinematics,
+    "delta": delta.load_kinematics,
+    "deltesian": deltesian.load_kinematics,
+    "rotary_delta": rotary_delta.load_kinematics,
+    "polar": polar.load_kinematics,
+    "winch": winch.load_kinematics,
+    "none": none.load_kinematics,
+}
+KINEMATICS = tuple(_LOADERS)
 """The [printer] kinematics values mainline Klipper 84104bbbd accepts."""
 
 # Kinematics whose Z moves are limited by max_z_velocity/max_z_accel scaled along Z
@@ -76,10 +103,9 @@ def load_kinematics(limits: Limits) -> Kinematics:
             "not range-checked, G28 homes to 0%s" % (
                 name, " and only max_z_velocity/max_z_accel are applied" if name in Z_SCALED
                 else " and no axis limit is applied"))
-    module = importlib.import_module("kestimator.kinematics." + name)
+    loader = _LOADERS[name]
     if name not in _NEED_MACHINE:
-        kin: Kinematics = module.load_kinematics(machine, limits)
-        return kin
+        return none.NoneKinematics()
     if machine is None:
         warning = None
         if name not in _CARTESIAN_LIKE:
@@ -89,7 +115,7 @@ def load_kinematics(limits: Limits) -> Kinematics:
                        "limit is applied, so times may be off" % name)
         return StandInKinematics(name, limits, _z_rule(name), warning)
     try:
-        kin = module.load_kinematics(machine, limits)
+        kin = loader(machine, limits)
     except MissingSectionError as exc:
         return StandInKinematics(
             name, limits, _z_rule(name),

@@ -20,6 +20,6 @@ class NoneKinematics(Kinematics):
     name = "none"
 
 
-def load_kinematics(config: MachineConfig | None, limits: Limits) -> Kinematics:
+def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
     """The kinematics for [printer] kinematics: none (needs no config)."""
     return NoneKinematics()
