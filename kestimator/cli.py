@@ -42,10 +42,11 @@ from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, Resolve
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
+from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.report import collect, render_html
-from kestimator.rewrite import check_gcode_file, inject_file
+from kestimator.rewrite import check_gcode_file, inject_file, write_bytes_atomically
 from kestimator.slicers import detect_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
@@ -498,7 +499,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
         sys.stdout.write("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines\n" % (
-            result.output, format_duration(est.total_s), _parts_text(est), said,
+            printable(result.output), format_duration(est.total_s), _parts_text(est), said,
             result.m73_written))
     return EXIT_OK
 
@@ -636,21 +637,21 @@ def cmd_learn(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
+    if not args.output:
+        raise KestimatorError("-o names no file (an empty name)")
     check_gcode_file(args.file)
+    if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
+        raise KestimatorError("the report would overwrite the G-code it reports on: give "
+                              "another -o", args.output)
     limits, source, _warnings = resolve_limits(args, args.file)
     _check_time_options(args)
     data = collect(args.file, limits, source, homing_time=args.homing_time,
                    heat_time=args.heat_time, macros=args.macros)
     page = render_html(data)
-    try:
-        with open(args.output, "w", encoding="utf-8") as out:
-            out.write(page)
-    except OSError as exc:
-        raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
-                              args.output) from None
+    write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
         sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
-                         % (args.output, format_duration(data.estimate.total_s)))
+                         % (printable(args.output), format_duration(data.estimate.total_s)))
     return EXIT_OK
 
 
@@ -660,7 +661,7 @@ def _error_text(exc: KestimatorError) -> str:
     final_name = os.environ.get(SLICER_OUTPUT_NAME_ENV)
     if final_name and exc.path and os.path.basename(final_name) != os.path.basename(exc.path):
         text = "%s (slicer output %s)%s" % (exc.path, final_name, text[len(exc.path):])
-    return text.replace("\n", " ")
+    return printable(text)
 
 
 class StdoutError(Exception):
@@ -726,6 +727,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     Standard output failing (closed, full) is reported on stderr as one line; the exit
     status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
     """
+    cleanup_on_termination()
     real_stdout = sys.stdout
     sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
     written: list[str] = []
@@ -744,6 +746,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except BrokenPipeError:
         _quiet_stdout()
         return EXIT_OK
+    except Terminated as exc:
+        # Temporary files are gone (the writers unwind); 128 + signal, as if killed.
+        sys.stderr.write("kestimator: terminated by signal %d\n" % exc.signum)
+        return 128 + exc.signum
     finally:
         sys.stdout = real_stdout
 

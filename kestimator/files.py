@@ -57,3 +57,32 @@ def read_config_bytes(path: str | os.PathLike[str], what: str = "config",
     if len(data) > limit:
         raise KestimatorError("is over %d MiB: not a %s file" % (limit >> 20, what), path)
     return data
+
+
+class Terminated(BaseException):
+    """SIGTERM or SIGHUP arrived: unwinds like Ctrl-C, so temporary files are removed."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _terminate(signum: int, _frame: object) -> None:
+    raise Terminated(signum)
+
+
+def cleanup_on_termination() -> None:
+    """Turn SIGTERM and SIGHUP into `Terminated` (the command lines call this first), so a
+    run stopped by a service manager or a closed terminal removes its temporary file.
+
+    The exit status for them is 128 + the signal number, as if killed.
+    """
+    import signal
+
+    for name in ("SIGTERM", "SIGHUP"):
+        signum = getattr(signal, name, None)
+        if signum is not None:
+            try:
+                signal.signal(signum, _terminate)
+            except (ValueError, OSError):  # not the main thread
+                pass

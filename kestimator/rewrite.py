@@ -710,6 +710,57 @@ def _write_output(src: str, target: OutputTarget, rewriter: Rewriter,
     _fsync_dir(dest_dir)
 
 
+def write_bytes_atomically(dest: str, data: bytes) -> None:
+    """Write `data` to `dest` as `inject` writes its output (`output_target`'s rules, a
+    temporary file synced and renamed, attributes kept): never a partial file."""
+    if not dest:
+        raise KestimatorError("the output name is empty")
+    target = output_target(dest)
+    if target.stream:
+        try:
+            with open(target.path, "wb") as out:
+                out.write(data)
+        except OSError as exc:
+            raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                                  dest) from None
+        return
+    path = target.path
+    directory = os.path.dirname(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_name_prefix(path), suffix=TEMP_SUFFIX,
+                                   dir=directory)
+    except OSError as exc:
+        raise KestimatorError("cannot write next to the output: %s"
+                              % (exc.strerror or exc), dest) from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        if target.st is not None:
+            keep_attributes(path, target.st, tmp)
+        else:
+            os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except KestimatorError:
+        _remove_quietly(tmp)
+        raise
+    except OSError as exc:
+        _remove_quietly(tmp)
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    _fsync_dir(directory)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _write_stream(src: str, dest: str, rewriter: Rewriter,
                   copied: Callable[[int], None] | None) -> None:
     """Write a character device or FIFO straight through; a FIFO without a reader is

@@ -112,6 +112,8 @@ def test_output_to_a_fifo_is_written_straight_through(
     # The reader is there before the writer comes (opened without blocking, then read).
     read_fd = os.open(fifo, os.O_RDONLY | os.O_NONBLOCK)
     os.set_blocking(read_fd, True)
+    # A writer held open until inject is done, so the reader sees no end of file before.
+    hold_fd = os.open(fifo, os.O_WRONLY)
 
     def read_all() -> None:
         with os.fdopen(read_fd, "rb") as f:
@@ -122,6 +124,7 @@ def test_output_to_a_fifo_is_written_straight_through(
     try:
         inject_file(src, limits, output=str(fifo))
     finally:
+        os.close(hold_fd)
         reader.join(10)
     assert got == [expected]
     assert stat.S_ISFIFO(os.stat(fifo).st_mode)
@@ -270,3 +273,45 @@ def test_a_file_name_at_the_file_systems_limit_is_rewritten(
     inject_file(work, limits)
     assert work.read_bytes() == expected
     assert not [name for name in os.listdir(tmp_path) if name.startswith(".")]
+
+
+# Item 13: the report, empty names, newlines in names
+def test_report_onto_its_own_gcode_is_refused(tmp_path: Path) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(BODY)
+    run = _run("report", "--printer-cfg", str(CORPUS_CFG), str(work), "-o", str(work))
+    assert run.returncode == 1 and len(run.stderr.splitlines()) == 1
+    assert work.read_bytes() == BODY
+
+
+@pytest.mark.parametrize("command", ["inject", "report"])
+def test_an_empty_output_name_is_refused(command: str, tmp_path: Path) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(BODY)
+    run = _run(command, "--printer-cfg", str(CORPUS_CFG), str(work), "-o", "")
+    assert run.returncode == 1 and b"empty" in run.stderr
+    assert len(run.stderr.splitlines()) == 1 and work.read_bytes() == BODY
+
+
+def test_the_report_is_written_atomically_keeping_the_link_and_mode(tmp_path: Path) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(BODY)
+    target = tmp_path / "real.html"
+    target.write_text("old")
+    os.chmod(target, 0o640)
+    link = tmp_path / "report.html"
+    link.symlink_to("real.html")
+    run = _run("report", "--printer-cfg", str(CORPUS_CFG), str(work), "-o", str(link))
+    assert run.returncode == 0, run.stderr
+    assert link.is_symlink() and target.read_text().startswith("<!")
+    assert stat.S_IMODE(os.stat(target).st_mode) == 0o640
+    assert not _leftovers(tmp_path)
+
+
+def test_a_newline_in_the_file_name_keeps_the_success_message_on_one_line(
+        tmp_path: Path) -> None:
+    work = tmp_path / "two\nlines.gcode"
+    work.write_bytes(BODY)
+    run = _run("inject", "--printer-cfg", str(CORPUS_CFG), str(work))
+    assert run.returncode == 0, run.stderr
+    assert len(run.stdout.splitlines()) == 1 and b"two\\nlines" in run.stdout
