@@ -102,8 +102,12 @@ class LearnedTimes:
         for name, value in self.per_run_s.items():
             macros[name] = MacroTime(value.value, self.source(value))
         prep = self.before_first_extrusion_s
+        ratio = self.motion_ratio
         return MacroTimes(macros=macros, before_first_extrusion=None if prep is None
-                          else MacroTime(prep.value, self.source(prep)))
+                          else MacroTime(prep.value, self.source(prep)),
+                          motion_ratio=None if ratio is None else MacroTime(
+                              ratio.value, "learned from %d prints (spread %.1f %%, %s)" % (
+                                  ratio.jobs, 100 * ratio.spread, self.learned_at[:10])))
 
     def lines(self) -> list[str]:
         """For people: one line per learned value."""
