@@ -693,19 +693,14 @@ class _GuardedStdout:
 
 
 def _quiet_stdout() -> None:
-    """Point fd 1 at the null device so the interpreter's last flush cannot fail again."""
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
+    (what is still buffered goes nowhere)."""
     try:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, 1)
         os.close(devnull)
     except OSError:
         pass
-    stream = sys.stdout
-    if isinstance(stream, _GuardedStdout):
-        stream = stream._stream
-    if stream is not None:
-        with contextlib.suppress(Exception):
-            stream.close()
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -771,8 +766,7 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
         return EXIT_FAILURE
     except BrokenPipeError:
         # The reader went away (`kestimator estimate --json | head`): not our failure.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        _quiet_stdout()
         return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")

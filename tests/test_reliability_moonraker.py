@@ -79,3 +79,18 @@ def test_a_poisoned_answer_is_not_cached(tmp_path: Path) -> None:
     finally:
         fake.stop()
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("content", ["{not json", '{"format": 1}', "[]",
+                                     '{"fetched": "2026-01-01T00:00:00Z", "url": "x", '
+                                     '"settings": {"printer": 5}}'])
+def test_a_corrupt_cache_is_reported_as_corrupt_not_as_missing(
+        content: str, tmp_path: Path) -> None:
+    with HostileMoonraker("garbage") as server:
+        url = moonraker.normalise_url(server.url)
+        path = moonraker.cache_path(url, tmp_path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(content)
+        with pytest.raises(KestimatorError) as info:
+            moonraker.moonraker_values(url, timeout_s=TIMEOUT_S, cache_directory=tmp_path)
+    assert "corrupt" in str(info.value) and "no settings" not in str(info.value)

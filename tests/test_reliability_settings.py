@@ -6,9 +6,9 @@ with one line when it comes from `--set`, printer.cfg, a profile, a klipper_esti
 or Moonraker, and is dropped with a warning when a slicer embedded it in the file or handed
 it over as `SLIC3R_*`. Never an internal error (exit 3).
 
-Fuzz: `FUZZ_RUNS` (100) random values per source path in CI (6 paths: 600 values);
-`KESTIMATOR_FUZZ_RUNS=2000` runs the longer local fuzz (run once for issue 20: 6 x 2000 =
-12,000 values, no internal error).
+Fuzz: `FUZZ_RUNS` (100) random values per source path in CI (7 paths: 700 values);
+`KESTIMATOR_FUZZ_RUNS=2000` runs the longer local fuzz (run once for issue 20: 7 x 2000 =
+14,000 values, no internal error).
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ import pytest
 from kestimator import cli
 from kestimator.config import moonraker
 from kestimator.config.fields import check_limit_value
+from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.errors import KestimatorError
 
 BODY = b"M83\n;LAYER_CHANGE\nG1 X10 E1 F3000\nG1 X20 E1\n"
@@ -159,7 +160,7 @@ FUZZ_KEYS = ["machine_max_jerk_x", "machine_max_jerk_y", "filament_diameter",
 
 
 @pytest.mark.parametrize("path", ["embedded", "environment", "set", "profile",
-                                  "printer_cfg", "moonraker"])
+                                  "printer_cfg", "moonraker", "estimator_config"])
 def test_fuzzed_settings_give_a_time_or_one_line_never_an_internal_error(
         path: str, tmp_path: Path, capsys: pytest.CaptureFixture[str],
         monkeypatch: pytest.MonkeyPatch) -> None:
@@ -190,6 +191,22 @@ def test_fuzzed_settings_give_a_time_or_one_line_never_an_internal_error(
                            "max_accel: 3000\n%s: %s\n[extruder]\nnozzle_diameter: 0.4\n"
                            "filament_diameter: 1.75\n" % (field, value))
             argv += ["--printer-cfg", str(cfg)]
+        elif path == "estimator_config":
+            config = tmp_path / "ke.json"
+            key = rng.choice(["max_velocity", "max_acceleration", "square_corner_velocity",
+                              "max_accel_to_decel", "instant_corner_velocity"])
+            text = rng.choice(['{"%s": %s}' % (key, value or "1"),
+                               '{"%s": "%s"}' % (key, value),
+                               '{"move_checkers": [{"axis_limiter": {"axis": [1, 0, 0], '
+                               '"max_velocity": %s, "max_accel": 1}}]}' % (value or "1"),
+                               "[" * rng.randint(1, 5000)])
+            config.write_text(text)
+            try:
+                resolve_limits(LimitRequest(estimator_config=str(config),
+                                            read_slicer_environment=False))
+            except KestimatorError as exc:
+                assert len(str(exc).splitlines()) == 1
+            continue
         else:
             try:
                 number: object = float(value)

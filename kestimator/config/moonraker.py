@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from kestimator.config.fields import SourcedValues
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
 from kestimator.errors import KestimatorError
+from kestimator.files import read_config_bytes
 from kestimator.kinematics.base import MachineConfig, is_machine_section
 
 if TYPE_CHECKING:
@@ -283,7 +284,7 @@ def _error_message(exc: Any) -> str:
     sanitises it)."""
     try:
         message = json.loads(exc.read(MAX_ERROR_BODY_BYTES))["error"]["message"]
-    except (ValueError, KeyError, TypeError, OSError):
+    except (ValueError, KeyError, TypeError, OSError, RecursionError):
         return str(exc.reason)
     return str(message)
 
@@ -291,7 +292,7 @@ def _error_message(exc: Any) -> str:
 def _settings_from_answer(body: bytes, url: str) -> Settings:
     try:
         settings = json.loads(body)["result"]["status"]["configfile"]["settings"]
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, RecursionError):
         raise KestimatorError(f"Moonraker at {url} did not answer with Klipper's settings "
                               "(result.status.configfile.settings)") from None
     if not isinstance(settings, dict) or not all(
@@ -433,14 +434,25 @@ def _write_cache(path: Path, url: str, settings: Settings,
 
 
 def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | None:
-    """(settings, when fetched) from the cache file of ``url``, None if absent or unusable."""
+    """(settings, when fetched) from the cache file of ``url``, None if there is none.
+
+    Raises KestimatorError for a cache file that is there but damaged (not our JSON, another
+    URL's, sections that are not tables): reported as such, not as "nothing cached".
+    """
+    if not path.exists():
+        return None
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = json.loads(read_config_bytes(path, "cache").decode("utf-8"))
         fetched = datetime.datetime.strptime(document["fetched"], _TIME_STORED).replace(
             tzinfo=datetime.timezone.utc)
         settings = document["settings"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    if document.get("url") != url or not isinstance(settings, dict):
-        return None
+        usable = (document.get("url") == url and isinstance(settings, dict)
+                  and all(isinstance(options, dict) for options in settings.values()))
+    except KestimatorError as exc:
+        raise KestimatorError(f"the settings cache is unusable: {exc.message}", path) from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        usable = False
+    if not usable:
+        raise KestimatorError("the settings cache is corrupt (delete it; the next run with "
+                              "the printer online writes it again)", path)
     return settings, fetched
