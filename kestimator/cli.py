@@ -249,6 +249,7 @@ def resolve_limits(args: argparse.Namespace,
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    args.resolved = resolved
     return resolved.limits, resolved.summary, list(resolved.warnings)
 
 
@@ -623,10 +624,13 @@ def cmd_learn(args: argparse.Namespace) -> int:
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
     check_gcode_file(args.file)
-    limits, source, _warnings = resolve_limits(args, args.file)
+    limits, source, limit_warnings = resolve_limits(args, args.file)
     _check_time_options(args)
+    resolved: ResolvedLimits = args.resolved
     data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time, macros=args.macros)
+                   heat_time=args.heat_time, macros=args.macros,
+                   limit_warnings=limit_warnings, limit_sources=resolved.sources,
+                   guessed_limits=resolved.machine is None)
     page = render_html(data)
     try:
         with open(args.output, "w", encoding="utf-8") as out:

@@ -311,7 +311,7 @@ class Timeline:
 
         The extra time is spread evenly over everything after the first extrusion: the
         times recorded there (layers, marks, progress samples) stretch by one factor and
-        every feature's time grows in proportion, so the parts still add up.
+        every feature's and object's time grows in proportion, so the parts still add up.
         """
         ratio = self.macros.motion_ratio
         first = self.first_extrusion_t
@@ -330,7 +330,7 @@ class Timeline:
         for i in range(len(times)):
             times[i] = stretch(times[i])
         grow = (total + extra) / total
-        self.feature_time = [t * grow for t in self.feature_time]
+        self.segment_time = [t * grow for t in self.segment_time]
         part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
         part.count = 1
         part.seconds = extra
@@ -572,6 +572,9 @@ class Timeline:
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
+        if total > self._counted_until:
+            self.segment_time[self._segment] += total - self._counted_until
+            self._counted_until = total
         total = self._correct_motion(total)
         interp = self.interp
         if interp.moved_e_before_mode:
@@ -584,9 +587,6 @@ class Timeline:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
                           "its effect on time is unknown and counted as 0 s" % name)
-        if total > self._counted_until:
-            self.segment_time[self._segment] += total - self._counted_until
-            self._counted_until = total
         feature_time = [0.0] * len(self.feature_names)
         object_time = [0.0] * len(self.object_keys)
         for i, (fid, oid) in enumerate(self.segments):
