@@ -448,10 +448,10 @@ margin:8px 0;font-size:.9em;overflow-wrap:anywhere}
 .banner.bad{background:#fde8e8;border-color:#d05050}.banner ul{margin:.3em 0;padding-left:1.2em}
 .cards{display:flex;flex-wrap:wrap;gap:8px}
 .card{background:#fff;border-radius:8px;padding:8px 12px;flex:1 1 140px;
-box-shadow:0 1px 2px #0001}
+box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
 .card b{display:block;font-size:1.2em}.card span{color:#4b5560;font-size:.85em}
 .chart{display:block;width:100%;max-width:640px;height:auto;background:#fff;border-radius:8px;
-box-shadow:0 1px 2px #0001}
+box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
 .frame{fill:none;stroke:#c9ced6}.grid{stroke:#eceff3}.axis{stroke:#9aa3ad}
 .diag{stroke:#9aa3ad;stroke-dasharray:4 4}
 .tick{font-size:12.5px;fill:#4b5560}.tick.name{fill:#1d232b}.label{font-size:13px;fill:#333}
@@ -541,13 +541,28 @@ def _limits_table(data: ReportData) -> str:
     return out
 
 
+def parts_cards(est: Estimate) -> list[tuple[str, str]]:
+    """The parts of the total, when time was added for macros, waits or a learned start."""
+    if not est.timed_parts:
+        return []
+    parts = est.parts
+    cards = [("Motion (Klipper's planner)", format_duration(parts.motion_s)),
+             ("Macros and prep", format_duration(parts.added_s))]
+    cards += [("%s x%d" % (p.name, p.count), "%s, %s" % (format_duration(p.seconds), p.source))
+              for p in est.timed_parts]
+    if parts.before_first_extrusion_s:
+        cards.append(("Before the first extrusion",
+                      format_duration(parts.before_first_extrusion_s)))
+    return cards
+
+
 def render_html(data: ReportData) -> str:
     """The whole page."""
     est = data.estimate
     slicer = data.slicer
-    cards = [("Klipper time", format_duration(est.total_s))]
+    cards = [("Klipper time", format_duration(est.total_s))] + parts_cards(est)
     if slicer.estimate_s is not None:
-        diff = slicer.estimate_s - est.total_s
+        diff = slicer.estimate_s - est.parts.motion_s  # the slicer times the moves only
         cards.append(("%s said" % slicer.name, "%s (%s)" % (
             format_duration(slicer.estimate_s), minutes(diff))))
     if est.first_layer_s is not None:
