@@ -31,9 +31,9 @@ SPEED_BIN_V = 10.0
 _M73_R_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?R(\d+(?:\.\d+)?)")
 _TIME_ELAPSED_RE = re.compile(rb"^;TIME_ELAPSED:(\d+(?:\.\d+)?)")
 _Z_RE = re.compile(rb"^\s*G[01]\s[^;]*Z(-?\d+(?:\.\d+)?|-?\.\d+)")
-# Chart geometry in SVG user units. Charts are at most MAX_CHART_PX wide on screen and
-# TICK_FONT units tall text; at 390 px (366 px of chart) a unit is 0.915 px, so ticks
-# render at 11.4 px.
+# Chart geometry in SVG user units. Charts are at most 520 px wide on screen (ticks at most
+# 16 px on a desktop); at 390 px (366 px of chart) a unit is 0.915 px, so TICK_FONT-unit
+# ticks render at 11.4 px.
 CHART_W = 400
 CHART_H = 250
 PAD_L, PAD_R, PAD_T, PAD_B = 58, 14, 12, 46
@@ -450,7 +450,7 @@ margin:8px 0;font-size:.9em;overflow-wrap:anywhere}
 .card{background:#fff;border-radius:8px;padding:8px 12px;flex:1 1 140px;
 box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
 .card b{display:block;font-size:1.2em}.card span{color:#4b5560;font-size:.85em}
-.chart{display:block;width:100%;max-width:640px;height:auto;background:#fff;border-radius:8px;
+.chart{display:block;width:100%;max-width:520px;height:auto;background:#fff;border-radius:8px;
 box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
 .frame{fill:none;stroke:#c9ced6}.grid{stroke:#eceff3}.axis{stroke:#9aa3ad}
 .diag{stroke:#9aa3ad;stroke-dasharray:4 4}
