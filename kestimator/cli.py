@@ -250,6 +250,7 @@ def resolve_limits(args: argparse.Namespace,
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    args.resolved = resolved
     return resolved.limits, resolved.summary, list(resolved.warnings)
 
 
@@ -630,10 +631,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
         raise KestimatorError("the report would overwrite the G-code it reports on: give "
                               "another -o", args.output)
-    limits, source, _warnings = resolve_limits(args, args.file)
+    limits, source, limit_warnings = resolve_limits(args, args.file)
     _check_time_options(args)
+    resolved: ResolvedLimits = args.resolved
     data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time, macros=args.macros)
+                   heat_time=args.heat_time, macros=args.macros,
+                   limit_warnings=limit_warnings, limit_sources=resolved.sources,
+                   guessed_limits=resolved.machine is None)
     page = render_html(data)
     write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
