@@ -40,7 +40,7 @@ from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, Resolve
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import detect_file
@@ -473,9 +473,9 @@ def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]
         "profile": resolved.profile,
         "summary": resolved.summary,
         "limits": {
-            field: {"value": getattr(resolved.limits, field),
+            field: {"value": json_value(getattr(resolved.limits, field)),
                     "source": resolved.sources[field],
-                    "overridden": [{"value": c.value, "source": c.source}
+                    "overridden": [{"value": json_value(c.value), "source": c.source}
                                    for c in resolved.shadowed.get(field, ())]}
             for field in Limits.field_names()},
         "slicer_settings": {"origin": settings.origin or None,
@@ -514,6 +514,9 @@ def _shown(value: object) -> str:
         return "true" if value else "false"
     if isinstance(value, float):
         return "%g" % value
+    if isinstance(value, list):
+        return ", ".join(str(item.get("name", item[0]) if isinstance(item, dict) else item[0])
+                         for item in value) or "none"
     return str(value)
 
 

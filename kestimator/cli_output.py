@@ -137,6 +137,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
+        "commands": est.commands,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
     }

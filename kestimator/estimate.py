@@ -18,7 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 
 from kestimator.errors import KestimatorError
 from kestimator.gcode import Command, parse_line, parse_plain_move
-from kestimator.interpreter import CommandError, Interpreter
+from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter
 from kestimator.limits import Limits
 from kestimator.planner import Move
 from kestimator.toolhead import MoveError, ToolHead
@@ -28,6 +28,8 @@ LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
 FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
 ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
+# Estimate.commands kind of commands Klipper does not know.
+KIND_UNKNOWN = "unknown"
 # Feature name for moves before the first feature marker.
 NO_FEATURE = "(none)"
 # At most this many warnings are kept (each names its line); the rest are counted.
@@ -68,6 +70,11 @@ class Estimate:
     last_move_line: int | None
     # Net filament the moves push (mm of E, after M221; retractions count negative).
     filament_mm: float = 0.0
+    # Commands that are not Klipper's own motion commands, by kind, each name -> times run:
+    # "macro" (a printer.cfg [gcode_macro] with a template: not run, counted as 0 s),
+    # "expanded_macro" (a literal [gcode_macro]: its commands ran, their time is included),
+    # "unknown" (Klipper does not know it: skipped; the same as ignored_commands).
+    commands: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
 
     @property
     def first_layer_s(self) -> float | None:
@@ -278,6 +285,7 @@ class Timeline:
                     interp.speed = speed
                     other(raw)
                     need_first = self.first_command_line is None
+                    max_extrude_ratio = toolhead._max_extrude_ratio
                     (lp, base, absolute, absolute_e, extrude_factor, speed, speed_factor,
                      e_mode_set) = self._move_state()
                     continue
@@ -451,6 +459,14 @@ class Timeline:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
                           "its effect on time is unknown and counted as 0 s" % name)
+        macros = interp.command_kinds.get(KIND_MACRO, {})
+        if macros:
+            self.warn("macros ran: %s; their time is not included (counted as 0 s)"
+                      % ", ".join("%s x%d" % kv for kv in sorted(macros.items())))
+        commands = {kind: dict(sorted(names.items()))
+                    for kind, names in sorted(interp.command_kinds.items())}
+        if interp.ignored:
+            commands[KIND_UNKNOWN] = dict(sorted(interp.ignored.items()))
         features = {name: self.feature_time[i] for i, name in enumerate(self.feature_names)
                     if self.feature_time[i] > 0.0 or name != NO_FEATURE}
         return Estimate(
@@ -460,7 +476,8 @@ class Timeline:
             warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
             marks=dict(self.marks), first_command_line=self.first_command_line,
-            last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm)
+            last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
+            commands=commands)
 
 
 def _looks_like_gcode(name: str) -> bool:

@@ -31,7 +31,8 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "schema": (int,), "kestimator": (str,), "file": (str,), "total_s": (float, int),
     "first_layer_s": (float, type(None)), "layer_count": (int,), "layers": (list,),
     "features": (dict,), "slicer": (dict,), "filament": (dict,), "limits_source": (str,),
-    "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
+    "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "commands": (dict,),
+    "warnings": (list,),
     "warnings_dropped": (int,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",

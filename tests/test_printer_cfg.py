@@ -417,7 +417,11 @@ def test_corpus_printer_cfg_gives_the_reference_limits() -> None:
         "unretract_extra_length": 0.0, "unretract_speed": 35.0,
     }
     assert {name: getattr(limits, name) for name in expected} == expected
-    assert limits == dataclasses.replace(Limits.from_values({}), **expected)
+    # The corpus config also has an [extruder1], the same as [extruder] but for its name.
+    assert limits.extruders == (dataclasses.replace(limits.primary_extruder,
+                                                    name="extruder1"),)
+    assert limits == dataclasses.replace(Limits.from_values({}), extruders=limits.extruders,
+                                         **expected)
     for name in expected:
         assert provenance[name].startswith(str(CORPUS_CFG) + ":"), name
     assert provenance["max_velocity"] == f"{CORPUS_CFG}:7"
