@@ -122,8 +122,9 @@ def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
                                                 and not isinstance(v, bool))
                     for k, v in item.items()):
                 raise ValueError(f"extruders: not an extruder: {item!r}")
-            result.append(ExtruderLimits(**{k: float(v) if names[k] is float else v
-                                            for k, v in item.items()}))
+            fields: dict[str, Any] = {k: float(v) if names[k] is float else v
+                                      for k, v in item.items()}
+            result.append(ExtruderLimits(**fields))
         return tuple(result)
     raise ValueError(f"{field} is not a list setting")
 

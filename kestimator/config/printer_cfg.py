@@ -230,7 +230,7 @@ def _read_macros(config: _Config) -> tuple[tuple[str, str], ...]:
         name = section[len(MACRO_PREFIX):].strip().upper()
         template = options.get("gcode")
         if name and template is not None:
-            macros.append((name, template.value))
+            macros.append((name, template.value.strip()))
     return tuple(macros)
 
 
