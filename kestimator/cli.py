@@ -39,19 +39,22 @@ from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
 from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import estimate_file
+from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits, json_value
+from kestimator.preflight import EXIT_KLIPPER_STOPS, KIND_STOP, stderr_line, summary_lines
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import detect_file
 
-__all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
+__all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
+           "JSON_SCHEMA_VERSION",
            "estimate_to_json", "main"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
+# EXIT_KLIPPER_STOPS (4, kestimator.preflight): inject/check when Klipper will stop the print.
 # PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
 SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
 # "1" draws with rich even when stdout is not a terminal, "0" never (docs/CLI.md).
@@ -135,6 +138,20 @@ def _build_parser() -> argparse.ArgumentParser:
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print nothing on success")
     _add_debug_option(inj)
+    chk = sub.add_parser(
+        "check", help="only the pre-flight check: where Klipper stops or skips commands",
+        description="Run the file through Klipper's rules for this printer and report what "
+                    "Klipper will do: the line where it stops the print (exit status 4) and "
+                    "the commands it will skip.",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    chk.add_argument("file", help="the G-code file")
+    _add_limit_options(chk)
+    output = chk.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true",
+                        help="print one JSON object: file, limits_source, preflight, warnings")
+    output.add_argument("-q", "--quiet", action="store_true",
+                        help="print nothing; only the exit status tells")
+    _add_debug_option(chk)
     lim = sub.add_parser(
         "limits", help="show the printer limits a file would be timed with, and their sources",
         description="Print every printer limit kestimator would use for FILE and where each "
@@ -414,6 +431,12 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None
     if doc["ignored_commands"]:
         console.print(Text("Not Klipper commands (0 s): " + ", ".join(
             "%s x%d" % kv for kv in doc["ignored_commands"].items()), style="dim"))
+    preflight = summary_lines(doc["preflight"])
+    if preflight:
+        stops = any(f["kind"] == KIND_STOP for f in doc["preflight"])
+        console.print(Text(preflight[0], style="bold red" if stops else "bold yellow"))
+        for line in preflight[1:]:
+            console.print(Text(line))
     for warning in doc["warnings"]:
         console.print(Text.assemble(("warning: ", "bold yellow"), warning))
     if doc["warnings_dropped"]:
@@ -444,6 +467,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         doc["output"] = result.output
         doc["m73_written"] = result.m73_written
         _write_json(doc)
+        return _stop_status(result.estimate)
     elif not args.quiet:
         total = result.estimate.total_s
         slicer_s = result.slicer_estimate_s
@@ -451,6 +475,44 @@ def cmd_inject(args: argparse.Namespace) -> int:
                 ", the slicer said %s" % format_duration(slicer_s))
         sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
             result.output, format_duration(total), said, result.m73_written))
+        for line in summary_lines(_findings(result.estimate)):
+            sys.stdout.write(line + "\n")
+    return _stop_status(result.estimate)
+
+
+def _findings(est: Estimate) -> list[dict[str, Any]]:
+    return [finding.to_json() for finding in est.preflight]
+
+
+def _stop_status(est: Estimate) -> int:
+    """EXIT_KLIPPER_STOPS, with one line on stderr (a slicer's dialog shows it), when
+    Klipper will stop this print; else EXIT_OK."""
+    line = stderr_line(_findings(est))
+    if line is None:
+        return EXIT_OK
+    sys.stderr.write(line + "\n")
+    return EXIT_KLIPPER_STOPS
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """`kestimator check`: only the pre-flight check."""
+    limits, source, warnings = resolve_limits(args, args.file)
+    _check_time_options(args)
+    check_gcode_file(args.file)
+    with _progress(args, "checking") as progress:
+        est = estimate_file(args.file, limits, homing_time=args.homing_time,
+                            heat_time=args.heat_time, progress=progress)
+    findings = _findings(est)
+    if args.json:
+        _write_json({"schema": JSON_SCHEMA_VERSION, "kestimator": __version__,
+                     "file": est.path, "limits_source": source, "preflight": findings,
+                     "warnings": warnings})
+    elif not args.quiet:
+        lines = summary_lines(findings) or [
+            "Pre-flight: Klipper runs every command of this file on this printer"]
+        sys.stdout.write("%s\n" % est.path + "".join("  %s\n" % line for line in lines))
+    if est.stops_print:
+        return EXIT_KLIPPER_STOPS
     return EXIT_OK
 
 def _check_time_options(args: argparse.Namespace) -> None:
@@ -573,6 +635,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_estimate(args)
         if args.command == "inject":
             return cmd_inject(args)
+        if args.command == "check":
+            return cmd_check(args)
         if args.command == "limits":
             return cmd_limits(args)
         if args.command == "report":

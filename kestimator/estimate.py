@@ -18,9 +18,10 @@ from collections.abc import Callable, Iterable, Iterator
 
 from kestimator.errors import KestimatorError
 from kestimator.gcode import Command, parse_line, parse_plain_move
-from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter
+from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter, ParamError
 from kestimator.limits import Limits
 from kestimator.planner import Move
+from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.toolhead import MoveError, ToolHead
 
 # Comment markers that start a layer.
@@ -75,6 +76,14 @@ class Estimate:
     # "expanded_macro" (a literal [gcode_macro]: its commands ran, their time is included),
     # "unknown" (Klipper does not know it: skipped; the same as ignored_commands).
     commands: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
+    # What Klipper will do with the file on this printer (kestimator.preflight): where it
+    # stops the print, which commands it skips.
+    preflight: list[Finding] = dataclasses.field(default_factory=list)
+
+    @property
+    def stops_print(self) -> bool:
+        """Klipper will stop this print at a command error."""
+        return any(f.kind == KIND_STOP for f in self.preflight)
 
     @property
     def first_layer_s(self) -> float | None:
@@ -141,6 +150,8 @@ class Timeline:
         self._warning_repeats: list[int] = []
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
                                   homing_time=homing_time, heat_time=heat_time)
+        self.preflight = Preflight()
+        self.interp.preflight = self.preflight
         self.feature_names: list[str] = [NO_FEATURE]
         self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
         self.feature_time: list[float] = [0.0]
@@ -284,13 +295,22 @@ class Timeline:
         try:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
-            self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
-                      "reject:" + cmd.name)
+            self._command_error(stripped, exc, "reject:" + cmd.name)
 
     def _reject(self, stripped: str, exc: Exception) -> None:
-        """Warn that Klipper rejects this plain move line (as `execute` would report it)."""
-        self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
-                  "reject:" + stripped[:2])
+        """Klipper rejects this plain move line (as `execute` would report it)."""
+        self._command_error(stripped, exc, "reject:" + stripped[:2])
+
+    def _command_error(self, stripped: str, exc: Exception, key: str) -> None:
+        """Klipper answers this line with an error: a warning, and the pre-flight's stop."""
+        message = klipper_error_text(stripped, exc)
+        self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
+                  self.lineno, key)
+        stop = self.preflight.command_error(self.lineno, message.replace("\n", " "))
+        if stop is not None:
+            def at_stop(t: float, stop: Finding = stop) -> None:
+                stop.t = t
+            self.toolhead.register_lookahead_callback(at_stop)
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
@@ -364,7 +384,14 @@ class Timeline:
             sample_lines=self.sample_lines, sample_times=self.sample_times,
             marks=dict(self.marks), first_command_line=self.first_command_line,
             last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
-            commands=commands)
+            commands=commands, preflight=self.preflight.findings())
+
+
+def klipper_error_text(command_line: str, exc: Exception) -> str:
+    """The error as Klipper words it (a parameter error names the command line)."""
+    if isinstance(exc, ParamError):
+        return "Error on '%s': %s" % (command_line, exc)
+    return str(exc)
 
 
 def _looks_like_gcode(name: str) -> bool:

@@ -17,7 +17,14 @@ from collections.abc import Callable
 from typing import overload
 
 from kestimator.gcode import Command, extended_params, parse_line
+from kestimator.klipper_modules import (
+    COMMAND_MODULE,
+    HEATER_BED_WAIT,
+    loaded_modules,
+    silently_ignored,
+)
 from kestimator.limits import ExtruderLimits, Limits
+from kestimator.preflight import Preflight
 from kestimator.stepgen import (
     MAX_SMOOTH_TIME_T,
     SHAPER_MAX_DAMPING,
@@ -50,6 +57,12 @@ NO_TIME_COMMANDS = frozenset((
 # commands were run one by one (their time is included).
 KIND_MACRO = "macro"
 KIND_EXPANDED_MACRO = "expanded_macro"
+# A no-time command of a module the printer's config has (EXCLUDE_OBJECT_START, M117, ...).
+KIND_MODULE = "module"
+# With the printer's config known: what Klipper knows whatever its sections (gcode.py,
+# the default modules toolhead.py loads, extruder.py); module commands come from
+# kestimator.klipper_modules.
+ALWAYS_KNOWN_COMMANDS = NO_TIME_COMMANDS - frozenset(COMMAND_MODULE) - frozenset(("M300",))
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
 TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
 
@@ -66,6 +79,11 @@ WarnFn = Callable[[str, "str | None"], None]
 
 class CommandError(Exception):
     """Klipper would answer this command with an error and not run it."""
+
+
+class ParamError(CommandError):
+    """A parameter error of Klipper's `gcmd.get*`: Klipper words it
+    "Error on '<command line>': <this text>"."""
 
 
 @overload
@@ -90,15 +108,15 @@ def _float(params: dict[str, str], name: str, default: float | None = None, *,
     try:
         value = float(raw)
     except ValueError:
-        raise CommandError("unable to parse %s=%r" % (name, raw)) from None
+        raise ParamError("unable to parse %s" % raw) from None
     if not math.isfinite(value):
-        raise CommandError("%s must be a finite number, not %r" % (name, raw))
+        raise ParamError("%s must be a finite number, not %r" % (name, raw))
     if minval is not None and value < minval:
-        raise CommandError("%s must have minimum of %s" % (name, minval))
+        raise ParamError("%s must have minimum of %s" % (name, minval))
     if above is not None and value <= above:
-        raise CommandError("%s must be above %s" % (name, above))
+        raise ParamError("%s must be above %s" % (name, above))
     if below is not None and value >= below:
-        raise CommandError("%s must be below %s" % (name, below))
+        raise ParamError("%s must be below %s" % (name, below))
     return value
 
 
@@ -138,6 +156,11 @@ class Interpreter:
         # Commands that are not Klipper's own, by kind (KIND_*): name -> times run.
         self.command_kinds: dict[str, dict[str, int]] = {}
         self.macros = dict(limits.gcode_macros)
+        # The modules the printer's config loads; None when no config is known.
+        self.modules = (loaded_modules(limits.configured_sections)
+                        if limits.configured_sections else None)
+        # Where commands Klipper skips are recorded (kestimator.preflight), if anywhere.
+        self.preflight: Preflight | None = None
         self._running_macros: set[str] = set()
         # The source line of the command being run (moves carry it).
         self.tag = 0
@@ -183,6 +206,8 @@ class Interpreter:
         }
         if limits.input_shaper_enabled:
             self._handlers["SET_INPUT_SHAPER"] = self.cmd_SET_INPUT_SHAPER
+        if self.modules is not None and "heater_bed" not in self.modules:
+            del self._handlers[HEATER_BED_WAIT]
         if limits.arcs_enabled:
             self._handlers.update({
                 "G2": self.cmd_G2, "G3": self.cmd_G3, "G17": self.cmd_G17,
@@ -204,15 +229,35 @@ class Interpreter:
             if template is not None:
                 self._run_macro(name, template)
                 return
-            known = name in NO_TIME_COMMANDS and (name == cmd.name or name in TEXT_COMMANDS)
+            known = self._is_known(name, cmd) and (name == cmd.name or name in TEXT_COMMANDS)
+            if name and not known and self._silent(name, cmd):
+                return
             if name and not known:
                 self.ignored[name] = self.ignored.get(name, 0) + 1
+                if self.preflight is not None and self.modules is not None:
+                    self.preflight.unknown_command(name, self.tag)
             return
         try:
             handler(cmd)
         except (CommandError, MoveError):
             self.reset_last_position()
             raise
+
+    def _is_known(self, name: str, cmd: Command) -> bool:
+        """Klipper knows this no-time command (on this printer, when its config is known)."""
+        if self.modules is None:
+            return name in NO_TIME_COMMANDS
+        module = COMMAND_MODULE.get(name)
+        if module is not None:
+            if module in self.modules:
+                self._count(KIND_MODULE, name)
+                return True
+            return False
+        return name in ALWAYS_KNOWN_COMMANDS
+
+    def _silent(self, name: str, cmd: Command) -> bool:
+        """cmd_default skips it without a word (only decidable with the printer's config)."""
+        return self.modules is not None and silently_ignored(name, cmd.params)
 
     def _run_macro(self, name: str, template: str) -> None:
         """A [gcode_macro]: a literal one (no Jinja) runs its commands; others take 0 s.
@@ -405,7 +450,7 @@ class Interpreter:
         try:
             return int(raw)
         except ValueError:
-            raise CommandError("unable to parse %s=%r" % (name, raw)) from None
+            raise ParamError("unable to parse %s" % raw) from None
 
     def _save_state(self) -> dict[str, object]:
         return {
@@ -536,7 +581,7 @@ class Interpreter:
         """Wait until a sensor is in range."""
         params = self._params(cmd)
         if "SENSOR" not in params:
-            raise CommandError("TEMPERATURE_WAIT: missing SENSOR")
+            raise ParamError("missing SENSOR")
         low = _float(params, "MINIMUM")
         high = _float(params, "MAXIMUM")
         if low is None and high is None:
@@ -568,7 +613,7 @@ class Interpreter:
         if key is None:
             if default is not None:
                 return default
-            raise CommandError("Error on '%s': missing EXTRUDER" % cmd.code.strip())
+            raise ParamError("missing EXTRUDER")
         if key not in choices:
             guess = next((". Did you mean '%s'?" % c for c in choices if key and key in c),
                          ". Options: %s" % ", ".join("'%s'" % c for c in choices))
@@ -606,8 +651,7 @@ class Interpreter:
         advance = _float(params, "ADVANCE", old_advance, minval=0.0)
         smooth_time = _float(params, "SMOOTH_TIME", old_smooth, minval=0.0)
         if smooth_time > MAX_SMOOTH_TIME_T:
-            raise CommandError("Error on '%s': SMOOTH_TIME must have maximum of %s"
-                               % (cmd.code.strip(), MAX_SMOOTH_TIME_T))
+            raise ParamError("SMOOTH_TIME must have maximum of %s" % MAX_SMOOTH_TIME_T)
         self.pressure_advance[name] = (advance, smooth_time)
         if (pressure_advance_window(advance, smooth_time)
                 != pressure_advance_window(old_advance, old_smooth)):
@@ -632,7 +676,7 @@ class Interpreter:
         name = self._mux(cmd, params, list(self.pressure_advance), None)
         queue = params.get("MOTION_QUEUE")
         if queue is None:
-            raise CommandError("Error on '%s': missing MOTION_QUEUE" % cmd.code.strip())
+            raise ParamError("missing MOTION_QUEUE")
         self.toolhead.flush_step_generation()
         if queue and queue not in self.extruders:
             raise CommandError("'%s' is not a valid extruder." % queue)

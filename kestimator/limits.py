@@ -108,6 +108,10 @@ def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
         value = json_value(value)
     if not isinstance(value, list):
         raise ValueError(f"{field} must be a list, not {value!r}")
+    if field == "configured_sections":
+        if not all(isinstance(x, str) for x in value):
+            raise ValueError("configured_sections must be a list of section names")
+        return tuple(str(x) for x in value)
     if field == "gcode_macros":
         if not all(isinstance(m, list) and len(m) == 2 and all(isinstance(x, str) for x in m)
                    for m in value):
@@ -169,6 +173,9 @@ class Limits:
     shaper_type_z: str = "mzv"
     shaper_freq_z: float = 0.0
     damping_ratio_z: float = DEFAULT_DAMPING_RATIO
+    # Every section of the printer's config (lower-case names); empty when no printer
+    # config is known. Decides which module commands Klipper knows (klipper_modules).
+    configured_sections: tuple[str, ...] = ()
     # [gcode_macro NAME] sections: (NAME upper-case, its gcode template), in file order.
     gcode_macros: tuple[tuple[str, str], ...] = ()
     # [gcode_arcs]
@@ -228,6 +235,9 @@ class Limits:
         if v.get("klipper_generation", "mainline") not in KLIPPER_GENERATIONS:
             raise ValueError(
                 "klipper_generation must be one of " + ", ".join(KLIPPER_GENERATIONS))
+        sections = v.get("configured_sections", ())
+        if not isinstance(sections, tuple) or not all(isinstance(x, str) for x in sections):
+            raise ValueError("configured_sections must be a tuple of section names")
         macros = v.get("gcode_macros", ())
         if not isinstance(macros, tuple) or not all(
                 isinstance(m, tuple) and len(m) == 2 for m in macros):

@@ -209,8 +209,9 @@ class ToolHead:
             # Extrude only move (or retraction move) - limit accel and velocity
             if abs(axis_d) > self._max_e_dist:
                 raise MoveError(
-                    "Extrude only move too long (%.3fmm vs %.3fmm): Klipper rejects it "
-                    "(max_extrude_only_distance)" % (axis_d, self._max_e_dist))
+                    "Extrude only move too long (%.3fmm vs %.3fmm)\nSee the "
+                    "'max_extrude_only_distance' config option for details"
+                    % (axis_d, self._max_e_dist))
             inv_extrude_r = 1.0 / abs(axis_r)
             move.limit_speed(self._max_e_velocity * inv_extrude_r,
                              self._max_e_accel * inv_extrude_r)
@@ -220,8 +221,8 @@ class ToolHead:
                 return
             area = axis_r * self._filament_area
             raise MoveError(
-                "Move exceeds maximum extrusion (%.3fmm^2 vs %.3fmm^2): Klipper rejects it "
-                "(max_extrude_cross_section)"
+                "Move exceeds maximum extrusion (%.3fmm^2 vs %.3fmm^2)\nSee the "
+                "'max_extrude_cross_section' config option for details"
                 % (area, self._max_extrude_ratio * self._filament_area))
 
     def dwell(self, delay: float) -> None:

@@ -32,6 +32,7 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "first_layer_s": (float, type(None)), "layer_count": (int,), "layers": (list,),
     "features": (dict,), "slicer": (dict,), "filament": (dict,), "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "commands": (dict,),
+    "preflight": (list,),
     "warnings": (list,),
     "warnings_dropped": (int,),
 }

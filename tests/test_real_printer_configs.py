@@ -55,7 +55,8 @@ def _ref_path(doc: dict[str, object]) -> Path:
     return REFS / name
 
 
-@pytest.mark.parametrize("ref", sorted(p.stem for p in REFS.glob("*.json")))
+@pytest.mark.parametrize("ref", sorted(p.stem for p in REFS.glob("*.json")
+                                       if not p.name.endswith(".preflight.json")))
 def test_every_checkpoint_equals_klipper_on_real_printer_configs(ref: str) -> None:
     doc = json.loads((REFS / (ref + ".json")).read_text())
     assert "84104bbbd" in doc["klipper"]
@@ -126,3 +127,61 @@ def test_printer_cfg_reads_extruders_shaper_and_macros() -> None:
     shaped, _ = limits_from_printer_cfg(REFS / "configs" / "pa_is.cfg")
     assert (shaped.input_shaper_enabled, shaped.shaper_freq_x, shaped.shaper_type_y) == (
         True, 48.6, "ei")
+
+
+PREFLIGHT_PREFIX = "Klipper stops the print here: "
+
+
+def _preflight_file(doc: dict[str, object], tmp_path: Path) -> Path:
+    from tests.oracle_refs.regenerate import with_insert
+
+    insert = doc["insert"]
+    return with_insert(_ref_path(doc), tuple(insert) if insert else None,  # type: ignore
+                       tmp_path)
+
+
+@pytest.mark.parametrize("ref", sorted(p.name.split(".")[0]
+                                       for p in REFS.glob("*.preflight.json")))
+def test_preflight_finds_what_klipper_stops_at_and_skips(ref: str, tmp_path: Path) -> None:
+    from kestimator.estimate import estimate_file
+
+    doc = json.loads((REFS / (ref + ".preflight.json")).read_text())
+    limits, _ = limits_from_printer_cfg(REFS / str(doc["config"]))
+    est = estimate_file(_preflight_file(doc, tmp_path), limits)
+    stops = [f for f in est.preflight if f.kind == "stop"]
+    skipped = {f.message.split('"')[1]: f for f in est.preflight if f.kind == "skipped"}
+    if doc["errors"]:
+        # Klipper stops at the first error: the same line, in Klipper's words, at the time
+        # the last move before it ends.
+        first = doc["errors"][0]
+        (stop,) = stops
+        assert est.stops_print
+        assert stop.line == first["src_line"]
+        assert stop.message.startswith(PREFLIGHT_PREFIX + first["msg"].strip())
+        # The oracle's last timed move before the stop (later ones never reach the
+        # printer's timing callbacks once it stops) ends when ours does.
+        mark = doc["marks"][-1]
+        path = _preflight_file(doc, tmp_path)
+        mine, _ = times_at_checkpoints(path, REFS / str(doc["config"]), [mark["line"] + 1])
+        assert _within(mine[mark["line"] + 1], mark["t"])
+        assert stop.t is not None and stop.t >= mark["t"]
+        # Everything Klipper skipped before it stopped, we found too (no fewer).
+        for name, count in doc["unknown_commands"].items():
+            assert skipped[name].count >= count, name
+    else:
+        assert not stops and not est.stops_print
+        assert {name: f.count for name, f in skipped.items()} == doc["unknown_commands"]
+        assert _within(est.total_s, doc["total_s"]), (est.total_s, doc["total_s"])
+        for mark in doc["marks"]:
+            assert mark["t"] <= est.total_s + TOL_ABS_S
+
+
+def test_preflight_names_the_missing_section_for_arcs_and_retraction(tmp_path: Path) -> None:
+    from kestimator.estimate import estimate_text
+
+    limits, _ = limits_from_printer_cfg(REFS / "configs" / "no_arcs.cfg")
+    est = estimate_text("G28\nG1 X10 Y10 F3000\nG2 X20 Y10 I5 J0\nG2 X10 Y10 I-5 J0\n",
+                        limits)
+    (arcs,) = est.preflight
+    assert (arcs.severity, arcs.line, arcs.count) == ("warning", 3, 2)
+    assert "[gcode_arcs]" in arcs.message and "arcs are not printed" in arcs.message

@@ -165,6 +165,8 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
             provenance[field] = config.headers[section]
     if "input_shaper" in config.sections:
         _read_input_shaper(config.sections["input_shaper"], values, read_from)
+    values["configured_sections"] = tuple(config.sections)
+    provenance["configured_sections"] = os.fspath(path)
     macros = _read_macros(config)
     if macros:
         values["gcode_macros"] = macros
