@@ -41,7 +41,13 @@ from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits, json_value
-from kestimator.preflight import EXIT_KLIPPER_STOPS, KIND_STOP, stderr_line, summary_lines
+from kestimator.preflight import (
+    EXIT_KLIPPER_STOPS,
+    KIND_STOP,
+    SUMMARY_HEAD,
+    stderr_line,
+    summary_lines,
+)
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file
 from kestimator.slicers import detect_file
@@ -473,10 +479,13 @@ def cmd_inject(args: argparse.Namespace) -> int:
         slicer_s = result.slicer_estimate_s
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
-        sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
-            result.output, format_duration(total), said, result.m73_written))
-        for line in summary_lines(_findings(result.estimate)):
-            sys.stdout.write(line + "\n")
+        preflight = summary_lines(_findings(result.estimate))
+        # One line, as hooks expect: the pre-flight's counts, `kestimator check` the rest.
+        found = ("" if not preflight else
+                 "; pre-flight: %s (kestimator check FILE shows each)"
+                 % preflight[0][len(SUMMARY_HEAD):])
+        sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines%s\n" % (
+            result.output, format_duration(total), said, result.m73_written, found))
     return _stop_status(result.estimate)
 
 

@@ -44,6 +44,7 @@ _MISSING_SECTION_EFFECT = {
     "firmware_retraction": "the file's retractions are not done",
 }
 STOP_PREFIX = "Klipper stops the print here: "
+SUMMARY_HEAD = "Pre-flight: "
 # Exit status of `inject` and `check` when Klipper will stop the print (docs/CLI.md).
 EXIT_KLIPPER_STOPS = 4
 
@@ -121,7 +122,7 @@ def summary_lines(findings: list[dict[str, object]]) -> list[str]:
         head.append("%d command%s skipped" % (
             sum(int(str(f["count"])) for f in skipped), "" if len(skipped) == 1 and
             skipped[0]["count"] == 1 else "s"))
-    lines = ["Pre-flight: " + "; ".join(head)]
+    lines = [SUMMARY_HEAD + "; ".join(head)]
     for finding in findings:
         more = int(str(finding["count"])) - 1
         suffix = ""

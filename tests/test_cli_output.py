@@ -234,7 +234,8 @@ def test_inject_json_adds_output_and_m73_count_and_text_stays_one_line(
     assert again["slicer"]["difference_s"] == doc["slicer"]["difference_s"]
     assert cli.main(argv) == 0
     assert capsys.readouterr().out == (
-        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines\n"
+        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines; "
+        "pre-flight: 2 commands skipped (kestimator check FILE shows each)\n"
         % (out, doc["m73_written"]))
 
 
