@@ -55,7 +55,12 @@ def test_moonraker_settings_give_the_limits_of_the_printer_cfg_they_come_from(
     from_moonraker = Limits.from_values(found.values)
     # Moonraker also reports the macro the fake adds to the corpus printer.cfg.
     assert from_moonraker.gcode_macros == (("SECRET", ""),)
-    assert from_moonraker.replace(gcode_macros=()) == limits_from_printer_cfg(CORPUS_CFG)[0]
+    from_cfg = limits_from_printer_cfg(CORPUS_CFG)[0]
+    # The fake reports a few sections of its own (no steppers, a macro).
+    assert {"printer", "extruder", "extruder1", "display_status"} <= set(
+        from_moonraker.configured_sections)
+    assert from_moonraker.replace(gcode_macros=(), configured_sections=()) == from_cfg.replace(
+        configured_sections=())
     assert found.sources["max_accel"] == f"moonraker {moonraker.url}: [printer] max_accel"
     assert found.sources["arcs_enabled"] == f"moonraker {moonraker.url}: [gcode_arcs]"
     assert found.warnings == ()
@@ -186,7 +191,8 @@ def test_resolver_and_cli_take_the_machine_from_moonraker_without_showing_the_ke
                "HOME": str(tmp_path)}
     resolved = resolve_limits(LimitRequest(moonraker_url=moonraker.url, api_key=API_KEY,
                                            environ=environ))
-    assert resolved.limits.replace(gcode_macros=()) == limits_from_printer_cfg(CORPUS_CFG)[0]
+    assert resolved.limits.replace(gcode_macros=(), configured_sections=()) == (
+        limits_from_printer_cfg(CORPUS_CFG)[0].replace(configured_sections=()))
     assert resolved.machine == f"moonraker {moonraker.url}"
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "none"))

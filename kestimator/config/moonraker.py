@@ -194,7 +194,7 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             values["shaper_type_" + axis] = raw
             sources["shaper_type_" + axis] = f"{description}: [input_shaper] shaper_type_{axis}"
     _extra_extruders(settings, description, values, sources)
-    values["configured_sections"] = tuple(str(name).lower() for name in settings)
+    values["configured_sections"] = tuple(sorted(str(name).lower() for name in settings))
     sources["configured_sections"] = f"{description}: its sections"
     # Macros by name only (""): known commands, not run. Their text may hold anything and
     # is never cached, so the live answer keeps it out too (live and cached agree).

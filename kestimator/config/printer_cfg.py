@@ -17,11 +17,20 @@ comments), re-implemented here so that every value keeps its file and line.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import glob
 import math
 import operator
 import os
+import re
 
+from kestimator.config.klipper_options import (
+    ANY_KLIPPY_OPTION,
+    BUILT_OPTION_NAMES,
+    KINEMATICS_OPTIONS,
+    PRINTER_OPTIONS,
+    SECTION_OPTIONS,
+)
 from kestimator.errors import KestimatorError
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
@@ -142,6 +151,7 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     provenance: dict[str, str] = {}
     read_from: dict[str, ConfigValue] = {}
     directive = _generation_directive(os.fspath(path))
+    check_options(config.sections)
     if directive is not None:
         values["klipper_generation"] = directive.value
         read_from["klipper_generation"] = directive
@@ -166,7 +176,8 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     if "input_shaper" in config.sections:
         _read_input_shaper(config.sections["input_shaper"], values, read_from)
     values["configured_sections"] = tuple(config.sections)
-    provenance["configured_sections"] = os.fspath(path)
+    if config.headers:
+        provenance["configured_sections"] = next(iter(config.headers.values()))
     macros = _read_macros(config)
     if macros:
         values["gcode_macros"] = macros
@@ -188,6 +199,47 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     for field, raw in read_from.items():
         provenance[field] = raw.location
     return values, provenance
+
+
+def check_options(sections: Sections) -> None:
+    """Raise KestimatorError (file, line, a suggestion) for the first option Klipper would
+    refuse to start with in a section kestimator reads; other sections are left alone.
+
+    The accepted names come from Klipper's own config reads (`klipper_options`).
+    ``max_accel_to_decel`` in [printer] is left to the resolver: older Klipper generations
+    read it, and the generation may still be set on the command line (mainline's refusal is
+    a warning there).
+    """
+    printer = sections.get("printer", {})
+    kinematics = printer.get("kinematics")
+    for name, options in sections.items():
+        accepted = _accepted_options(name, kinematics.value if kinematics else None)
+        if accepted is None:
+            continue
+        for option, raw in options.items():
+            if option in accepted or (_EXTRUDER_SECTION.match(name)
+                                      and _NUMBERED_OPTION.match(option)):
+                continue
+            close = difflib.get_close_matches(option, sorted(accepted), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise KestimatorError(f"[{name}] has no option '{option}'{hint}: Klipper "
+                                  "refuses to start with it", raw.path, raw.line)
+
+
+def _accepted_options(section: str, kinematics: str | None) -> frozenset[str] | None:
+    """The options Klipper accepts in ``section``; None for a section not checked."""
+    if section == "printer":
+        if kinematics is None or kinematics not in KINEMATICS_OPTIONS:
+            return None  # the kinematics' own error comes first
+        return PRINTER_OPTIONS | KINEMATICS_OPTIONS[kinematics] | {"max_accel_to_decel"}
+    if _EXTRUDER_SECTION.match(section):
+        return ANY_KLIPPY_OPTION | BUILT_OPTION_NAMES
+    return SECTION_OPTIONS.get(section)
+
+
+_EXTRUDER_SECTION = re.compile(r"extruder[0-9]*$")
+# Sensor tables ([extruder] sensor_type of adc_temperature / thermistor): temperature1, ...
+_NUMBERED_OPTION = re.compile(r"(temperature|voltage|resistance)[0-9]+$")
 
 
 def _read_input_shaper(section: dict[str, ConfigValue], values: dict[str, object],
