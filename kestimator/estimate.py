@@ -362,6 +362,9 @@ class Timeline:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")
         for name in sorted(interp.ignored):
+            # With the printer's config known, the pre-flight says Klipper skips it.
+            if interp.modules is not None:
+                break
             if not _looks_like_gcode(name) and name not in self._warned_macros:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
