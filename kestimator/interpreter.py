@@ -24,6 +24,7 @@ from kestimator.klipper_modules import (
     silently_ignored,
 )
 from kestimator.limits import ExtruderLimits, Limits
+from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
 from kestimator.preflight import Preflight
 from kestimator.stepgen import (
     MAX_SMOOTH_TIME_T,
@@ -75,6 +76,8 @@ _MOVE_PARAMS = frozenset("XYZEFG")
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
+# add_time(seconds, name, source): time with the toolhead at rest that the file cannot show.
+AddTimeFn = Callable[[float, str, str], None]
 
 
 class CommandError(Exception):
@@ -124,10 +127,15 @@ class Interpreter:
     """Runs commands against a ToolHead, keeping Klipper's G-code state."""
 
     def __init__(self, limits: Limits, toolhead: ToolHead, warn: WarnFn,
-                 homing_time: float = 0.0, heat_time: float = 0.0) -> None:
+                 homing_time: float = 0.0, heat_time: float = 0.0,
+                 add_time: AddTimeFn | None = None) -> None:
         self.limits = limits
         self.toolhead = toolhead
         self.warn = warn
+        self.add_time: AddTimeFn = add_time or (lambda seconds, name, source:
+                                                 toolhead.add_time(seconds))
+        # Called with the name of every command Klipper does not know (a macro, maybe).
+        self.on_unknown: Callable[[str], None] | None = None
         self.homing_time = homing_time
         self.heat_time = heat_time
         # gcode_move state
@@ -236,6 +244,9 @@ class Interpreter:
                 self.ignored[name] = self.ignored.get(name, 0) + 1
                 if self.preflight is not None and self.modules is not None:
                     self.preflight.unknown_command(name, self.tag)
+                if self.on_unknown is not None and self.modules is None:
+                    # Without the printer's config it may be a macro there.
+                    self.on_unknown(name)
             return
         try:
             handler(cmd)
@@ -260,12 +271,15 @@ class Interpreter:
         return self.modules is not None and silently_ignored(name, cmd.params)
 
     def _run_macro(self, name: str, template: str) -> None:
-        """A [gcode_macro]: a literal one (no Jinja) runs its commands; others take 0 s.
+        """A [gcode_macro]: a literal one (no Jinja) runs its commands; others take 0 s
+        unless the profile's [macros] table times them (`on_unknown`).
 
         An empty template is a macro whose text is not known (Moonraker's cache).
         """
         if not template.strip() or "{" in template or "%" in template:
             self._count(KIND_MACRO, name)
+            if self.on_unknown is not None:
+                self.on_unknown(name)
             return
         if name in self._running_macros:
             raise CommandError("Macro %s called recursively" % name)
@@ -503,7 +517,7 @@ class Interpreter:
             newpos[axis] = 0.0
         self.toolhead.set_position((newpos[0], newpos[1], newpos[2], newpos[3]))
         if self.homing_time > 0.0:
-            self.toolhead.add_time(self.homing_time)
+            self.add_time(self.homing_time, "G28", HOMING_SOURCE)
         self.reset_last_position()
         for axis in axes:
             self.base_position[axis] = self.homing_position[axis]
@@ -575,7 +589,7 @@ class Interpreter:
         if temp:
             self.toolhead.wait_heater()
             if self.heat_time > 0.0:
-                self.toolhead.add_time(self.heat_time)
+                self.add_time(self.heat_time, cmd.name, HEAT_SOURCE)
 
     def cmd_TEMPERATURE_WAIT(self, cmd: Command) -> None:
         """Wait until a sensor is in range."""
@@ -588,7 +602,7 @@ class Interpreter:
             raise CommandError("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.")
         self.toolhead.wait_heater()
         if self.heat_time > 0.0:
-            self.toolhead.add_time(self.heat_time)
+            self.add_time(self.heat_time, "TEMPERATURE_WAIT", HEAT_SOURCE)
 
     def cmd_M84(self, cmd: Command) -> None:
         """Motors off: Klipper dwells 0.1 s before and after when a motor was on."""

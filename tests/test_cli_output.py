@@ -35,9 +35,12 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "preflight": (list,),
     "warnings": (list,),
     "warnings_dropped": (int,),
+    "parts": (dict,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
+PARTS_FIELDS = ("motion_s", "added_s", "before_first_extrusion_s", "print_duration_s",
+                "total_s", "first_extrusion_t", "sources", "untimed_macros")
 FILAMENT_FIELDS = ("extruded_mm", "diameter_mm", "volume_cm3", "density_g_cm3", "weight_g",
                    "slicer_mm", "slicer_g")
 
@@ -81,8 +84,10 @@ def test_json_has_every_documented_field_with_its_type(
     assert doc["schema"] == cli.JSON_SCHEMA_VERSION == 1 and doc["kestimator"] == __version__
     assert tuple(doc["slicer"]) == SLICER_FIELDS
     assert tuple(doc["filament"]) == FILAMENT_FIELDS
+    assert tuple(doc["parts"]) == PARTS_FIELDS
     docs = (PROJECT / "docs/CLI.md").read_text(encoding="utf-8")
-    for field in (*ESTIMATE_FIELDS, *SLICER_FIELDS, *FILAMENT_FIELDS, "duration_s",
+    for field in (*ESTIMATE_FIELDS, *SLICER_FIELDS, *FILAMENT_FIELDS, *PARTS_FIELDS,
+                  "duration_s",
                   "output", "m73_written"):
         assert "`%s`" % field in docs, field
 
@@ -158,7 +163,7 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     assert "Time per layer" not in out and "\x1b[" not in out
     assert "  warning: %s:39: M204 without S needs both P and T" % NUT in out
     torus = estimate_text(capsys, TORUS)
-    assert "  warning: " in torus and "Difference   : " in torus
+    assert "  Pre-flight: 2 commands skipped" in torus and "Difference   : " in torus
 
 
 def test_layers_option_adds_one_row_per_layer(
