@@ -449,6 +449,10 @@ class Timeline:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
         interp = self.interp
+        for name in interp.extra_steppers:
+            self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
+                      "step-generation flush delay (times after full stops may be short by "
+                      "up to its pressure_advance_smooth_time)" % name)
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")

@@ -186,6 +186,15 @@ class Interpreter:
             name: (e.pressure_advance, e.pressure_advance_smooth_time)
             for name, e in self.extruders.items() if e.has_stepper}
         self.extruder_synced: dict[str, bool] = {name: True for name in self.pressure_advance}
+        # [extruder_stepper NAME]: its commands are valid (EXTRUDER=NAME), but its own
+        # pressure advance is not read; it counts as off in the flush delay (warned once).
+        self.extra_steppers = [section.split(None, 1)[1].strip()
+                               for section in limits.configured_sections
+                               if section.startswith("extruder_stepper ")
+                               and len(section.split(None, 1)) == 2]
+        for name in self.extra_steppers:
+            self.pressure_advance[name] = (0.0, 0.040)
+            self.extruder_synced[name] = True
         # [input_shaper] (extras/input_shaper.py): axis -> (shaper_type, freq, damping).
         self.shapers: dict[str, tuple[str, float, float]] = {}
         if limits.input_shaper_enabled:

@@ -185,3 +185,19 @@ def test_preflight_names_the_missing_section_for_arcs_and_retraction(tmp_path: P
     (arcs,) = est.preflight
     assert (arcs.severity, arcs.line, arcs.count) == ("warning", 3, 2)
     assert "[gcode_arcs]" in arcs.message and "arcs are not printed" in arcs.message
+
+
+def test_an_extruder_stepper_is_a_valid_extruder_for_its_commands(tmp_path: Path) -> None:
+    from kestimator.estimate import estimate_text
+
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text((REFS / "configs" / "pa_is.cfg").read_text()
+                   + "\n[extruder_stepper belt]\nextruder: extruder\nstep_pin: gpio30\n"
+                     "dir_pin: gpio31\nenable_pin: !gpio32\nmicrosteps: 16\n"
+                     "rotation_distance: 33.5\n")
+    limits, _ = limits_from_printer_cfg(cfg)
+    est = estimate_text("G28\nSET_PRESSURE_ADVANCE EXTRUDER=belt ADVANCE=0.02\n"
+                        "SYNC_EXTRUDER_MOTION EXTRUDER=belt MOTION_QUEUE=extruder\n"
+                        "G1 X10 F3000\n", limits)
+    assert not est.stops_print
+    assert any("[extruder_stepper belt]" in w for w in est.warnings)
