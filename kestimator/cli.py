@@ -63,6 +63,8 @@ EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
+# A list setting (extruders, macros, sections) shows this many names in the limits table.
+LIST_SHOWN = 4
 # EXIT_KLIPPER_STOPS (4, kestimator.preflight): inject/check when Klipper will stop the print.
 # PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
 SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
@@ -648,8 +650,12 @@ def _shown(value: object) -> str:
     if isinstance(value, float):
         return "%g" % value
     if isinstance(value, list):
-        return ", ".join(str(item.get("name", item[0]) if isinstance(item, dict) else item[0])
-                         for item in value) or "none"
+        names = [str(item.get("name")) if isinstance(item, dict)
+                 else str(item[0]) if isinstance(item, list) else str(item)
+                 for item in value]
+        if len(names) > LIST_SHOWN:
+            return "%s, ... (%d)" % (", ".join(names[:LIST_SHOWN]), len(names))
+        return ", ".join(names) or "none"
     return str(value)
 
 

@@ -456,10 +456,10 @@ class Timeline:
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")
-        # With the printer's config known, unknown commands are no macros: the pre-flight
-        # says Klipper skips them. Template macros of the config are macros (0 s unless
+        # Unknown commands may be macros of the printer (the pre-flight says when the
+        # config given lacks them); template macros of the config are macros (0 s unless
         # the profile times them).
-        unknown = {} if interp.modules is not None else dict(interp.ignored)
+        unknown = dict(interp.ignored)
         for name, count in interp.command_kinds.get(KIND_MACRO, {}).items():
             unknown[name] = unknown.get(name, 0) + count
         untimed = {name: count for name, count in sorted(unknown.items())

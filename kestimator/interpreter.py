@@ -253,8 +253,7 @@ class Interpreter:
                 self.ignored[name] = self.ignored.get(name, 0) + 1
                 if self.preflight is not None and self.modules is not None:
                     self.preflight.unknown_command(name, self.tag)
-                if self.on_unknown is not None and self.modules is None:
-                    # Without the printer's config it may be a macro there.
+                if self.on_unknown is not None:
                     self.on_unknown(name)
             return
         try:
