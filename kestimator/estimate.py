@@ -24,6 +24,7 @@ from kestimator.macros import (
     ADD_TIME_SOURCE,
     FIRST_EXTRUSION_MM,
     LEARNED_PREP_LABEL,
+    MOTION_CORRECTION_LABEL,
     MacroTimes,
     Parts,
     TimedPart,
@@ -205,6 +206,11 @@ class Timeline:
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
         self._commands: dict[str, Command] = {}
+        # What the printer's kinematics does that is not modelled: said once, up front;
+        # its commands that change motion are named where they run.
+        for message in self.toolhead.kin.warnings:
+            self.warn(message, None, "kinematics:" + message)
+        self._kin_commands = self.toolhead.kin.commands
         learned = self.macros.before_first_extrusion
         if learned is not None:
             # The printer's own history measured everything before the first extrusion:
@@ -280,6 +286,36 @@ class Timeline:
         part.seconds += seconds
         if prep:
             part.before_first_extrusion_s += seconds
+
+    def _correct_motion(self, total: float) -> float:
+        """Apply a learned motion ratio to the motion after the first extrusion.
+
+        The extra time is spread evenly over everything after the first extrusion: the
+        times recorded there (layers, marks, progress samples) stretch by one factor and
+        every feature's time grows in proportion, so the parts still add up.
+        """
+        ratio = self.macros.motion_ratio
+        first = self.first_extrusion_t
+        if ratio is None or ratio.seconds <= 1.0 or first is None or total <= first:
+            return total
+        added_after = sum(p.seconds - p.before_first_extrusion_s
+                          for p in self.timed_parts.values())
+        extra = (ratio.seconds - 1.0) * max(0.0, total - first - added_after)
+        factor = (total - first + extra) / (total - first)
+
+        def stretch(t: float) -> float:
+            return t if t <= first else first + (t - first) * factor
+        self.layers = [(line, stretch(t)) for line, t in self.layers]
+        self.marks = [(line, stretch(t)) for line, t in self.marks]
+        times = self.sample_times
+        for i in range(len(times)):
+            times[i] = stretch(times[i])
+        grow = (total + extra) / total
+        self.feature_time = [t * grow for t in self.feature_time]
+        part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
+        part.count = 1
+        part.seconds = extra
+        return total + extra
 
     def _unknown_command(self, name: str) -> None:
         """A command Klipper does not know: a macro, timed if the table has it."""
@@ -383,6 +419,8 @@ class Timeline:
             return
         if self.first_command_line is None:
             self.first_command_line = self.lineno
+        if cmd.name in self._kin_commands:
+            self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
         self.interp.tag = self.lineno
         try:
             self.interp.execute(cmd)
@@ -448,6 +486,7 @@ class Timeline:
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
+        total = self._correct_motion(total)
         interp = self.interp
         for name in interp.extra_steppers:
             self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "

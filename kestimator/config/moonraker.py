@@ -32,6 +32,7 @@ from kestimator.config.printer_cfg import (
     STEPPER_OPTIONS,
 )
 from kestimator.errors import KestimatorError
+from kestimator.kinematics.base import MachineConfig, is_machine_section
 from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
 
 if TYPE_CHECKING:
@@ -45,8 +46,9 @@ QUERY_PATH = "/printer/objects/query?configfile=settings"
 API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction",
                    "input_shaper")
-"""The Klipper sections kestimator reads (and [extruderN]); of the others (macros
-included: their templates may hold anything) only the names are cached."""
+"""The Klipper sections kestimator reads (and [extruderN]), besides the kinematics' ones
+(``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); of the others
+(macros included: their templates may hold anything) only the names are cached."""
 _EXTRUDER_RE = re.compile(r"extruder[1-9][0-9]?$")
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
 HTTP_NOT_FOUND = 404
@@ -224,7 +226,26 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             f"{description}: [printer] reports max_accel_to_decel "
             + ("and minimum_cruise_ratio (only Klipper 2024-03..2025-08 reads both)" if both
                else "without minimum_cruise_ratio (Klipper before 2024-03)"))
-    return SourcedValues(description, values, sources)
+    return SourcedValues(description, values, sources,
+                         machine=machine_from_settings(settings, description))
+
+
+def machine_from_settings(settings: Mapping[str, Mapping[str, Any]],
+                          description: str) -> MachineConfig:
+    """The kinematics' sections of Klipper's settings, as the text a printer.cfg would hold
+    (so the kinematics read both the same way), each sourced ``<description>: [section]``."""
+    return MachineConfig.build(description, {
+        name: {option: (_as_text(value), f"{description}: [{name}] {option}")
+               for option, value in options.items()}
+        for name, options in settings.items() if is_machine_section(name)})
+
+
+def _as_text(value: object) -> str:
+    """A settings value as printer.cfg text: lists (gear_ratio) as "a:b, c:d"."""
+    if isinstance(value, (list, tuple)):
+        return ", ".join(":".join(_as_text(v) for v in item) if isinstance(item, (list, tuple))
+                         else _as_text(item) for item in value)
+    return str(value)
 
 
 def _extra_extruders(settings: Mapping[str, Mapping[str, Any]], description: str,
@@ -332,7 +353,7 @@ def _write_cache(path: Path, url: str, settings: Settings,
 
 def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
     """What the cache keeps of one section's settings."""
-    if name in CACHED_SECTIONS or _EXTRUDER_RE.match(name):
+    if name in CACHED_SECTIONS or _EXTRUDER_RE.match(name) or is_machine_section(name):
         return dict(options)
     return {}
 
