@@ -38,6 +38,8 @@ REFERENCES = (
     ("pa_shaper_commands", "snippets/pa_shaper_commands.gcode", "pa_is.cfg", 1),
     ("shaper_types", "snippets/shaper_types.gcode", "pa_is.cfg", 1),
     ("tool_changes", "snippets/tool_changes.gcode", "two_extruders.cfg", 1),
+    ("cura_nut_pa_is_max_endstops", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
+     "pa_is_max_endstops.cfg", 500),
     ("cura_nut_pa_is", "corpus:gcode/cura/cura413_ender3_nut_small.gcode", "pa_is.cfg", 500),
     ("orca_cube_pa_is",
      "corpus:gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode", "pa_is.cfg", 500),
