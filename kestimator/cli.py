@@ -857,6 +857,9 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE
+    except MemoryError:  # the file is untouched (atomic write); not a bug of ours
+        sys.stderr.write("kestimator: error: out of memory\n")
+        return EXIT_FAILURE
     except StdoutError:
         raise
     except Exception as exc:  # a bug: still one line for the user, the traceback on request

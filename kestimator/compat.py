@@ -272,6 +272,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         err.write("kestimator-compat: interrupted\n")
         return EXIT_FAILURE
+    except MemoryError:
+        err.write("kestimator-compat: error: out of memory\n")
+        return EXIT_FAILURE
     except Terminated as exc:
         err.write("kestimator-compat: terminated by signal %d\n" % exc.signum)
         return 128 + exc.signum

@@ -39,10 +39,11 @@ def open_regular(path: str | os.PathLike[str], what: str = "G-code") -> BinaryIO
             raise KestimatorError(NOT_REGULAR % what, path)
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
-        return os.fdopen(fd, "rb")
     except BaseException:
         os.close(fd)
         raise
+    # Once the file object owns fd, it alone closes it (never twice: EBADF).
+    return os.fdopen(fd, "rb")
 
 
 def read_config_bytes(path: str | os.PathLike[str], what: str = "config",

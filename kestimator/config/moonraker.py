@@ -82,12 +82,18 @@ def normalise_url(url: str) -> str:
     text = url.strip()
     if "://" not in text:
         text = "http://" + text
-    parts = urllib.parse.urlsplit(text)
-    if "@" in parts.netloc or parts.query or parts.fragment:
-        raise KestimatorError("a Moonraker URL must be http(s)://host[:port][/path], without a "
-                              "user, password or query; pass an API key with --api-key")
-    if parts.scheme not in ("http", "https") or not parts.hostname:
-        raise KestimatorError(f"not a Moonraker URL: {url!r} (expected http://host:7125)")
+    try:
+        parts = urllib.parse.urlsplit(text)
+        if "@" in parts.netloc or parts.query or parts.fragment:
+            raise KestimatorError("a Moonraker URL must be http(s)://host[:port][/path], "
+                                  "without a user, password or query; pass an API key with "
+                                  "--api-key")
+        if parts.scheme not in ("http", "https") or not parts.hostname:
+            raise ValueError("no host")
+        parts.port  # noqa: B018 - raises ValueError for a port out of range
+    except ValueError:  # "http://[::1" (Invalid IPv6 URL), a bad port
+        raise KestimatorError(f"not a Moonraker URL: {url!r} (expected http://host:7125)"
+                              ) from None
     return f"{parts.scheme}://{parts.netloc}{parts.path.rstrip('/')}"
 
 

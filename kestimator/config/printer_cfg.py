@@ -495,6 +495,8 @@ def _read_config(path: str) -> _Config:
 
 
 _CANNOT_READ = "cannot read file: "
+MAX_INCLUDE_DEPTH = 100
+"""How deep [include]s may nest (a chain, not a count: any number may sit side by side)."""
 
 
 def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
@@ -575,6 +577,10 @@ def _parse_file(path: str, lines: list[str], config: _Config,
 
     `stack` holds (real path, path as named) of the files being parsed, outermost first.
     """
+    if len(stack) >= MAX_INCLUDE_DEPTH:
+        raise KestimatorError(f"[include]s nested more than {MAX_INCLUDE_DEPTH} deep "
+                              "(an include chain this long is a mistake)",
+                              stack[-1][1])
     stack.append((os.path.realpath(path), path))
     # As Klipper, the text between two includes is parsed on its own: after an include
     # an option needs a new [section] header.

@@ -49,6 +49,9 @@ _TEXT_KEYS = ("printer_cfg", "moonraker", "api_key")
 # Durations the file cannot tell (seconds per G28, per heater wait); the command line's
 # --homing-time / --heat-time win over them.
 DURATION_KEYS = ("homing_time_s", "heat_time_s")
+MAX_MOONRAKER_TIMEOUT_S = 3600.0
+"""An hour: beyond, a deadline is no deadline (and 1e308 s overflows the clock)."""
+
 _TOP_KEYS = frozenset((*_TEXT_KEYS, *DURATION_KEYS, "moonraker_timeout_s", "limits",
                        "macros", "printers"))
 _TABLE_KEYS = _TOP_KEYS - {"printers"}
@@ -158,8 +161,9 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
         raise KestimatorError("names both printer_cfg and moonraker: keep one", name)
     timeout_s = settings.get("moonraker_timeout_s")
     if timeout_s is not None and (isinstance(timeout_s, bool) or not isinstance(
-            timeout_s, (int, float)) or not 0.0 < timeout_s < float("inf")):
-        raise KestimatorError("moonraker_timeout_s must be a number of seconds above 0", name)
+            timeout_s, (int, float)) or not 0.0 < timeout_s <= MAX_MOONRAKER_TIMEOUT_S):
+        raise KestimatorError("moonraker_timeout_s must be a number of seconds above 0 and "
+                              "at most %g" % MAX_MOONRAKER_TIMEOUT_S, name)
     durations: dict[str, float | None] = {}
     for key in DURATION_KEYS:
         value = settings.get(key)

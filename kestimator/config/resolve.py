@@ -261,7 +261,18 @@ def _profile(request: LimitRequest, environ: Mapping[str, str],
         path = Path(request.profile)
     else:
         path = default_profile_path(environ)
-        if not path.is_file():
+        try:
+            found = path.is_file()
+        except OSError as exc:
+            # An unreadable ~/.config/kestimator or an over-long XDG_CONFIG_HOME: the
+            # default profile is optional, so a warning and go on (an error for --printer).
+            reason = exc.strerror or str(exc)
+            if request.printer is not None:
+                raise KestimatorError(f"--printer needs a profile, and {path} cannot be "
+                                      f"read: {reason}") from None
+            warnings.append(f"profile {path} not read: {reason}")
+            return None
+        if not found:
             if request.printer is not None:
                 raise KestimatorError(f"--printer needs a profile, and there is none at {path}")
             return None
