@@ -83,7 +83,7 @@ def test_an_internal_error_in_compat_is_one_line(
     work.write_bytes(BODY)
     assert compat.main(["post-process", str(work)]) == compat.EXIT_FAILURE
     err = capsys.readouterr().err
-    assert err.startswith("kestimator-compat: internal error: MemoryError")
+    assert err.startswith("kestimator-compat: error: out of memory")
     assert len(err.splitlines()) == 1 and work.read_bytes() == BODY
 
 
