@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from kestimator import __version__
+from kestimator import __version__, build
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
     difference_text,
@@ -99,7 +99,7 @@ def _build_parser() -> argparse.ArgumentParser:
         description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("-V", "--version", action="version",
-                        version="kestimator " + __version__)
+                        version="kestimator %s (%s)" % (__version__, build()))
     parser.add_argument("--debug", action="store_true",
                         help="show a traceback when something fails")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -15,6 +15,7 @@ import os
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from typing import Final
 
 from kestimator.errors import KestimatorError
 from kestimator.gcode import Command, parse_line, parse_plain_move
@@ -24,25 +25,25 @@ from kestimator.planner import Move
 from kestimator.toolhead import MoveError, ToolHead
 
 # Comment markers that start a layer.
-LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
+LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
-FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
-ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
+FEATURE_MARKERS: Final = (";TYPE:", "; FEATURE:")
+ADD_TIME_MARKER: Final = "ESTIMATOR_ADD_TIME"
 # Feature name for moves before the first feature marker.
-NO_FEATURE = "(none)"
+NO_FEATURE: Final = "(none)"
 # At most this many warnings are kept (each names its line); the rest are counted.
-MAX_WARNINGS = 100
-READ_BUFFER_BYTES = 1 << 20
+MAX_WARNINGS: Final = 100
+READ_BUFFER_BYTES: Final = 1 << 20
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
-MAX_SAMPLES = 65536
-FIRST_SAMPLE_SPACING_S = 0.01
+MAX_SAMPLES: Final = 65536
+FIRST_SAMPLE_SPACING_S: Final = 0.01
 # Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
 # kept, and the cache is emptied when full).
-MAX_CACHED_COMMANDS = 4096
-MAX_CACHED_COMMAND_CHARS = 200
+MAX_CACHED_COMMANDS: Final = 4096
+MAX_CACHED_COMMAND_CHARS: Final = 200
 # A progress callback hears about once per this many bytes read.
-PROGRESS_EVERY_BYTES = 1 << 20
+PROGRESS_EVERY_BYTES: Final = 1 << 20
 
 
 @dataclasses.dataclass
@@ -212,7 +213,7 @@ class Timeline:
 
     def _final_warnings(self) -> list[str]:
         return [w if not n else "%s (%d more like it)" % (w, n)
-                for w, n in zip(self.warnings, self._warning_repeats, strict=True)]
+                for w, n in zip(self.warnings, self._warning_repeats)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
         index = len(store)
@@ -236,16 +237,16 @@ class Timeline:
         interp = self.interp
         interp.tag = self.lineno
         try:
-            interp.plain_move(*values)
+            x, y, z, e, f = values
+            interp.plain_move(x, y, z, e, f)
         except MoveError as exc:
             interp.reset_last_position()
             self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
         """Process every line of `lines` (the same as `feed` on each)."""
-        feed = self.feed
         for raw in lines:
-            feed(raw)
+            self.feed(raw)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""

@@ -14,21 +14,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import overload
+from typing import Final, overload
 
 from kestimator.gcode import Command, extended_params
 from kestimator.limits import Limits
 from kestimator.toolhead import MoveError, ToolHead
 
 # Klipper's default G-code speed: 25 mm/s.
-DEFAULT_SPEED_V = 25.0
-MM_PER_MIN_TO_MM_PER_S = 1.0 / 60.0
-MS_TO_S = 1.0 / 1000.0
-PERCENT = 100.0
+DEFAULT_SPEED_V: Final = 25.0
+MM_PER_MIN_TO_MM_PER_S: Final = 1.0 / 60.0
+MS_TO_S: Final = 1.0 / 1000.0
+PERCENT: Final = 100.0
 
 # Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
 # we model. Everything else is an unknown command to Klipper: ignored, and counted.
-NO_TIME_COMMANDS = frozenset((
+NO_TIME_COMMANDS: Final = frozenset((
     "M73", "M104", "M140", "M105", "M106", "M107", "M110", "M112", "M114", "M115", "M117",
     "M118", "M119", "M21", "G21", "ECHO", "STATUS", "HELP", "GET_POSITION", "QUERY_ENDSTOPS",
     "SET_HEATER_TEMPERATURE", "TURN_OFF_HEATERS", "SET_PRESSURE_ADVANCE",
@@ -37,14 +37,14 @@ NO_TIME_COMMANDS = frozenset((
     "M300",
 ))
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
-TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
+TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 # An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
-MAX_ARC_SEGMENTS = 100_000
-_AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
+MAX_ARC_SEGMENTS: Final = 100_000
+_AXES: Final = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
-_MOVE_PARAMS = frozenset("XYZEFG")
+_MOVE_PARAMS: Final = frozenset("XYZEFG")
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
@@ -502,7 +502,7 @@ class Interpreter:
         if not self.absolute_coord:
             raise CommandError("G2/G3 does not support relative move mode")
         params = cmd.params
-        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position, strict=True)]
+        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
         current[3] /= self.extrude_factor
         target = [_float(params, "X", current[0]), _float(params, "Y", current[1]),
                   _float(params, "Z", current[2])]

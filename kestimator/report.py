@@ -157,7 +157,7 @@ def layer_chart(est: Estimate) -> str:
     if not starts:
         return '<p class="empty">The file has no layer markers.</p>'
     ends = starts[1:] + [est.total_s]
-    durations = [max(0.0, b - a) for a, b in zip(starts, ends, strict=True)]
+    durations = [max(0.0, b - a) for a, b in zip(starts, ends)]
     y_max = _nice_max(max(durations))
     plot_w, plot_h = CHART_W - PAD_L - PAD_R, CHART_H - PAD_T - PAD_B
     n = len(durations)

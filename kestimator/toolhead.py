@@ -15,21 +15,22 @@ generation 2 x kin_flush_delay after the last move; that gap is counted as Klipp
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Final
 
 from kestimator.limits import Limits
 from kestimator.planner import LookAheadQueue, Move
 
 # Seconds of moves queued before the first flush after the toolhead was at rest.
-BUFFER_TIME_HIGH = 1.0
+BUFFER_TIME_HIGH: Final = 1.0
 # motion_queuing's step-generation scan window (SDS_CHECK_TIME) with no input shaper or
 # pressure-advance smoothing: restarting after a full step flush waits this twice.
-KIN_FLUSH_DELAY_T = 0.001
+KIN_FLUSH_DELAY_T: Final = 0.001
 # stepper_enable's dwell before and after turning motors off.
-DISABLE_STALL_T = 0.100
+DISABLE_STALL_T: Final = 0.100
 # Junction deviation scale: sqrt(2) - 1.
-_JD_FACTOR = 2.0**0.5 - 1.0
+_JD_FACTOR: Final = 2.0**0.5 - 1.0
 # Kinematics whose only per-axis limits are on Z (max_z_velocity / max_z_accel).
-Z_LIMITED_KINEMATICS = frozenset(
+Z_LIMITED_KINEMATICS: Final = frozenset(
     ("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz", "limited_cartesian",
      "limited_corexy", "limited_corexz"))
 

@@ -239,7 +239,7 @@ def test_inject_json_adds_output_and_m73_count_and_text_stays_one_line(
 def test_version_and_help_with_examples_and_exit_codes() -> None:
     for flag in ("--version", "-V"):
         proc = run(flag)
-        assert proc.returncode == 0 and proc.stdout == "kestimator %s\n" % __version__
+        assert proc.returncode == 0 and proc.stdout == "kestimator %s (pure Python)\n" % __version__
     top = run("--help").stdout
     assert "examples:" in top and "exit status: 0 success, 1" in top
     assert "KESTIMATOR_RICH" in top
