@@ -115,7 +115,9 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
     """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md)."""
     ends = [t for _, t in est.layers[1:]] + [est.total_s] if est.layers else []
     slicer_s = slicer.estimate_s
-    difference = None if slicer_s is None else slicer_s - est.total_s
+    # The slicer times the moves: it is compared with Klipper's motion time.
+    motion_s = est.parts.motion_s
+    difference = None if slicer_s is None else slicer_s - motion_s
     return {
         "schema": JSON_SCHEMA_VERSION,
         "kestimator": __version__,
@@ -129,22 +131,73 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
                    "first_layer_estimate_s": slicer.first_layer_estimate_s,
                    "difference_s": _rounded(difference),
-                   "difference_pct": None if difference is None or not est.total_s
-                   else round(PERCENT * difference / est.total_s, 3)},
+                   "difference_pct": None if difference is None or not motion_s
+                   else round(PERCENT * difference / motion_s, 3)},
         "filament": filament if filament is not None
         else filament_to_json(est, read_slicer_filament(est.path)),
         "limits_source": limits_source,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
+        "parts": parts_to_json(est),
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
     }
 
 
+def parts_to_json(est: Estimate) -> dict[str, Any]:
+    """The total split: Klipper's motion, the added times with their sources, the prep."""
+    parts = est.parts
+    return {
+        "motion_s": round(parts.motion_s, 6),
+        "added_s": round(parts.added_s, 6),
+        "before_first_extrusion_s": round(parts.before_first_extrusion_s, 6),
+        "print_duration_s": round(parts.print_duration_s, 6),
+        "total_s": round(parts.total_s, 6),
+        "first_extrusion_t": _rounded(est.first_extrusion_t),
+        "sources": [{"name": p.name, "source": p.source, "count": p.count,
+                     "seconds": round(p.seconds, 6),
+                     "before_first_extrusion_s": round(p.before_first_extrusion_s, 6),
+                     "covered_by_learned": p.covered}
+                    for p in est.timed_parts],
+        "untimed_macros": dict(est.untimed_macros),
+    }
+
+
+def parts_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, text) lines for the parts of the total; none when nothing was added."""
+    parts = doc["parts"]
+    if not parts["sources"]:
+        return []
+    rows = [("Total", "%s (%.3f s) until the part is done" % (
+                format_duration(parts["total_s"]), parts["total_s"])),
+            ("Motion", "%s (%.3f s), Klipper's planner" % (
+                format_duration(parts["motion_s"]), parts["motion_s"])),
+            ("Macros, prep", "%s (%.3f s)" % (format_duration(parts["added_s"]),
+                                              parts["added_s"]))]
+    for source in parts["sources"]:
+        count = "x%d" % source["count"]
+        if source["covered_by_learned"]:
+            count += ", %d in the learned start" % source["covered_by_learned"]
+        rows.append(("", "%s %s: %s, %s" % (source["name"], count,
+                                                format_duration(source["seconds"]),
+                                                source["source"])))
+    if parts["before_first_extrusion_s"]:
+        rows.append(("Printing", "%s after the first extrusion (print_duration; the "
+                     "file's time comments)" % format_duration(parts["print_duration_s"])))
+    return rows
+
+
+def untimed_commands(doc: dict[str, Any]) -> dict[str, int]:
+    """Commands Klipper does not know that no time was given for (they count 0 s)."""
+    timed = {source["name"] for source in doc["parts"]["sources"]}
+    return {name: count for name, count in doc["ignored_commands"].items()
+            if name not in timed}
+
+
 def set_slicer_estimate(doc: dict[str, Any], slicer_s: float | None) -> None:
     """Replace the slicer's estimate in `doc` (inject looks through its own marker)."""
-    total = doc["total_s"]
+    total = doc["parts"]["motion_s"]
     slicer = doc["slicer"]
     slicer["estimate_s"] = slicer_s
     difference = None if slicer_s is None else slicer_s - total
@@ -202,8 +255,14 @@ def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
 def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False) -> None:
     """The plain-text summary (stdout is not a terminal, or rich is not installed)."""
     total = doc["total_s"]
-    lines = ["%s" % doc["file"],
-             "  Klipper time : %s (%.3f s)" % (format_duration(total), total)]
+    parts = parts_rows(doc)
+    lines = ["%s" % doc["file"]]
+    if parts:
+        lines.append("  %-12s : %s" % parts[0])
+    else:
+        lines.append("  Klipper time : %s (%.3f s)" % (format_duration(total), total))
+    for label, text in parts[1:]:
+        lines.append("  %-12s %s %s" % (label, ":" if label else " ", text))
     slicer = doc["slicer"]
     if slicer["estimate_s"] is not None:
         lines.append("  Slicer       : %s, %s" % (format_duration(slicer["estimate_s"]),
@@ -229,9 +288,10 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False) -> None:
             lines.append("    %5d %8d %10s %10s" % (number, layer["line"],
                                                     format_duration(layer["t"]),
                                                     format_duration(layer["duration_s"])))
-    if doc["ignored_commands"]:
+    untimed = untimed_commands(doc)
+    if untimed:
         lines.append("  Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in doc["ignored_commands"].items()))
+            "%s x%d" % kv for kv in untimed.items()))
     for warning in doc["warnings"]:
         lines.append("  warning: " + warning)
     if doc["warnings_dropped"]:

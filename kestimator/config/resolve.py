@@ -39,6 +39,7 @@ from kestimator.config.printer_cfg import (
     KLIPPER_DEFAULT,
     RELATIVE_BOUNDS,
     REQUIRED_FALLBACK,
+    machine_config,
     printer_cfg_values,
 )
 from kestimator.config.profile import (
@@ -48,7 +49,9 @@ from kestimator.config.profile import (
     toml_available,
 )
 from kestimator.errors import KestimatorError
+from kestimator.kinematics import load_kinematics
 from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
+from kestimator.macros import MacroTime
 from kestimator.slicers import (
     FILE_ORIGIN,
     SlicerInfo,
@@ -135,6 +138,10 @@ class ResolvedLimits:
     """Seconds per G28 from the profile (None: not set there)."""
     heat_time_s: float | None = None
     """Seconds per heater wait from the profile (None: not set there)."""
+    macro_times: Mapping[str, MacroTime] = dataclasses.field(default_factory=dict)
+    """Macro name -> seconds one run takes, from the profile's ``[macros]``."""
+    moonraker_api_key: str | None = dataclasses.field(default=None, repr=False)
+    """The key the Moonraker of ``machine`` was asked with (never shown)."""
 
     @property
     def summary(self) -> str:
@@ -197,6 +204,11 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         shadowed[field] = tuple(c for c in proposed if not usable or c is not usable[0])
     _convert_accel_to_decel(chosen)
     limits, chosen = _build(chosen)
+    if machine is not None and machine.machine is not None:
+        limits = limits.replace(machine=machine.machine)
+    # Built once here so that a value Klipper refuses stops now, with its file and line
+    # (what it does not model is said by the estimate, which builds it again).
+    load_kinematics(limits)
     sources = {field: chosen[field].source if field in chosen
                else _default_source(field, machine is not None)
                for field in Limits.field_names()}
@@ -210,8 +222,9 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
                                               (LEVEL_SLICER, "the slicer's guesses"))
                      if level in levels] + ["Klipper's defaults"]
         warnings.append(
-            "no printer.cfg or Moonraker given: limits are %s (max_velocity %g, max_accel %g); "
-            "pass --printer-cfg or --moonraker for exact times"
+            "no printer.cfg or Moonraker given: limits are %s (max_velocity %g, max_accel %g), "
+            "moves are not range-checked and G28 homes to 0; pass --printer-cfg or "
+            "--moonraker for exact times"
             % (", ".join(stand_ins[:-1]) + " and " + stand_ins[-1] if len(stand_ins) > 1
                else stand_ins[0], limits.max_velocity, limits.max_accel))
     return ResolvedLimits(
@@ -220,7 +233,12 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         profile=profile.description if profile is not None else None,
         slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings),
         homing_time_s=profile.homing_time_s if profile is not None else None,
-        heat_time_s=profile.heat_time_s if profile is not None else None)
+        heat_time_s=profile.heat_time_s if profile is not None else None,
+        macro_times={} if profile is None else {
+            name: MacroTime(seconds, profile.description)
+            for name, seconds in profile.macros.items()},
+        moonraker_api_key=_api_key(request, profile, environ)
+        if (machine is not None and machine.description.startswith("moonraker ")) else None)
 
 
 def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:
@@ -265,16 +283,23 @@ def _machine(request: LimitRequest, profile: Profile | None,
         printer_cfg, moonraker_url = profile.printer_cfg, profile.moonraker
     if printer_cfg is not None:
         values, sources = printer_cfg_values(printer_cfg)
-        return SourcedValues(os.fspath(printer_cfg), values, sources)
+        return SourcedValues(os.fspath(printer_cfg), values, sources,
+                             machine=machine_config(printer_cfg))
     if moonraker_url is None:
         return None
-    api_key = (request.api_key or (profile.api_key if profile is not None else None)
-               or environ.get(API_KEY_ENVIRONMENT) or None)
+    api_key = _api_key(request, profile, environ)
     timeout_s = profile.moonraker_timeout_s if profile is not None else None
     cache_directory = request.cache_directory or default_cache_dir(environ)
     return moonraker_values(moonraker_url, api_key,
                             timeout_s if timeout_s is not None else DEFAULT_TIMEOUT_S,
                             cache_directory)
+
+
+def _api_key(request: LimitRequest, profile: Profile | None,
+             environ: Mapping[str, str]) -> str | None:
+    """Moonraker's API key: the request's, else the profile's, else the environment's."""
+    return (request.api_key or (profile.api_key if profile is not None else None)
+            or environ.get(API_KEY_ENVIRONMENT) or None)
 
 
 def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
