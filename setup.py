@@ -23,15 +23,19 @@ import tempfile
 from setuptools import setup
 from setuptools.command.build_ext import build_ext
 
-# The modules mypyc compiles: every module on the per-line path. The rest of the package
-# (CLI, slicer detection, config, rewrite) is I/O-bound and stays Python.
+# The modules mypyc compiles: every module on the per-line path (the kinematics' check_move
+# runs for every move). The rest of the package (CLI, slicer detection, config, rewrite)
+# is I/O-bound and stays Python.
+HERE = os.path.dirname(os.path.abspath(__file__))
 COMPILED_MODULES = [
     "kestimator/gcode.py",
     "kestimator/planner.py",
     "kestimator/toolhead.py",
     "kestimator/interpreter.py",
     "kestimator/estimate.py",
-]
+] + sorted("kestimator/kinematics/" + name
+           for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
+           if name.endswith(".py"))
 PREFIX = "kestimator build: "
 
 
@@ -127,7 +131,7 @@ def _ext_modules() -> list[object]:
         _say("pure Python (mypyc failed: %s)" % exc)
         return []
     _say("compiled with mypyc: %s" % ", ".join(
-        os.path.splitext(os.path.basename(m))[0] for m in COMPILED_MODULES))
+        m[len("kestimator/"):-len(".py")] for m in COMPILED_MODULES))
     return list(modules)
 
 

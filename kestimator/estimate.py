@@ -18,7 +18,13 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Final
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import Command, parse_line, parse_plain_move
+from kestimator.gcode import (
+    SCAN_PLAIN_MOVES,
+    Command,
+    parse_line,
+    parse_plain_move_regex,
+    parse_plain_move_scan,
+)
 from kestimator.interpreter import CommandError, Interpreter
 from kestimator.limits import Limits
 from kestimator.macros import (
@@ -212,16 +218,25 @@ class Timeline:
         next_sample_t = self._next_sample_t if self.sample else math.inf
         if self.first_extrusion_t is None:
             self._find_first_extrusion(moves, start_t)
+        # The current feature's sum is kept in a local (the same additions, in the same
+        # order, as adding to feature_time[feature] move by move).
+        feature_t = feature_time[feature]
+        next_change_line = changes[0][0] if changes else -1
         for move in moves:
-            while changes and changes[0][0] <= move.tag:
-                feature = changes.popleft()[1]
+            if 0 <= next_change_line <= move.tag:
+                feature_time[feature] = feature_t
+                while changes and changes[0][0] <= move.tag:
+                    feature = changes.popleft()[1]
+                feature_t = feature_time[feature]
+                next_change_line = changes[0][0] if changes else -1
             dt = move.accel_t + move.cruise_t + move.decel_t
-            feature_time[feature] += dt
+            feature_t += dt
             t += dt
             filament += move.axes_d_e
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
+        feature_time[feature] = feature_t
         self._feature = feature
         self.filament_mm = filament
         self.n_moves += len(moves)
@@ -322,27 +337,29 @@ class Timeline:
     # Per line
     def feed(self, raw: bytes) -> None:
         """Process one line (bytes, with or without its line ending)."""
-        self.lineno += 1
-        values = parse_plain_move(raw)
-        if values is None:
-            self._feed_other(raw)
-            return
-        # A plain G0/G1 line: the same effect as `_feed_other`, without building a Command.
-        if self.first_command_line is None:
-            self.first_command_line = self.lineno
-        interp = self.interp
-        interp.tag = self.lineno
-        try:
-            x, y, z, e, f = values
-            interp.plain_move(x, y, z, e, f)
-        except MoveError as exc:
-            interp.reset_last_position()
-            self._reject(raw.decode("utf-8", "replace").strip(), exc)
+        self.feed_lines((raw,))
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
-        """Process every line of `lines` (the same as `feed` on each)."""
+        """Process every line of `lines`, in order."""
+        interp = self.interp
         for raw in lines:
-            self.feed(raw)
+            self.lineno += 1
+            if SCAN_PLAIN_MOVES:
+                plain, x, y, z, e, f = parse_plain_move_scan(raw)
+            else:
+                plain, x, y, z, e, f = parse_plain_move_regex(raw)
+            if not plain:
+                self._feed_other(raw)
+                continue
+            # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
+            if self.first_command_line is None:
+                self.first_command_line = self.lineno
+            interp.tag = self.lineno
+            try:
+                interp.plain_move(x, y, z, e, f)
+            except MoveError as exc:
+                interp.reset_last_position()
+                self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""

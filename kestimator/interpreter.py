@@ -16,7 +16,7 @@ import math
 from collections.abc import Callable
 from typing import Final, overload
 
-from kestimator.gcode import Command, extended_params
+from kestimator.gcode import ABSENT, Command, extended_params
 from kestimator.limits import Limits
 from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
 from kestimator.toolhead import MoveError, ToolHead
@@ -229,29 +229,29 @@ class Interpreter:
                           "move-param:" + key)
         self._move(self.speed)
 
-    def plain_move(self, x: float | None, y: float | None, z: float | None,
-                   e: float | None, f: float | None) -> None:
-        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move`).
+    def plain_move(self, x: float, y: float, z: float, e: float, f: float) -> None:
+        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move_scan` or `_regex`).
 
-        The same arithmetic as `cmd_G1`, in the same order, without the text handling.
+        The same arithmetic as `cmd_G1`, in the same order, without the text handling. A
+        parameter the line does not give is `gcode.ABSENT` (NaN, so `v == v` is "given").
         """
         lp = self.last_position
         base = self.base_position
         if self.absolute_coord:
-            if x is not None:
+            if x == x:
                 lp[0] = x + base[0]
-            if y is not None:
+            if y == y:
                 lp[1] = y + base[1]
-            if z is not None:
+            if z == z:
                 lp[2] = z + base[2]
         else:
-            if x is not None:
+            if x == x:
                 lp[0] += x
-            if y is not None:
+            if y == y:
                 lp[1] += y
-            if z is not None:
+            if z == z:
                 lp[2] += z
-        if e is not None:
+        if e == e:
             e *= self.extrude_factor
             if self.absolute_coord and self.absolute_extrude:
                 lp[3] = e + base[3]
@@ -259,7 +259,7 @@ class Interpreter:
                 lp[3] += e
             if not self.extrude_mode_set:
                 self.moved_e_before_mode = True
-        if f is not None:
+        if f == f:
             self.speed = f * self.speed_factor
         self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
 
@@ -603,7 +603,7 @@ class Interpreter:
         """cmd_G1 with numeric parameters (what gcode_arcs sends)."""
         if f is not None and not f > 0.0:
             raise CommandError("Invalid speed in arc (F%s)" % f)
-        self.plain_move(x, y, z, e, f)
+        self.plain_move(x, y, z, ABSENT if e is None else e, ABSENT if f is None else f)
 
     # Firmware retraction (firmware_retraction.py)
     def cmd_G10(self, cmd: Command) -> None:

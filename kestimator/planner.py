@@ -53,6 +53,19 @@ class Move:
         "flush_start_v2", "flush_cruise_v2", "flush_next_start_v2",
     )
 
+    # Set by LookAheadQueue.flush: its junction_info for this move (upstream keeps a tuple
+    # per move in a list; NO_CRUISE_V2 stands for its cruise_v2 of None).
+    flush_start_v2: float
+    flush_cruise_v2: float
+    flush_next_start_v2: float
+    # Set by set_junction: the planned profile.
+    start_v: float
+    cruise_v: float
+    end_v: float
+    accel_t: float
+    cruise_t: float
+    decel_t: float
+
     def __init__(self, start_x: float, start_y: float, start_z: float, start_e: float,
                  end_x: float, end_y: float, end_z: float, end_e: float, speed: float,
                  max_velocity: float, max_accel: float, junction_deviation: float,
@@ -113,12 +126,6 @@ class Move:
         # Setup for minimum_cruise_ratio checks
         self.max_mcr_start_v2 = 0.0
         self.mcr_delta_v2 = 2.0 * move_d * mcr_pseudo_accel
-        # The profile, set by set_junction.
-        self.start_v = self.cruise_v = self.end_v = 0.0
-        self.accel_t = self.cruise_t = self.decel_t = 0.0
-        # LookAheadQueue.flush's junction_info for this move (upstream keeps a tuple per
-        # move in a list; NO_CRUISE_V2 stands for its cruise_v2 of None).
-        self.flush_start_v2 = self.flush_cruise_v2 = self.flush_next_start_v2 = 0.0
 
     @property
     def start_pos(self) -> tuple[float, float, float, float]:
