@@ -13,6 +13,7 @@ from __future__ import annotations
 import re
 import shlex
 import sys
+import types
 from typing import Final, NamedTuple
 
 _ARGS_RE = re.compile(r"([A-Z_]+|[A-Z*])")
@@ -209,7 +210,9 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
 
 
 # True when this module is the mypyc-compiled extension (`pip install .` with a C compiler).
-COMPILED: Final = not __file__.endswith(".py")
+# (mypyc turns functions into builtins; a module's __file__ is not set while a compiled
+# module initialises under every mypyc version, so it cannot tell.)
+COMPILED: Final = not isinstance(split_comment, types.FunctionType)
 # Which plain-move parser runs (see above); callers branch on this constant rather than
 # calling through a variable, so the compiled build calls the parser directly.
 SCAN_PLAIN_MOVES: Final = sys.implementation.name == "pypy" or COMPILED
