@@ -42,9 +42,10 @@ from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, Resolve
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
+from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.limits import Limits
 from kestimator.report import collect, render_html
-from kestimator.rewrite import check_gcode_file, inject_file
+from kestimator.rewrite import check_gcode_file, inject_file, write_bytes_atomically
 from kestimator.slicers import detect_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
@@ -249,6 +250,7 @@ def resolve_limits(args: argparse.Namespace,
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    args.resolved = resolved
     return resolved.limits, resolved.summary, list(resolved.warnings)
 
 
@@ -472,6 +474,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         result = inject_file(args.file, limits, output=args.output, limits_source=source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              progress=progress, macros=args.macros)
+    args.written.append(result.output)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
         set_slicer_estimate(doc, result.slicer_estimate_s)
@@ -484,7 +487,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
         sys.stdout.write("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines\n" % (
-            result.output, format_duration(est.total_s), _parts_text(est), said,
+            printable(result.output), format_duration(est.total_s), _parts_text(est), said,
             result.m73_written))
     return EXIT_OK
 
@@ -622,21 +625,24 @@ def cmd_learn(args: argparse.Namespace) -> int:
 
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
+    if not args.output:
+        raise KestimatorError("-o names no file (an empty name)")
     check_gcode_file(args.file)
-    limits, source, _warnings = resolve_limits(args, args.file)
+    if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
+        raise KestimatorError("the report would overwrite the G-code it reports on: give "
+                              "another -o", args.output)
+    limits, source, limit_warnings = resolve_limits(args, args.file)
     _check_time_options(args)
+    resolved: ResolvedLimits = args.resolved
     data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time, macros=args.macros)
+                   heat_time=args.heat_time, macros=args.macros,
+                   limit_warnings=limit_warnings, limit_sources=resolved.sources,
+                   guessed_limits=resolved.machine is None)
     page = render_html(data)
-    try:
-        with open(args.output, "w", encoding="utf-8") as out:
-            out.write(page)
-    except OSError as exc:
-        raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
-                              args.output) from None
+    write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
         sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
-                         % (args.output, format_duration(data.estimate.total_s)))
+                         % (printable(args.output), format_duration(data.estimate.total_s)))
     return EXIT_OK
 
 
@@ -646,13 +652,103 @@ def _error_text(exc: KestimatorError) -> str:
     final_name = os.environ.get(SLICER_OUTPUT_NAME_ENV)
     if final_name and exc.path and os.path.basename(final_name) != os.path.basename(exc.path):
         text = "%s (slicer output %s)%s" % (exc.path, final_name, text[len(exc.path):])
-    return text.replace("\n", " ")
+    return printable(text)
+
+
+class StdoutError(Exception):
+    """Standard output is closed or cannot take what we write (a full disk, /dev/full)."""
+
+
+class _GuardedStdout:
+    """sys.stdout while a command runs: a failed write or flush becomes `StdoutError`,
+    so the command can still say what happened to the file (a broken pipe stays as it is:
+    the reader went away on purpose)."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        if self._stream is None:
+            raise StdoutError("standard output is closed")
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def flush(self) -> None:
+        if self._stream is None:
+            return
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def isatty(self) -> bool:
+        return self._stream is not None and _is_terminal(self._stream)
+
+    def __getattr__(self, name: str) -> Any:
+        if self._stream is None:
+            raise AttributeError(name)
+        return getattr(self._stream, name)
+
+
+def _quiet_stdout() -> None:
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
+    (what is still buffered goes nowhere)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `kestimator` command; returns the exit status."""
+    """Entry point of the `kestimator` command; returns the exit status.
+
+    Standard output failing (closed, full) is reported on stderr as one line; the exit
+    status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
+    """
+    cleanup_on_termination()
+    real_stdout = sys.stdout
+    sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
+    written: list[str] = []
+    try:
+        status = _main(argv, written)
+        sys.stdout.flush()
+        return status
+    except StdoutError as exc:
+        _quiet_stdout()
+        if written:
+            sys.stderr.write("kestimator: %s was written; its summary could not be shown: "
+                             "standard output: %s\n" % (printable(written[0]), exc))
+            return EXIT_OK
+        sys.stderr.write("kestimator: error: cannot write to standard output: %s\n" % exc)
+        return EXIT_FAILURE
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_OK
+    except Terminated as exc:
+        # Temporary files are gone (the writers unwind); 128 + signal, as if killed.
+        sys.stderr.write("kestimator: terminated by signal %d\n" % exc.signum)
+        return 128 + exc.signum
+    finally:
+        sys.stdout = real_stdout
+
+
+def printable(text: str) -> str:
+    """`text` (a path, a message) on one line: control characters shown as escapes."""
+    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in text)
+
+
+def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
+    args.written = written
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
@@ -674,12 +770,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAILURE
     except BrokenPipeError:
         # The reader went away (`kestimator estimate --json | head`): not our failure.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        _quiet_stdout()
         return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE
+    except StdoutError:
+        raise
     except Exception as exc:  # a bug: still one line for the user, the traceback on request
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()
