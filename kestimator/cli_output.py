@@ -17,6 +17,7 @@ from typing import Any, TextIO
 from kestimator import __version__
 from kestimator.durations import format_duration
 from kestimator.estimate import Estimate
+from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
 
 JSON_SCHEMA_VERSION = 1
@@ -140,6 +141,8 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
+        "commands": est.commands,
+        "preflight": [finding.to_json() for finding in est.preflight],
         "parts": parts_to_json(est),
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
@@ -293,6 +296,7 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False) -> None:
     if untimed:
         lines.append("  Not Klipper commands (0 s): " + ", ".join(
             "%s x%d" % kv for kv in untimed.items()))
+    lines.extend("  " + line for line in summary_lines(doc["preflight"]))
     for warning in doc["warnings"]:
         lines.append("  warning: " + warning)
     if doc["warnings_dropped"]:

@@ -33,7 +33,8 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "features": (dict,), "objects": (dict,), "slicer": (dict,), "filament": (dict,),
     "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
-    "warnings_dropped": (int,), "parts": (dict,),
+    "warnings_dropped": (int,), "parts": (dict,), "commands": (dict,),
+    "preflight": (list,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
@@ -161,7 +162,7 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     assert "Time per layer" not in out and "\x1b[" not in out
     assert "  warning: %s:39: M204 without S needs both P and T" % NUT in out
     torus = estimate_text(capsys, TORUS)
-    assert "  warning: " in torus and "Difference   : " in torus
+    assert "  Pre-flight: 2 commands skipped" in torus and "Difference   : " in torus
 
 
 def test_layers_option_adds_one_row_per_layer(
@@ -237,7 +238,8 @@ def test_inject_json_adds_output_and_m73_count_and_text_stays_one_line(
     assert again["slicer"]["difference_s"] == doc["slicer"]["difference_s"]
     assert cli.main(argv) == 0
     assert capsys.readouterr().out == (
-        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines\n"
+        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines; "
+        "pre-flight: 2 commands skipped (kestimator check FILE shows each)\n"
         % (out, doc["m73_written"]))
 
 
