@@ -26,24 +26,34 @@ from typing import Any
 from kestimator import __version__
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
+    approximate_text,
     difference_text,
     estimate_to_json,
     feature_rows,
     filament_text,
     print_text,
+    printable,
+    printable_doc,
     set_slicer_estimate,
+    shown_warnings,
     slicer_label,
+    untimed_detail,
+    untimed_summary,
 )
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
-from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
+from kestimator.config.resolve import (
+    API_KEY_ENVIRONMENT,
+    GUESS_WARNING_START,
+    LimitRequest,
+    ResolvedLimits,
+)
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file
 from kestimator.limits import Limits
 from kestimator.report import collect, render_html
-from kestimator.rewrite import check_gcode_file, inject_file
-from kestimator.slicers import detect_file
+from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
            "estimate_to_json", "main"]
@@ -117,7 +127,10 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="print one JSON object (fields in docs/CLI.md)")
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print only Klipper's total time in seconds")
-    est.add_argument("--layers", action="store_true", help="also show the time of every layer")
+    est.add_argument("--layers", action="store_true",
+                     help="also show the time of every layer (before the summary)")
+    est.add_argument("-v", "--verbose", action="store_true",
+                     help="name every command whose time is not counted, with its warnings")
     _add_debug_option(est)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
@@ -220,16 +233,29 @@ def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True)
                                  "(default: the profile's heat_time_s, else 0)")
 
 
-def resolve_limits(args: argparse.Namespace,
-                   gcode_path: str | None) -> tuple[Limits, str, list[str]]:
-    """Limits for a run, a one-line description of their source, and warnings."""
+def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits:
+    """The limits for a run (`_say_guessed` tells, once the run succeeded, if guessed)."""
     resolved = resolve.resolve_limits(_limit_request(args, gcode_path))
     # Durations the file cannot tell: the command line, else the profile, else 0 s.
     for name, from_profile in (("homing_time", resolved.homing_time_s),
                                ("heat_time", resolved.heat_time_s)):
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
-    return resolved.limits, resolved.summary, list(resolved.warnings)
+    return resolved
+
+
+def _say_guessed(resolved: ResolvedLimits) -> None:
+    """One line on stderr when the limits are guesses, with how to give the real ones.
+
+    Said after the work succeeded (last, so it stays on screen); a failure is one line."""
+    if resolved.guess_warning is not None:
+        sys.stdout.flush()
+        _warn_stderr(resolved.guess_warning)
+
+
+def _warn_stderr(text: str) -> None:
+    sys.stderr.write("kestimator: warning: %s\n" % printable(text))
+    sys.stderr.flush()
 
 
 def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitRequest:
@@ -334,16 +360,18 @@ def _write_json(doc: dict[str, Any]) -> None:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     """`kestimator estimate`."""
-    limits, source, warnings = resolve_limits(args, args.file)
-    _check_time_options(args)
     check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
+    _check_time_options(args)
     with _progress(args, "timing") as progress:
-        est = estimate_file(args.file, limits, homing_time=args.homing_time,
+        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
                             heat_time=args.heat_time, progress=progress)
+    warnings = list(resolved.warnings)
     if est.last_move_line is None:
-        warnings = warnings + ["the file has no moves: there is nothing to time"]
-    slicer = detect_file(args.file)
-    doc = estimate_to_json(est, slicer, source, warnings)
+        warnings.append("the file has no moves: there is nothing to time")
+    slicer = slicer_of_file(args.file)
+    doc = estimate_to_json(est, slicer, resolved.summary, warnings,
+                           limits_guessed=resolved.guessed)
     if args.json:
         _write_json(doc)
     elif args.quiet:
@@ -351,25 +379,44 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     else:
         console = _rich_console()
         if console is None:
-            print_text(doc, sys.stdout, layers=args.layers)
+            print_text(printable_doc(doc), sys.stdout, layers=args.layers,
+                       verbose=args.verbose)
         else:
-            _print_rich(doc, console, layers=args.layers)
+            _print_rich(printable_doc(doc), console, layers=args.layers,
+                        verbose=args.verbose)
+    _say_guessed(resolved)
     return EXIT_OK
 
 
-def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None:
-    """The summary, feature table, optional layer table and warnings, drawn with rich."""
+def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False,
+                verbose: bool = False) -> None:
+    """The optional layer table, then the summary, feature table, untimed commands and
+    warnings, drawn with rich (the summary last, so hundreds of layers do not push it off
+    the screen)."""
     from rich import box
     from rich.panel import Panel
     from rich.table import Table
     from rich.text import Text
 
+    if layers and doc["layers"]:
+        longest = max(layer["duration_s"] for layer in doc["layers"])
+        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
+        for title in ("Layer", "Line", "Starts at", "Takes"):
+            table.add_column(title, justify="right")
+        table.add_column("", no_wrap=True)
+        for number, layer in enumerate(doc["layers"], 1):
+            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
+                          format_duration(layer["duration_s"]),
+                          Text(_bar(layer["duration_s"], longest), style="magenta"))
+        console.print(table)
     total = doc["total_s"]
     grid = Table.grid(padding=(0, 2))
     grid.add_column(style="bold")
     grid.add_column()
-    grid.add_row("Klipper time", Text.assemble((format_duration(total), "bold green"),
-                                               ("  %.3f s" % total, "dim")))
+    approximate = approximate_text(doc)
+    grid.add_row("Klipper time", Text.assemble(
+        (format_duration(total), "bold yellow" if approximate else "bold green"),
+        ("  %.3f s" % total, "dim"), ("  " + approximate if approximate else "", "yellow")))
     slicer = doc["slicer"]
     if slicer["estimate_s"] is None:
         grid.add_row("Slicer", Text.assemble(slicer_label(doc),
@@ -400,21 +447,14 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None
             table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
                           Text(_bar(share, 100.0), style="cyan"))
         console.print(table)
-    if layers and doc["layers"]:
-        longest = max(layer["duration_s"] for layer in doc["layers"])
-        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
-        for title in ("Layer", "Line", "Starts at", "Takes"):
-            table.add_column(title, justify="right")
-        table.add_column("", no_wrap=True)
-        for number, layer in enumerate(doc["layers"], 1):
-            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
-                          format_duration(layer["duration_s"]),
-                          Text(_bar(layer["duration_s"], longest), style="magenta"))
-        console.print(table)
-    if doc["ignored_commands"]:
-        console.print(Text("Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in doc["ignored_commands"].items()), style="dim"))
-    for warning in doc["warnings"]:
+    summary = untimed_summary(doc)
+    if summary is not None:
+        if verbose:
+            for text in untimed_detail(doc):
+                console.print(Text("Not counted, " + text, style="dim"))
+        else:
+            console.print(Text(summary, style="dim"))
+    for warning in shown_warnings(doc, verbose):
         console.print(Text.assemble(("warning: ", "bold yellow"), warning))
     if doc["warnings_dropped"]:
         console.print(Text("warning: %d more warnings not shown" % doc["warnings_dropped"],
@@ -432,14 +472,17 @@ def _bar(value: float, full: float) -> str:
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """`kestimator inject`."""
-    limits, source, warnings = resolve_limits(args, args.file)
+    check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
     _check_time_options(args)
     with _progress(args, "rewriting", passes=2) as progress:
-        result = inject_file(args.file, limits, output=args.output, limits_source=source,
+        result = inject_file(args.file, resolved.limits, output=args.output,
+                             limits_source=resolved.marker_source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              progress=progress)
     if args.json:
-        doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
+        doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
+                               list(resolved.warnings), limits_guessed=resolved.guessed)
         set_slicer_estimate(doc, result.slicer_estimate_s)
         doc["output"] = result.output
         doc["m73_written"] = result.m73_written
@@ -449,9 +492,13 @@ def cmd_inject(args: argparse.Namespace) -> int:
         slicer_s = result.slicer_estimate_s
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
-        sys.stdout.write("kestimator: %s: Klipper time %s%s; wrote %d M73 lines\n" % (
-            result.output, format_duration(total), said, result.m73_written))
+        approximate = " (approximate: the limits are guesses)" if resolved.guessed else ""
+        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines"
+                                   % (result.output, format_duration(total), approximate,
+                                      said, result.m73_written)) + "\n")
+    _say_guessed(resolved)
     return EXIT_OK
+
 
 def _check_time_options(args: argparse.Namespace) -> None:
     for name in ("homing_time", "heat_time"):
@@ -504,7 +551,8 @@ def _print_limits(doc: dict[str, Any], out: Any) -> None:
     for note in doc["slicer_settings"]["notes"]:
         lines.append("  note: " + note)
     for warning in doc["warnings"]:
-        lines.append("  warning: " + warning)
+        if not warning.startswith(GUESS_WARNING_START):  # said on stderr
+            lines.append("  warning: " + warning)
     out.write("\n".join(lines) + "\n")
 
 
@@ -519,23 +567,26 @@ def _shown(value: object) -> str:
 
 def cmd_limits(args: argparse.Namespace) -> int:
     """`kestimator limits`."""
-    resolved = resolve.resolve_limits(_limit_request(args, args.file))
+    if args.file is not None:
+        check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
     doc = limits_to_json(resolved, args.file)
     if args.json:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
-        _print_limits(doc, sys.stdout)
+        _print_limits(printable_doc(doc), sys.stdout)
+    _say_guessed(resolved)
     return EXIT_OK
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
     check_gcode_file(args.file)
-    limits, source, _warnings = resolve_limits(args, args.file)
+    resolved = _resolve(args, args.file)
     _check_time_options(args)
-    data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time)
+    data = collect(args.file, resolved.limits, resolved.summary,
+                   homing_time=args.homing_time, heat_time=args.heat_time)
     page = render_html(data)
     try:
         with open(args.output, "w", encoding="utf-8") as out:
@@ -544,8 +595,10 @@ def cmd_report(args: argparse.Namespace) -> int:
         raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
                               args.output) from None
     if not args.quiet:
-        sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
-                         % (args.output, format_duration(data.estimate.total_s)))
+        approximate = ", approximate: the limits are guesses" if resolved.guessed else ""
+        sys.stdout.write(printable("kestimator: wrote %s (Klipper time %s%s)" % (
+            args.output, format_duration(data.estimate.total_s), approximate)) + "\n")
+    _say_guessed(resolved)
     return EXIT_OK
 
 
@@ -555,7 +608,7 @@ def _error_text(exc: KestimatorError) -> str:
     final_name = os.environ.get(SLICER_OUTPUT_NAME_ENV)
     if final_name and exc.path and os.path.basename(final_name) != os.path.basename(exc.path):
         text = "%s (slicer output %s)%s" % (exc.path, final_name, text[len(exc.path):])
-    return text.replace("\n", " ")
+    return printable(text)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -592,7 +645,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             traceback.print_exc()
         sys.stderr.write("kestimator: internal error: %s: %s (run with --debug for the "
                          "traceback and please report it)\n"
-                         % (type(exc).__name__, str(exc).replace("\n", " ")))
+                         % (type(exc).__name__, printable(str(exc))))
         return EXIT_INTERNAL
     parser.error("unknown command %r" % args.command)
     return EXIT_USAGE

@@ -40,6 +40,7 @@ from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
 
 from kestimator import __version__
+from kestimator.cli_output import printable
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
@@ -66,6 +67,11 @@ OTHER_KIND = "Other"
 SAME_Z_MM = sys.float_info.epsilon
 LAYER_Z_DECIMALS = 3
 STDIN_NAME = "-"
+# The guessed-limits line's fix, in terms this program accepts (Moonraker passes only
+# --config_file to post-process and estimate).
+COMPAT_GUESS_FIX = ("name the printer in kestimator's profile (printer_cfg or moonraker in "
+                    "~/.config/kestimator/config.toml of the user Moonraker runs as), or pass "
+                    "--config_moonraker_url URL")
 
 
 class MoveTotals:
@@ -143,12 +149,12 @@ def _build_parser() -> argparse.ArgumentParser:
 def _request(args: argparse.Namespace, gcode: str | None) -> LimitRequest:
     return LimitRequest(gcode=gcode, moonraker_url=args.config_moonraker_url,
                         api_key=args.api_key, estimator_config=args.config_file,
-                        read_slicer_environment=False)
+                        read_slicer_environment=False, guess_fix=COMPAT_GUESS_FIX)
 
 
 def _warn(resolved: ResolvedLimits, err: TextIO) -> None:
     for warning in resolved.warnings:
-        err.write("kestimator-compat: warning: %s\n" % warning)
+        err.write("kestimator-compat: warning: %s\n" % printable(warning))
 
 
 def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
@@ -200,7 +206,7 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     os.close(fd)
     try:
         result = inject_file(path, resolved.limits, output=tmp,
-                             limits_source=resolved.summary,
+                             limits_source=resolved.marker_source,
                              homing_time=resolved.homing_time_s or 0.0,
                              heat_time=resolved.heat_time_s or 0.0)
         append_ident_line(tmp)
@@ -272,7 +278,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_post_process(args, out, err)
         return cmd_dump_config(args, out, err)
     except KestimatorError as exc:
-        err.write("kestimator-compat: error: %s\n" % exc)
+        err.write("kestimator-compat: error: %s\n" % printable(str(exc)))
         return EXIT_FAILURE
     except KeyboardInterrupt:
         err.write("kestimator-compat: interrupted\n")

@@ -22,7 +22,8 @@ from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
 from kestimator.planner import Move
-from kestimator.slicers import SlicerInfo, detect_file
+from kestimator.rewrite import slicer_of_file
+from kestimator.slicers import SlicerInfo
 
 SPEED_BIN_V = 10.0
 _M73_P_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?P(\d+(?:\.\d+)?)")
@@ -98,7 +99,7 @@ def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
                         sample=True, observer=speed)
-    slicer = detect_file(path)
+    slicer = slicer_of_file(path)  # through our marker in an injected file
     progress: list[tuple[float, float]] = []
     with open(path, "rb") as f:
         for lineno, raw in enumerate(f, 1):

@@ -47,6 +47,7 @@ from kestimator.estimate import (
     estimate_lines,
     iter_lines,
 )
+from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
 from kestimator.limits import Limits
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import KlipperTimes
@@ -122,6 +123,21 @@ def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None
         return float(value)
     except ValueError:
         return detected.estimate_s
+
+
+def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
+    """Which slicer wrote the file and what it estimated, looking through our own marker.
+
+    In a file `inject` (or Moonraker through kestimator-compat) already rewrote, the time
+    comments hold Klipper's time; the slicer's own estimate is the one the marker recorded,
+    and its first-layer estimate is no longer known.
+    """
+    head, tail = read_file_ends(path)
+    detected = detect(head, tail)
+    if _MARKER_SLICER_RE.search(head) is None:
+        return detected
+    return dataclasses.replace(detected, estimate_s=slicer_estimate_from_head(head, detected),
+                               first_layer_estimate_s=None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -381,14 +397,17 @@ def check_gcode_file(path: str) -> os.stat_result:
         raise KestimatorError("is a directory, not a G-code file", path)
     try:
         with open(path, "rb") as f:
-            magic = f.read(len(BGCODE_MAGIC))
+            start = f.read(SNIFF_BYTES)
     except OSError as exc:
         raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
-    if magic == BGCODE_MAGIC:
+    if start[:len(BGCODE_MAGIC)] == BGCODE_MAGIC:
         raise KestimatorError(
             "binary G-code (.bgcode) is not supported: export plain G-code instead", path, 1)
     if st.st_size == 0:
         raise KestimatorError("the file is empty", path)
+    what = what_is_not_gcode(start, st.st_size, os.fspath(path))
+    if what is not None:
+        raise KestimatorError(what, path)
     return st
 
 
