@@ -171,7 +171,7 @@ class Timeline:
             dt = move.accel_t + move.cruise_t + move.decel_t
             feature_time[feature] += dt
             t += dt
-            filament += move.axes_d[3]
+            filament += move.axes_d_e
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
@@ -224,10 +224,7 @@ class Timeline:
 
     # Per line
     def feed(self, raw: bytes) -> None:
-        """Process one line (bytes, with or without its line ending).
-
-        The reference path, one line at a time; `feed_lines` gives the same result faster.
-        """
+        """Process one line (bytes, with or without its line ending)."""
         self.lineno += 1
         values = parse_plain_move(raw)
         if values is None:
@@ -245,119 +242,10 @@ class Timeline:
             self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
-        """Process every line of `lines`: the hot loop, with the same result as `feed`.
-
-        Plain G0/G1 lines (nearly all of a file) run `Interpreter.plain_move`,
-        `ToolHead.move` and `LookAheadQueue.add_move` written out in one loop, in the same
-        order and with the same arithmetic, so no per-line method calls are paid; the
-        G-code state lives in locals and is written back before any other line runs
-        through `_feed_other` (which may change it) and read again after.
-        tests/test_estimate_fast_loop.py pins this loop against `feed` on the corpus.
-        """
-        interp = self.interp
-        toolhead = self.toolhead
-        lookahead = toolhead.lookahead
-        queue = lookahead.queue
-        parse = parse_plain_move
-        other = self._feed_other
-        check_extruder = toolhead._check_extruder_move
-        process_lookahead = toolhead._process_lookahead
-        z_limited = toolhead._z_limited
-        max_extrude_ratio = toolhead._max_extrude_ratio
-        lineno = self.lineno
-        need_first = self.first_command_line is None
-        # gcode_move state, read again after every line `_feed_other` runs.
-        (lp, base, absolute, absolute_e, extrude_factor, speed, speed_factor,
-         e_mode_set) = self._move_state()
-        try:
-            for raw in lines:
-                lineno += 1
-                values = parse(raw)
-                if values is None:
-                    self.lineno = lineno
-                    interp.speed = speed
-                    other(raw)
-                    need_first = self.first_command_line is None
-                    (lp, base, absolute, absolute_e, extrude_factor, speed, speed_factor,
-                     e_mode_set) = self._move_state()
-                    continue
-                if need_first:
-                    self.first_command_line = lineno
-                    need_first = False
-                # Interpreter.plain_move
-                x, y, z, e, f = values
-                if absolute:
-                    if x is not None:
-                        lp[0] = x + base[0]
-                    if y is not None:
-                        lp[1] = y + base[1]
-                    if z is not None:
-                        lp[2] = z + base[2]
-                else:
-                    if x is not None:
-                        lp[0] += x
-                    if y is not None:
-                        lp[1] += y
-                    if z is not None:
-                        lp[2] += z
-                if e is not None:
-                    e *= extrude_factor
-                    if absolute_e:
-                        lp[3] = e + base[3]
-                    else:
-                        lp[3] += e
-                    if not e_mode_set:
-                        interp.moved_e_before_mode = True
-                if f is not None:
-                    speed = f * speed_factor
-                # ToolHead.move
-                move = Move(toolhead.commanded_pos, (lp[0], lp[1], lp[2], lp[3]), speed,
-                            toolhead.max_velocity, toolhead.max_accel,
-                            toolhead.junction_deviation, toolhead.mcr_pseudo_accel,
-                            toolhead._instant_corner_v, lineno)
-                if not move.move_d:
-                    continue
-                axes_d = move.axes_d
-                if move.is_kinematic_move and axes_d[2] and z_limited:
-                    z_ratio = move.move_d / abs(axes_d[2])
-                    move.limit_speed(toolhead._max_z_velocity * z_ratio,
-                                     toolhead._max_z_accel * z_ratio)
-                if axes_d[3]:
-                    # ToolHead._check_extruder_move does nothing for a printing move
-                    # within max_extrude_ratio: only call it for the other moves.
-                    axis_r = move.axes_r[3]
-                    if (not axes_d[0] and not axes_d[1]) or not 0.0 <= axis_r <= (
-                            max_extrude_ratio):
-                        try:
-                            check_extruder(move)
-                        except MoveError as exc:
-                            self.lineno = lineno
-                            interp.reset_last_position()
-                            lp = interp.last_position
-                            self._reject(raw.decode("utf-8", "replace").strip(), exc)
-                            continue
-                toolhead.commanded_pos = move.end_pos
-                toolhead.last_move_line = lineno
-                # LookAheadQueue.add_move
-                queue.append(move)
-                if len(queue) == 1:
-                    continue
-                move.calc_junction(queue[-2])
-                lookahead.junction_flush -= move.min_move_t
-                if lookahead.junction_flush <= 0.0:
-                    process_lookahead(lazy=True)
-        finally:
-            self.lineno = lineno
-            interp.speed = speed
-
-    def _move_state(self) -> tuple[list[float], list[float], bool, bool, float, float,
-                                   float, bool]:
-        """The interpreter's gcode_move state that `feed_lines` keeps in locals."""
-        interp = self.interp
-        absolute = interp.absolute_coord
-        return (interp.last_position, interp.base_position, absolute,
-                absolute and interp.absolute_extrude, interp.extrude_factor, interp.speed,
-                interp.speed_factor, interp.extrude_mode_set)
+        """Process every line of `lines` (the same as `feed` on each)."""
+        feed = self.feed
+        for raw in lines:
+            feed(raw)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""

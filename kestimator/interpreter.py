@@ -121,7 +121,8 @@ class Interpreter:
         self.extrude_mode_set = False
         self.moved_e_before_mode = False
         self.ignored: dict[str, int] = {}
-        self.tag: object = None
+        # The source line of the command being run (moves carry it).
+        self.tag = 0
         if limits.klipper_generation == "absolute":
             self._apply_absolute_accel_to_decel()
         self._handlers: dict[str, Callable[[Command], None]] = {
@@ -250,11 +251,11 @@ class Interpreter:
                 self.moved_e_before_mode = True
         if f is not None:
             self.speed = f * self.speed_factor
-        self.toolhead.move((lp[0], lp[1], lp[2], lp[3]), self.speed, self.tag)
+        self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
 
     def _move(self, speed: float) -> None:
         lp = self.last_position
-        self.toolhead.move((lp[0], lp[1], lp[2], lp[3]), speed, self.tag)
+        self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], speed, self.tag)
 
     def cmd_G20(self, cmd: Command) -> None:
         """G20 (inches): Klipper refuses it."""

@@ -15,7 +15,7 @@ velocity squared (mm^2/s^2), _t is time (s), _r is a ratio.
 from __future__ import annotations
 
 import math
-from typing import Any
+from collections.abc import Callable
 
 # Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
 EXTRUDE_ONLY_ACCEL = 99999999.9
@@ -25,45 +25,64 @@ UNLIMITED_JUNCTION_V2 = 999999999.9
 MIN_KINEMATIC_MOVE_D = 0.000000001
 # Seconds of queued moves after which the queue tries a lazy flush.
 LOOKAHEAD_FLUSH_TIME = 0.150
+# LookAheadQueue.flush: this move cannot accelerate (upstream's cruise_v2 = None); every
+# real cruise_v2 is >= 0.
+NO_CRUISE_V2 = -1.0
 
 _sqrt = math.sqrt
 
 
 class Move:
-    """One straight-line move and, once planned, its trapezoidal velocity profile."""
+    """One straight-line move and, once planned, its trapezoidal velocity profile.
+
+    Upstream keeps positions and per-axis values as 4-element lists; here each axis is its
+    own float attribute (`start_x`, `axes_d_x`, `axes_r_e`, ...) so that a compiled build
+    stores them unboxed and no tuple is built per move. `start_pos`, `end_pos`, `axes_d`
+    and `axes_r` give upstream's tuples for code off the hot path.
+    """
 
     __slots__ = (
-        "start_pos", "end_pos", "accel", "junction_deviation", "is_kinematic_move",
-        "axes_d", "move_d", "axes_r", "min_move_t", "max_start_v2", "max_cruise_v2",
-        "delta_v2", "next_junction_v2", "max_mcr_start_v2", "mcr_delta_v2",
+        "start_x", "start_y", "start_z", "start_e", "end_x", "end_y", "end_z", "end_e",
+        "accel", "junction_deviation", "is_kinematic_move",
+        "axes_d_x", "axes_d_y", "axes_d_z", "axes_d_e", "move_d",
+        "axes_r_x", "axes_r_y", "axes_r_z", "axes_r_e", "min_move_t", "max_start_v2",
+        "max_cruise_v2", "delta_v2", "next_junction_v2", "max_mcr_start_v2", "mcr_delta_v2",
         "start_v", "cruise_v", "end_v", "accel_t", "cruise_t", "decel_t",
         "instant_corner_v", "tag", "timing_callbacks",
+        "flush_start_v2", "flush_cruise_v2", "flush_next_start_v2",
     )
 
-    def __init__(self, start_pos: tuple[float, float, float, float],
-                 end_pos: tuple[float, float, float, float], speed: float,
+    def __init__(self, start_x: float, start_y: float, start_z: float, start_e: float,
+                 end_x: float, end_y: float, end_z: float, end_e: float, speed: float,
                  max_velocity: float, max_accel: float, junction_deviation: float,
-                 mcr_pseudo_accel: float, instant_corner_v: float, tag: Any = None) -> None:
-        self.start_pos = start_pos
-        self.end_pos = end_pos
+                 mcr_pseudo_accel: float, instant_corner_v: float, tag: int = 0) -> None:
+        self.start_x = start_x
+        self.start_y = start_y
+        self.start_z = start_z
+        self.start_e = start_e
+        self.end_x = end_x
+        self.end_y = end_y
+        self.end_z = end_z
+        self.end_e = end_e
         self.accel = max_accel
         self.junction_deviation = junction_deviation
         self.instant_corner_v = instant_corner_v
+        # The source line of the move (0 when not from a file).
         self.tag = tag
-        self.timing_callbacks: list[Any] | None = None
+        self.timing_callbacks: list[Callable[[float], None]] | None = None
         # min(speed, max_velocity), written out (this runs once per move)
         velocity = max_velocity if max_velocity < speed else speed
         self.is_kinematic_move = True
-        sx, sy, sz, se = start_pos
-        ex, ey, ez, ee = end_pos
-        dx = ex - sx
-        dy = ey - sy
-        dz = ez - sz
-        de = ee - se
+        dx = end_x - start_x
+        dy = end_y - start_y
+        dz = end_z - start_z
+        de = end_e - start_e
         move_d = _sqrt(dx * dx + dy * dy + dz * dz)
         if move_d < MIN_KINEMATIC_MOVE_D:
             # Extrude only move
-            self.end_pos = (sx, sy, sz, ee)
+            self.end_x = start_x
+            self.end_y = start_y
+            self.end_z = start_z
             dx = dy = dz = 0.0
             move_d = abs(de)
             inv_move_d = 0.0
@@ -75,8 +94,14 @@ class Move:
         else:
             inv_move_d = 1.0 / move_d
         self.move_d = move_d
-        self.axes_d = (dx, dy, dz, de)
-        self.axes_r = (dx * inv_move_d, dy * inv_move_d, dz * inv_move_d, de * inv_move_d)
+        self.axes_d_x = dx
+        self.axes_d_y = dy
+        self.axes_d_z = dz
+        self.axes_d_e = de
+        self.axes_r_x = dx * inv_move_d
+        self.axes_r_y = dy * inv_move_d
+        self.axes_r_z = dz * inv_move_d
+        self.axes_r_e = de * inv_move_d
         self.min_move_t = move_d / velocity if move_d else 0.0
         # Junction speeds are tracked in velocity squared.  The delta_v2 is the maximum
         # amount of this squared-velocity that can change in this move.
@@ -87,6 +112,32 @@ class Move:
         # Setup for minimum_cruise_ratio checks
         self.max_mcr_start_v2 = 0.0
         self.mcr_delta_v2 = 2.0 * move_d * mcr_pseudo_accel
+        # The profile, set by set_junction.
+        self.start_v = self.cruise_v = self.end_v = 0.0
+        self.accel_t = self.cruise_t = self.decel_t = 0.0
+        # LookAheadQueue.flush's junction_info for this move (upstream keeps a tuple per
+        # move in a list; NO_CRUISE_V2 stands for its cruise_v2 of None).
+        self.flush_start_v2 = self.flush_cruise_v2 = self.flush_next_start_v2 = 0.0
+
+    @property
+    def start_pos(self) -> tuple[float, float, float, float]:
+        """Upstream's start_pos (x, y, z, e)."""
+        return (self.start_x, self.start_y, self.start_z, self.start_e)
+
+    @property
+    def end_pos(self) -> tuple[float, float, float, float]:
+        """Upstream's end_pos (x, y, z, e); XYZ stay put for an extrude-only move."""
+        return (self.end_x, self.end_y, self.end_z, self.end_e)
+
+    @property
+    def axes_d(self) -> tuple[float, float, float, float]:
+        """Upstream's axes_d: distance moved per axis (mm)."""
+        return (self.axes_d_x, self.axes_d_y, self.axes_d_z, self.axes_d_e)
+
+    @property
+    def axes_r(self) -> tuple[float, float, float, float]:
+        """Upstream's axes_r: distance per axis divided by move_d."""
+        return (self.axes_r_x, self.axes_r_y, self.axes_r_z, self.axes_r_e)
 
     def limit_speed(self, speed: float, accel: float) -> None:
         """Lower the cruise speed and acceleration (kinematic or extruder limits)."""
@@ -103,10 +154,8 @@ class Move:
         if not self.is_kinematic_move or not prev_move.is_kinematic_move:
             return
         # The extruder is an extra axis: it limits the junction by its change of E/mm.
-        axes_r = self.axes_r
-        prev_axes_r = prev_move.axes_r
         max_cruise_v2 = self.max_cruise_v2
-        diff_r = axes_r[3] - prev_axes_r[3]
+        diff_r = self.axes_r_e - prev_move.axes_r_e
         if diff_r:
             ea_v2 = (self.instant_corner_v / abs(diff_r)) ** 2
         else:
@@ -126,9 +175,9 @@ class Move:
         if ea_v2 < max_start_v2:
             max_start_v2 = ea_v2
         # Find max velocity using "approximated centripetal velocity"
-        junction_cos_theta = -(axes_r[0] * prev_axes_r[0]
-                               + axes_r[1] * prev_axes_r[1]
-                               + axes_r[2] * prev_axes_r[2])
+        junction_cos_theta = -(self.axes_r_x * prev_move.axes_r_x
+                               + self.axes_r_y * prev_move.axes_r_y
+                               + self.axes_r_z * prev_move.axes_r_z)
         # max(v2, 0.0) written out: max() keeps v2 unless 0.0 > v2.
         v2 = 0.5 * (1.0 - junction_cos_theta)
         sin_theta_d2 = _sqrt(0.0 if 0.0 > v2 else v2)
@@ -207,7 +256,6 @@ class LookAheadQueue:
         flush_count = len(queue)
         # Traverse queue from last to first move and determine maximum junction speed
         # assuming the robot comes to a complete stop after the last move.
-        junction_info: list[Any] = [None] * flush_count
         next_start_v2 = next_mcr_start_v2 = peak_cruise_v2 = 0.0
         pending_cv2_assign = 0
         for i in range(flush_count - 1, -1, -1):
@@ -217,7 +265,7 @@ class LookAheadQueue:
             start_v2 = move.max_start_v2
             if reachable_start_v2 < start_v2:
                 start_v2 = reachable_start_v2
-            cruise_v2 = None
+            cruise_v2 = NO_CRUISE_V2
             pending_cv2_assign += 1
             reach_mcr_start_v2 = next_mcr_start_v2 + move.mcr_delta_v2
             mcr_start_v2 = move.max_mcr_start_v2
@@ -239,7 +287,10 @@ class LookAheadQueue:
                 if peak_cruise_v2 < cruise_v2:
                     cruise_v2 = peak_cruise_v2
                 pending_cv2_assign = 0
-            junction_info[i] = (move, start_v2, cruise_v2, next_start_v2)
+            # junction_info[i] = (move, start_v2, cruise_v2, next_start_v2)
+            move.flush_start_v2 = start_v2
+            move.flush_cruise_v2 = cruise_v2
+            move.flush_next_start_v2 = next_start_v2
             next_start_v2 = start_v2
             next_mcr_start_v2 = mcr_start_v2
         if update_flush_count or not flush_count:
@@ -247,8 +298,11 @@ class LookAheadQueue:
         # Traverse queue in forward direction to propagate cruise_v2
         prev_cruise_v2 = 0.0
         for i in range(flush_count):
-            move, start_v2, cruise_v2, next_start_v2 = junction_info[i]
-            if cruise_v2 is None:
+            move = queue[i]
+            start_v2 = move.flush_start_v2
+            cruise_v2 = move.flush_cruise_v2
+            next_start_v2 = move.flush_next_start_v2
+            if cruise_v2 == NO_CRUISE_V2:
                 # This move can't accelerate - propagate cruise_v2 from previous
                 cruise_v2 = start_v2 if start_v2 < prev_cruise_v2 else prev_cruise_v2
             move.set_junction(cruise_v2 if cruise_v2 < start_v2 else start_v2, cruise_v2,

@@ -15,7 +15,6 @@ generation 2 x kin_flush_delay after the last move; that gap is counted as Klipp
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
 
 from kestimator.limits import Limits
 from kestimator.planner import LookAheadQueue, Move
@@ -49,7 +48,8 @@ class ToolHead:
         self.limits = limits
         self.lookahead = LookAheadQueue()
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH)
-        self.commanded_pos: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+        # Upstream's commanded_pos list, one float per axis (see the commanded_pos property).
+        self.commanded_x = self.commanded_y = self.commanded_z = self.commanded_e = 0.0
         self.max_velocity = limits.max_velocity
         self.max_accel = limits.max_accel
         self.min_cruise_ratio = limits.minimum_cruise_ratio
@@ -150,34 +150,47 @@ class ToolHead:
         return self.print_time
 
     # Movement commands
+    @property
+    def commanded_pos(self) -> tuple[float, float, float, float]:
+        """Where the last queued move ends (x, y, z, e)."""
+        return (self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e)
+
     def set_position(self, newpos: tuple[float, float, float, float]) -> None:
         """Homing / SET_KINEMATIC_POSITION: rest, then jump to newpos without moving."""
         self.flush_step_generation()
-        self.commanded_pos = newpos
+        self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e = newpos
 
     def move(self, newpos: tuple[float, float, float, float], speed: float,
-             tag: Any = None) -> Move | None:
+             tag: int = 0) -> Move | None:
         """Queue a move to newpos at speed (mm/s); None when nothing moves."""
-        move = Move(self.commanded_pos, newpos, speed, self.max_velocity, self.max_accel,
+        return self.move_to(newpos[0], newpos[1], newpos[2], newpos[3], speed, tag)
+
+    def move_to(self, x: float, y: float, z: float, e: float, speed: float,
+                tag: int = 0) -> Move | None:
+        """`move` with the new position as four floats (the hot path: no tuple per move)."""
+        move = Move(self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e,
+                    x, y, z, e, speed, self.max_velocity, self.max_accel,
                     self.junction_deviation, self.mcr_pseudo_accel, self._instant_corner_v, tag)
         if not move.move_d:
             return None
-        axes_d = move.axes_d
-        if move.is_kinematic_move and axes_d[2] and self._z_limited:
-            z_ratio = move.move_d / abs(axes_d[2])
+        if move.is_kinematic_move and move.axes_d_z and self._z_limited:
+            z_ratio = move.move_d / abs(move.axes_d_z)
             move.limit_speed(self._max_z_velocity * z_ratio, self._max_z_accel * z_ratio)
-        if axes_d[3]:
+        if move.axes_d_e:
             self._check_extruder_move(move)
-        self.commanded_pos = move.end_pos
+        self.commanded_x = move.end_x
+        self.commanded_y = move.end_y
+        self.commanded_z = move.end_z
+        self.commanded_e = move.end_e
         self.last_move_line = tag
         if self.lookahead.add_move(move):
             self._process_lookahead(lazy=True)
         return move
 
     def _check_extruder_move(self, move: Move) -> None:
-        axis_r = move.axes_r[3]
-        axis_d = move.axes_d[3]
-        if (not move.axes_d[0] and not move.axes_d[1]) or axis_r < 0.0:
+        axis_r = move.axes_r_e
+        axis_d = move.axes_d_e
+        if (not move.axes_d_x and not move.axes_d_y) or axis_r < 0.0:
             # Extrude only move (or retraction move) - limit accel and velocity
             if abs(axis_d) > self._max_e_dist:
                 raise MoveError(
