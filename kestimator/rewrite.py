@@ -50,7 +50,7 @@ from kestimator.estimate import (
 from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
 from kestimator.limits import Limits
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
-from kestimator.slicers.base import KlipperTimes
+from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
 
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
@@ -152,10 +152,15 @@ class InjectPlan:
     times: KlipperTimes
     adapter: SlicerAdapter
     marker: str
+    # A time comment Moonraker reads, added where the file has none (SlicerAdapter.
+    # moonraker_time_comment): before the marker (head) or at the end of the file (tail).
+    head_comment: str | None = None
+    tail_comment: str | None = None
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
-                      limits_source: str) -> InjectPlan:
+                      limits_source: str,
+                      moonraker_comment: tuple[str, str] | None = None) -> InjectPlan:
         """Build the plan from a sampled estimate (estimate_file(..., sample=True))."""
         model_s = est.total_s - est.layers[0][1] if est.layers else None
         times = KlipperTimes(total_s=est.total_s, first_layer_s=est.first_layer_s,
@@ -164,7 +169,11 @@ class InjectPlan:
                    sample_times=est.sample_times,
                    layer_lines=frozenset(line for line, _ in est.layers),
                    last_move_line=est.last_move_line, times=times, adapter=adapter,
-                   marker=marker_line(est.total_s, slicer_s, limits_source))
+                   marker=marker_line(est.total_s, slicer_s, limits_source),
+                   head_comment=moonraker_comment[1] if moonraker_comment is not None
+                   and moonraker_comment[0] == HEAD else None,
+                   tail_comment=moonraker_comment[1] if moonraker_comment is not None
+                   and moonraker_comment[0] == TAIL else None)
 
 
 class Rewriter:
@@ -265,6 +274,8 @@ class Rewriter:
         if not self._started:
             self._started = True
             self._advance(self.lineno)
+            if plan.head_comment is not None:
+                out.append(plan.head_comment.encode("utf-8") + line_eol)
             out.append(plan.marker.encode() + line_eol)
             out.append(self._m73(*progress_pr(self._t, plan.total_s), line_eol))
         elif self._advance(self.lineno):
@@ -327,9 +338,24 @@ class Rewriter:
                 pos = nl
             if progress is not None:
                 progress(done)
+        # The tail time comment ends the file; before a last line without a line ending, so
+        # that none is ever added to the file.
+        for piece in self.finish():
+            write(piece)
         if carry:
             for piece in process(b"".join(carry)):
                 write(piece)
+
+    def finish(self) -> list[bytes]:
+        """The tail time comment (if the plan has one) with its line ending: it goes after
+        the file's last whole line (`copy_stream` calls this)."""
+        if self.plan.tail_comment is None:
+            return []
+        pending = self._eol_line
+        if pending is not None:
+            self._eol_line = None
+            self.eol = b"\r\n" if pending.endswith(b"\r\n") else b"\n"
+        return [self.plan.tail_comment.encode("utf-8") + self.eol]
 
     def _copy_quiet(self, data: bytes, pos: int, end: int,
                     write: Callable[[bytes], object]) -> int:
@@ -430,7 +456,9 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                          sample=True, mark_prefixes=adapter.mark_prefixes)
     if est.last_move_line is None:
         raise KestimatorError("the file has no moves: nothing to estimate", path)
-    plan = InjectPlan.from_estimate(est, adapter, slicer_s, limits_source)
+    plan = InjectPlan.from_estimate(
+        est, adapter, slicer_s, limits_source,
+        adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail), est.total_s))
     return plan, est, slicer, slicer_s
 
 

@@ -172,8 +172,8 @@ def test_line_cut_between_two_chunks_keeps_its_pieces_in_their_chunks(
         recut[index - 1] += recut[index][:cut]
         recut[index] = recut[index][cut:]
     assert "".join(recut) == text
-    plan = plan_chunks(recut, limits_from_klipper(_cfg_choice()).limits,
-                       str(CORPUS_CFG))
+    chosen = limits_from_klipper(_cfg_choice())
+    plan = plan_chunks(recut, chosen.limits, chosen.marker_source)
     rewritten = rewrite_chunks(recut, plan.plan)
     assert len(rewritten) == len(recut)
     assert rewritten[4].endswith(";LA") and rewritten[5].startswith("YER:")
