@@ -23,7 +23,7 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from kestimator import __version__
+from kestimator import __version__, learn
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
     approximate_text,
@@ -31,6 +31,7 @@ from kestimator.cli_output import (
     estimate_to_json,
     feature_rows,
     filament_text,
+    parts_rows,
     print_text,
     printable,
     printable_doc,
@@ -50,8 +51,9 @@ from kestimator.config.resolve import (
 )
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import estimate_file
+from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
 
@@ -172,6 +174,20 @@ def _build_parser() -> argparse.ArgumentParser:
     rep.add_argument("-q", "--quiet", action="store_true", help="print nothing on success")
     _add_limit_options(rep)
     _add_debug_option(rep)
+    lrn = sub.add_parser(
+        "learn", help="learn this printer's start, timelapse-frame and tool-change times from "
+                      "its Moonraker job history",
+        description="Read Moonraker's job history, time the file of every completed job with "
+                    "the printer's limits, and learn (median of at least %d jobs, outliers "
+                    "such as paused jobs rejected) the time before the first extrusion, per "
+                    "timelapse frame and per tool change, and whether the printer runs slower "
+                    "than Klipper's planner. Stored beside the Moonraker cache and used by "
+                    "every command whose limits come from that Moonraker (--no-learned: not)."
+                    % learn.MIN_JOBS)
+    _add_limit_options(lrn, with_times=False)
+    lrn.add_argument("--jobs", type=int, default=learn.MAX_HISTORY_JOBS, metavar="N",
+                     help="read the newest N jobs (default %d)" % learn.MAX_HISTORY_JOBS)
+    _add_debug_option(lrn)
     return parser
 
 
@@ -224,6 +240,9 @@ def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True)
                         help="set one limit, above every other source (keys as "
                              "`kestimator limits` shows them, e.g. max_accel=5000 or "
                              "klipper_generation=mcr); repeatable")
+    parser.add_argument("--no-learned", action="store_true",
+                        help="ignore the times learned from the printer's job history "
+                             "(kestimator learn)")
     if with_times:
         parser.add_argument("--homing-time", type=float, default=None, metavar="S",
                             help="seconds each G28 takes on your printer (default: the "
@@ -241,6 +260,10 @@ def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits
                                ("heat_time", resolved.heat_time_s)):
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
+    args.macros = MacroTimes(macros=dict(resolved.macro_times))
+    learned = _learned(args, resolved)
+    if learned is not None:
+        args.macros = learned.macro_times(resolved.macro_times)
     return resolved
 
 
@@ -256,6 +279,23 @@ def _say_guessed(resolved: ResolvedLimits) -> None:
 def _warn_stderr(text: str) -> None:
     sys.stderr.write("kestimator: warning: %s\n" % printable(text))
     sys.stderr.flush()
+
+
+def _moonraker_url(resolved: ResolvedLimits) -> str | None:
+    """The Moonraker the limits came from (also from its offline cache), if any."""
+    machine = resolved.machine or ""
+    if not machine.startswith("moonraker "):
+        return None
+    return machine.split()[1]
+
+
+def _learned(args: argparse.Namespace,
+             resolved: ResolvedLimits) -> learn.LearnedTimes | None:
+    """What `kestimator learn` stored for the Moonraker the limits came from."""
+    url = _moonraker_url(resolved)
+    if url is None or getattr(args, "no_learned", False):
+        return None
+    return learn.load(url)
 
 
 def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitRequest:
@@ -365,7 +405,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     _check_time_options(args)
     with _progress(args, "timing") as progress:
         est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
-                            heat_time=args.heat_time, progress=progress)
+                            heat_time=args.heat_time, progress=progress, macros=args.macros)
     warnings = list(resolved.warnings)
     if est.last_move_line is None:
         warnings.append("the file has no moves: there is nothing to time")
@@ -414,9 +454,15 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False,
     grid.add_column(style="bold")
     grid.add_column()
     approximate = approximate_text(doc)
-    grid.add_row("Klipper time", Text.assemble(
-        (format_duration(total), "bold yellow" if approximate else "bold green"),
-        ("  %.3f s" % total, "dim"), ("  " + approximate if approximate else "", "yellow")))
+    parts = parts_rows(doc)
+    grid.add_row("Total" if parts else "Klipper time",
+                 Text.assemble((format_duration(total),
+                                "bold yellow" if approximate else "bold green"),
+                               ("  %.3f s" % total, "dim"),
+                               ("  until the part is done" if parts else "", ""),
+                               ("  " + approximate if approximate else "", "yellow")))
+    for label, text in parts[1:]:
+        grid.add_row(label, Text(text))
     slicer = doc["slicer"]
     if slicer["estimate_s"] is None:
         grid.add_row("Slicer", Text.assemble(slicer_label(doc),
@@ -479,7 +525,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
         result = inject_file(args.file, resolved.limits, output=args.output,
                              limits_source=resolved.marker_source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
-                             progress=progress)
+                             progress=progress, macros=args.macros)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
                                list(resolved.warnings), limits_guessed=resolved.guessed)
@@ -488,16 +534,31 @@ def cmd_inject(args: argparse.Namespace) -> int:
         doc["m73_written"] = result.m73_written
         _write_json(doc)
     elif not args.quiet:
-        total = result.estimate.total_s
+        est = result.estimate
         slicer_s = result.slicer_estimate_s
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
         approximate = " (approximate: the limits are guesses)" if resolved.guessed else ""
-        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines"
-                                   % (result.output, format_duration(total), approximate,
-                                      said, result.m73_written)) + "\n")
+        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines"
+                                   % (result.output, format_duration(est.total_s),
+                                      _parts_text(est), approximate, said,
+                                      result.m73_written)) + "\n")
     _say_guessed(resolved)
     return EXIT_OK
+
+
+def _parts_text(est: Estimate) -> str:
+    """`` (motion 3m 42s + macros and prep 7m 00s, 7m 00s of it before the first
+    extrusion)``, or nothing when no time was added."""
+    parts = est.parts
+    if not est.timed_parts:
+        return ""
+    text = " (motion %s + macros and prep %s" % (format_duration(parts.motion_s),
+                                                 format_duration(parts.added_s))
+    if parts.before_first_extrusion_s:
+        text += ", %s of it before the first extrusion" % format_duration(
+            parts.before_first_extrusion_s)
+    return text + ")"
 
 
 def _check_time_options(args: argparse.Namespace) -> None:
@@ -571,12 +632,54 @@ def cmd_limits(args: argparse.Namespace) -> int:
         check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
     doc = limits_to_json(resolved, args.file)
+    learned = _learned(args, resolved)
+    doc["macros"] = {name: {"seconds": t.seconds, "source": t.source}
+                     for name, t in sorted(resolved.macro_times.items())}
+    doc["learned"] = None if learned is None else _learned_json(learned)
     if args.json:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
         _print_limits(printable_doc(doc), sys.stdout)
+        for name, entry in doc["macros"].items():
+            sys.stdout.write(printable("  macro %s: %g s (%s)" % (
+                name, entry["seconds"], entry["source"])) + "\n")
+        if learned is not None:
+            sys.stdout.write(printable("Learned from %s's history (%s):" % (
+                learned.url, learned.learned_at)) + "\n")
+            for line in learned.lines():
+                sys.stdout.write("  " + printable(line) + "\n")
     _say_guessed(resolved)
+    return EXIT_OK
+
+
+def _learned_json(learned: learn.LearnedTimes) -> dict[str, Any]:
+    def value(v: learn.LearnedValue | None) -> dict[str, Any] | None:
+        return None if v is None else {"value": round(v.value, 6), "spread": round(
+            v.spread, 6), "jobs": v.jobs, "rejected": v.rejected}
+    return {"url": learned.url, "learned_at": learned.learned_at,
+            "before_first_extrusion_s": value(learned.before_first_extrusion_s),
+            "per_run_s": {name: value(v) for name, v in sorted(learned.per_run_s.items())},
+            "motion_ratio": value(learned.motion_ratio), "jobs_read": learned.jobs_read,
+            "notes": list(learned.notes)}
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    """`kestimator learn`."""
+    resolved = resolve.resolve_limits(_limit_request(args, None))
+    url = _moonraker_url(resolved)
+    if url is None:
+        raise KestimatorError("learn reads a printer's job history from Moonraker: give "
+                              "--moonraker URL (or name it in the profile)")
+    learned = learn.learn_from_moonraker(url, resolved.limits, resolved.moonraker_api_key,
+                                         max_jobs=max(1, args.jobs))
+    path = learn.save(learned)
+    sys.stdout.write(printable("Learned from %s: %d jobs read (%s), stored in %s" % (
+        url, learned.jobs_read, learned.learned_at, path)) + "\n")
+    for line in learned.lines():
+        sys.stdout.write("  " + printable(line) + "\n")
+    for note in learned.notes:
+        sys.stdout.write("  note: " + printable(note) + "\n")
     return EXIT_OK
 
 
@@ -586,7 +689,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     resolved = _resolve(args, args.file)
     _check_time_options(args)
     data = collect(args.file, resolved.limits, resolved.summary,
-                   homing_time=args.homing_time, heat_time=args.heat_time)
+                   homing_time=args.homing_time, heat_time=args.heat_time, macros=args.macros)
     page = render_html(data)
     try:
         with open(args.output, "w", encoding="utf-8") as out:
@@ -627,6 +730,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_limits(args)
         if args.command == "report":
             return cmd_report(args)
+        if args.command == "learn":
+            return cmd_learn(args)
     except KestimatorError as exc:
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()

@@ -157,7 +157,10 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
     """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md)."""
     ends = [t for _, t in est.layers[1:]] + [est.total_s] if est.layers else []
     slicer_s = slicer.estimate_s
-    difference = None if slicer_s is None else slicer_s - est.total_s
+    # The slicer times the moves: it is compared with Klipper's motion time.
+    motion_s = est.parts.motion_s
+    difference = None if slicer_s is None else slicer_s - motion_s
+    parts = parts_to_json(est)
     return {
         "schema": JSON_SCHEMA_VERSION,
         "kestimator": __version__,
@@ -171,8 +174,8 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
                    "first_layer_estimate_s": slicer.first_layer_estimate_s,
                    "difference_s": _rounded(difference),
-                   "difference_pct": None if difference is None or not est.total_s
-                   else round(PERCENT * difference / est.total_s, 3)},
+                   "difference_pct": None if difference is None or not motion_s
+                   else round(PERCENT * difference / motion_s, 3)},
         "filament": filament if filament is not None
         else filament_to_json(est, read_slicer_filament(est.path)),
         "limits_source": limits_source,
@@ -180,15 +183,60 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
-        "untimed_commands": untimed_commands(est),
+        "untimed_commands": untimed_by_kind(est, {source["name"]
+                                                  for source in parts["sources"]}),
+        "parts": parts,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
     }
 
 
+def parts_to_json(est: Estimate) -> dict[str, Any]:
+    """The total split: Klipper's motion, the added times with their sources, the prep."""
+    parts = est.parts
+    return {
+        "motion_s": round(parts.motion_s, 6),
+        "added_s": round(parts.added_s, 6),
+        "before_first_extrusion_s": round(parts.before_first_extrusion_s, 6),
+        "print_duration_s": round(parts.print_duration_s, 6),
+        "total_s": round(parts.total_s, 6),
+        "first_extrusion_t": _rounded(est.first_extrusion_t),
+        "sources": [{"name": p.name, "source": p.source, "count": p.count,
+                     "seconds": round(p.seconds, 6),
+                     "before_first_extrusion_s": round(p.before_first_extrusion_s, 6),
+                     "covered_by_learned": p.covered}
+                    for p in est.timed_parts],
+        "untimed_macros": dict(est.untimed_macros),
+    }
+
+
+def parts_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    """(label, text) lines for the parts of the total; none when nothing was added."""
+    parts = doc["parts"]
+    if not parts["sources"]:
+        return []
+    rows = [("Total", "%s (%.3f s) until the part is done" % (
+                format_duration(parts["total_s"]), parts["total_s"])),
+            ("Motion", "%s (%.3f s), Klipper's planner" % (
+                format_duration(parts["motion_s"]), parts["motion_s"])),
+            ("Macros, prep", "%s (%.3f s)" % (format_duration(parts["added_s"]),
+                                              parts["added_s"]))]
+    for source in parts["sources"]:
+        count = "x%d" % source["count"]
+        if source["covered_by_learned"]:
+            count += ", %d in the learned start" % source["covered_by_learned"]
+        rows.append(("", "%s %s: %s, %s" % (source["name"], count,
+                                                format_duration(source["seconds"]),
+                                                source["source"])))
+    if parts["before_first_extrusion_s"]:
+        rows.append(("Printing", "%s after the first extrusion (print_duration; the "
+                     "file's time comments)" % format_duration(parts["print_duration_s"])))
+    return rows
+
+
 def set_slicer_estimate(doc: dict[str, Any], slicer_s: float | None) -> None:
     """Replace the slicer's estimate in `doc` (inject looks through its own marker)."""
-    total = doc["total_s"]
+    total = doc["parts"]["motion_s"]
     slicer = doc["slicer"]
     slicer["estimate_s"] = slicer_s
     difference = None if slicer_s is None else slicer_s - total
@@ -235,7 +283,7 @@ _RECORD_MACRO = "macro"
 _RECORD_UNKNOWN = "unknown"
 
 
-def untimed_commands(est: Estimate) -> dict[str, dict[str, int]]:
+def untimed_by_kind(est: Estimate, timed: set[str]) -> dict[str, dict[str, int]]:
     """The commands whose time is not counted, by kind (`UNTIMED_KINDS`): name -> runs.
 
     From the estimate's record of macros where it has one; a command the printer does not
@@ -244,10 +292,13 @@ def untimed_commands(est: Estimate) -> dict[str, dict[str, int]]:
     """
     record: dict[str, dict[str, int]] = getattr(est, "commands", None) or {}
     groups: dict[str, dict[str, int]] = {kind: {} for kind, _, _ in UNTIMED_KINDS}
-    groups["macro"].update(record.get(_RECORD_MACRO, {}))
+    groups["macro"].update({name: runs for name, runs in record.get(_RECORD_MACRO, {}).items()
+                            if name not in timed})
     unknown = record.get(_RECORD_UNKNOWN, est.ignored_commands) if record \
         else est.ignored_commands
     for name, runs in unknown.items():
+        if name in timed:  # the profile's [macros] or learned times give it one
+            continue
         if name in MODULE_COMMANDS:
             kind = "module"
         elif len(name) >= 2 and name[0] in "GMTD" and name[1].isdigit():
@@ -332,9 +383,16 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
     """The plain-text summary (stdout is not a terminal, or rich is not installed)."""
     total = doc["total_s"]
     approximate = approximate_text(doc)
-    lines = ["%s" % doc["file"],
-             "  Klipper time : %s (%.3f s)%s" % (format_duration(total), total,
-                                                 ", " + approximate if approximate else "")]
+    approximate = ", " + approximate if approximate else ""
+    parts = parts_rows(doc)
+    lines = ["%s" % doc["file"]]
+    if parts:
+        lines.append("  %-12s : %s%s" % (parts[0] + (approximate,)))
+    else:
+        lines.append("  Klipper time : %s (%.3f s)%s" % (format_duration(total), total,
+                                                        approximate))
+    for label, text in parts[1:]:
+        lines.append("  %-12s %s %s" % (label, ":" if label else " ", text))
     slicer = doc["slicer"]
     if slicer["estimate_s"] is not None:
         lines.append("  Slicer       : %s, %s" % (format_duration(slicer["estimate_s"]),

@@ -45,6 +45,7 @@ from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
+from kestimator.macros import MacroTimes
 from kestimator.planner import Move
 from kestimator.rewrite import check_gcode_file, inject_file
 
@@ -166,12 +167,14 @@ def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
     if from_stdin:
         est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals,
                              homing_time=resolved.homing_time_s or 0.0,
-                             heat_time=resolved.heat_time_s or 0.0)
+                             heat_time=resolved.heat_time_s or 0.0,
+                             macros=MacroTimes(macros=dict(resolved.macro_times)))
     else:
         check_gcode_file(args.input)
         est = estimate_file(args.input, resolved.limits, observer=totals,
                             homing_time=resolved.homing_time_s or 0.0,
-                            heat_time=resolved.heat_time_s or 0.0)
+                            heat_time=resolved.heat_time_s or 0.0,
+                            macros=MacroTimes(macros=dict(resolved.macro_times)))
     doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
     if args.format == "json":
         # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
@@ -208,7 +211,8 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         result = inject_file(path, resolved.limits, output=tmp,
                              limits_source=resolved.marker_source,
                              homing_time=resolved.homing_time_s or 0.0,
-                             heat_time=resolved.heat_time_s or 0.0)
+                             heat_time=resolved.heat_time_s or 0.0,
+                             macros=MacroTimes(macros=dict(resolved.macro_times)))
         append_ident_line(tmp)
         now = os.stat(path)
         if (now.st_size, now.st_mtime_ns, now.st_ino) != (

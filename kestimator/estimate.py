@@ -20,6 +20,14 @@ from kestimator.errors import KestimatorError
 from kestimator.gcode import Command, parse_line, parse_plain_move
 from kestimator.interpreter import CommandError, Interpreter
 from kestimator.limits import Limits
+from kestimator.macros import (
+    ADD_TIME_SOURCE,
+    FIRST_EXTRUSION_MM,
+    LEARNED_PREP_LABEL,
+    MacroTimes,
+    Parts,
+    TimedPart,
+)
 from kestimator.planner import Move
 from kestimator.toolhead import MoveError, ToolHead
 
@@ -41,6 +49,8 @@ FIRST_SAMPLE_SPACING_S = 0.01
 # kept, and the cache is emptied when full).
 MAX_CACHED_COMMANDS = 4096
 MAX_CACHED_COMMAND_CHARS = 200
+# An ESTIMATOR_ADD_TIME label is kept to this many characters.
+MAX_LABEL_CHARS = 60
 # A progress callback hears about once per this many bytes read.
 PROGRESS_EVERY_BYTES = 1 << 20
 
@@ -68,6 +78,17 @@ class Estimate:
     last_move_line: int | None
     # Net filament the moves push (mm of E, after M221; retractions count negative).
     filament_mm: float = 0.0
+    # Time added where the file runs macros, waits or says ESTIMATOR_ADD_TIME, by kind.
+    timed_parts: list[TimedPart] = dataclasses.field(default_factory=list)
+    # Commands that are no Klipper command and have no time (macros whose time is unknown).
+    untimed_macros: dict[str, int] = dataclasses.field(default_factory=dict)
+    # When the first move that extrudes starts (print_stats starts print_duration there).
+    first_extrusion_t: float | None = None
+
+    @property
+    def parts(self) -> Parts:
+        """The total split into Klipper's motion and the added times."""
+        return Parts.of(self.total_s, self.timed_parts)
 
     @property
     def first_layer_s(self) -> float | None:
@@ -124,7 +145,8 @@ class Timeline:
     def __init__(self, limits: Limits, path: str = "<input>", homing_time: float = 0.0,
                  heat_time: float = 0.0, sample: bool = False,
                  mark_prefixes: tuple[str, ...] = (),
-                 observer: MoveObserver | None = None) -> None:
+                 observer: MoveObserver | None = None,
+                 macros: MacroTimes | None = None) -> None:
         self.path = path
         self.observer = observer
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
@@ -133,7 +155,15 @@ class Timeline:
         self._warning_keys: dict[str, int] = {}
         self._warning_repeats: list[int] = []
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
-                                  homing_time=homing_time, heat_time=heat_time)
+                                  homing_time=homing_time, heat_time=heat_time,
+                                  add_time=self.add_time)
+        self.macros = macros if macros is not None else MacroTimes()
+        if self.macros.macros:
+            self.interp.on_unknown = self._unknown_command
+        self.timed_parts: dict[tuple[str, str], TimedPart] = {}
+        # Where the last added time ended (0: none yet).
+        self._rest_until = 0.0
+        self.first_extrusion_t: float | None = None
         self.feature_names: list[str] = [NO_FEATURE]
         self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
         self.feature_time: list[float] = [0.0]
@@ -156,6 +186,15 @@ class Timeline:
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
         self._commands: dict[str, Command] = {}
+        learned = self.macros.before_first_extrusion
+        if learned is not None:
+            # The printer's own history measured everything before the first extrusion:
+            # it stands at the start, and the added times it holds are not counted again.
+            self.toolhead.add_time(learned.seconds)
+            self._rest_until = self.toolhead.print_time
+            part = self._part(LEARNED_PREP_LABEL, learned.source)
+            part.count = 1
+            part.seconds = part.before_first_extrusion_s = learned.seconds
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
@@ -165,6 +204,8 @@ class Timeline:
         t = start_t
         filament = self.filament_mm
         next_sample_t = self._next_sample_t if self.sample else math.inf
+        if self.first_extrusion_t is None:
+            self._find_first_extrusion(moves, start_t)
         for move in moves:
             while changes and changes[0][0] <= move.tag:
                 feature = changes.popleft()[1]
@@ -180,6 +221,52 @@ class Timeline:
         self.n_moves += len(moves)
         if self.observer is not None:
             self.observer(moves, start_t)
+
+    def _find_first_extrusion(self, moves: list[Move], start_t: float) -> None:
+        """Note when the net filament first exceeds print_stats' threshold."""
+        filament = self.filament_mm
+        t = start_t
+        for move in moves:
+            filament += move.axes_d_e
+            if filament >= FIRST_EXTRUSION_MM:
+                self.first_extrusion_t = t
+                return
+            t += move.accel_t + move.cruise_t + move.decel_t
+
+    def _part(self, name: str, source: str) -> TimedPart:
+        part = self.timed_parts.get((name, source))
+        if part is None:
+            part = self.timed_parts[(name, source)] = TimedPart(name, source)
+        return part
+
+    def add_time(self, seconds: float, name: str, source: str) -> None:
+        """Time that passes with the toolhead at rest where this line runs `name`.
+
+        Before the first extrusion it is prep time (not in print_duration); when a learned
+        time before the first extrusion stands in for all of it, it is only counted.
+        """
+        toolhead = self.toolhead
+        toolhead.wait_moves()
+        part = self._part(name, source)
+        part.count += 1
+        prep = self.first_extrusion_t is None
+        if prep and self.macros.before_first_extrusion is not None:
+            part.covered += 1
+            return
+        before = toolhead.print_time
+        toolhead.add_time(seconds)
+        # add_time stopped the head: every queued feature change has been applied.
+        self.feature_time[self._queued_feature] += toolhead.print_time - before
+        self._rest_until = toolhead.print_time
+        part.seconds += seconds
+        if prep:
+            part.before_first_extrusion_s += seconds
+
+    def _unknown_command(self, name: str) -> None:
+        """A command Klipper does not know: a macro, timed if the table has it."""
+        timed = self.macros.time_of(name)
+        if timed is not None:
+            self.add_time(timed.seconds, name, timed.source)
 
     def _add_sample(self, line: int, t: float) -> None:
         lines, times = self.sample_lines, self.sample_times
@@ -215,6 +302,10 @@ class Timeline:
                 for w, n in zip(self.warnings, self._warning_repeats, strict=True)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
+        if self._rest_until and self.toolhead.lookahead.is_empty():
+            # Nothing moved since an added time: the line comes after it, not before.
+            store.append((lineno, max(self.toolhead.last_move_end_t, self._rest_until)))
+            return
         index = len(store)
         store.append((lineno, 0.0))
 
@@ -322,10 +413,9 @@ class Timeline:
         if not 0.0 <= seconds < float("inf"):
             self.warn("ESTIMATOR_ADD_TIME needs a finite, non-negative time", self.lineno)
             return
-        before = self.toolhead.print_time
-        self.toolhead.add_time(seconds)
-        # add_time stopped the head: every queued feature change has been applied.
-        self.feature_time[self._queued_feature] += self.toolhead.print_time - before
+        label = " ".join(words[1:])[:MAX_LABEL_CHARS]
+        self.add_time(seconds, ADD_TIME_MARKER + (" " + label if label else ""),
+                      ADD_TIME_SOURCE)
 
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
@@ -334,8 +424,10 @@ class Timeline:
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")
-        for name in sorted(interp.ignored):
-            if not _looks_like_gcode(name) and name not in self._warned_macros:
+        untimed = {name: count for name, count in sorted(interp.ignored.items())
+                   if self.macros.time_of(name) is None and not _looks_like_gcode(name)}
+        for name in untimed:
+            if name not in self._warned_macros:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
                           "its effect on time is unknown and counted as 0 s" % name)
@@ -348,7 +440,10 @@ class Timeline:
             warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
             marks=dict(self.marks), first_command_line=self.first_command_line,
-            last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm)
+            last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
+            timed_parts=sorted(self.timed_parts.values(),
+                               key=lambda p: (-p.seconds, p.name, p.source)),
+            untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t)
 
 
 def _looks_like_gcode(name: str) -> bool:
@@ -358,15 +453,18 @@ def _looks_like_gcode(name: str) -> bool:
 def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>",
                    homing_time: float = 0.0, heat_time: float = 0.0, sample: bool = False,
                    mark_prefixes: tuple[str, ...] = (),
-                   observer: MoveObserver | None = None) -> Estimate:
+                   observer: MoveObserver | None = None,
+                   macros: MacroTimes | None = None) -> Estimate:
     """Estimate from an iterable of byte lines (split at LF).
 
     With `sample`, progress samples for M73 placement are kept; comment lines starting
     with one of `mark_prefixes` get their exact time in `Estimate.marks`; `observer` sees
-    every planned move (with its start time) as the planner releases them.
+    every planned move (with its start time) as the planner releases them; `macros` times the
+    macros the file runs (and may hold a learned time before the first extrusion).
     """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
-                        sample=sample, mark_prefixes=mark_prefixes, observer=observer)
+                        sample=sample, mark_prefixes=mark_prefixes, observer=observer,
+                        macros=macros)
     try:
         timeline.feed_lines(lines)
         est = timeline.finish()
@@ -387,7 +485,8 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
                   heat_time: float = 0.0, sample: bool = False,
                   mark_prefixes: tuple[str, ...] = (),
                   observer: MoveObserver | None = None,
-                  progress: ProgressCallback | None = None) -> Estimate:
+                  progress: ProgressCallback | None = None,
+                  macros: MacroTimes | None = None) -> Estimate:
     """Estimate a G-code file in one streaming pass (`progress` hears the bytes read)."""
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
@@ -397,11 +496,11 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
         lines = counted_lines(lines, progress)
     return estimate_lines(lines, limits, path_s, homing_time=homing_time,
                           heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes,
-                          observer=observer)
+                          observer=observer, macros=macros)
 
 
 def estimate_text(text: str, limits: Limits, homing_time: float = 0.0,
-                  heat_time: float = 0.0) -> Estimate:
+                  heat_time: float = 0.0, macros: MacroTimes | None = None) -> Estimate:
     """Estimate G-code given as a string (for tests and embedding)."""
     return estimate_lines(io.BytesIO(text.encode("utf-8")), limits, "<text>",
-                          homing_time=homing_time, heat_time=heat_time)
+                          homing_time=homing_time, heat_time=heat_time, macros=macros)

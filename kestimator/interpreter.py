@@ -18,6 +18,7 @@ from typing import overload
 
 from kestimator.gcode import Command, extended_params
 from kestimator.limits import Limits
+from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
 from kestimator.toolhead import MoveError, ToolHead
 
 # Klipper's default G-code speed: 25 mm/s.
@@ -48,6 +49,8 @@ _MOVE_PARAMS = frozenset("XYZEFG")
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
+# add_time(seconds, name, source): time with the toolhead at rest that the file cannot show.
+AddTimeFn = Callable[[float, str, str], None]
 
 
 class CommandError(Exception):
@@ -92,10 +95,15 @@ class Interpreter:
     """Runs commands against a ToolHead, keeping Klipper's G-code state."""
 
     def __init__(self, limits: Limits, toolhead: ToolHead, warn: WarnFn,
-                 homing_time: float = 0.0, heat_time: float = 0.0) -> None:
+                 homing_time: float = 0.0, heat_time: float = 0.0,
+                 add_time: AddTimeFn | None = None) -> None:
         self.limits = limits
         self.toolhead = toolhead
         self.warn = warn
+        self.add_time: AddTimeFn = add_time or (lambda seconds, name, source:
+                                                 toolhead.add_time(seconds))
+        # Called with the name of every command Klipper does not know (a macro, maybe).
+        self.on_unknown: Callable[[str], None] | None = None
         self.homing_time = homing_time
         self.heat_time = heat_time
         # gcode_move state
@@ -159,6 +167,8 @@ class Interpreter:
             known = name in NO_TIME_COMMANDS and (name == cmd.name or name in TEXT_COMMANDS)
             if name and not known:
                 self.ignored[name] = self.ignored.get(name, 0) + 1
+                if self.on_unknown is not None:
+                    self.on_unknown(name)
             return
         try:
             handler(cmd)
@@ -386,7 +396,7 @@ class Interpreter:
             newpos[axis] = 0.0
         self.toolhead.set_position((newpos[0], newpos[1], newpos[2], newpos[3]))
         if self.homing_time > 0.0:
-            self.toolhead.add_time(self.homing_time)
+            self.add_time(self.homing_time, "G28", HOMING_SOURCE)
         self.reset_last_position()
         for axis in axes:
             self.base_position[axis] = self.homing_position[axis]
@@ -458,7 +468,7 @@ class Interpreter:
         if temp:
             self.toolhead.wait_heater()
             if self.heat_time > 0.0:
-                self.toolhead.add_time(self.heat_time)
+                self.add_time(self.heat_time, cmd.name, HEAT_SOURCE)
 
     def cmd_TEMPERATURE_WAIT(self, cmd: Command) -> None:
         """Wait until a sensor is in range."""
@@ -471,7 +481,7 @@ class Interpreter:
             raise CommandError("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.")
         self.toolhead.wait_heater()
         if self.heat_time > 0.0:
-            self.toolhead.add_time(self.heat_time)
+            self.add_time(self.heat_time, "TEMPERATURE_WAIT", HEAT_SOURCE)
 
     def cmd_M84(self, cmd: Command) -> None:
         """Motors off: Klipper dwells 0.1 s before and after when a motor was on."""

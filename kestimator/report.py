@@ -21,6 +21,7 @@ from kestimator import __version__
 from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.planner import Move
 from kestimator.rewrite import slicer_of_file
 from kestimator.slicers import SlicerInfo
@@ -94,10 +95,11 @@ def _time_at_line(est: Estimate, line: int) -> float:
 
 
 def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-            heat_time: float = 0.0) -> ReportData:
+            heat_time: float = 0.0, macros: MacroTimes | None = None) -> ReportData:
     """Estimate the file with move statistics and read the slicer's own M73 progress."""
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
+                        macros=macros,
                         sample=True, observer=speed)
     slicer = slicer_of_file(path)  # through our marker in an injected file
     progress: list[tuple[float, float]] = []
@@ -267,13 +269,29 @@ ul.warn{font-size:.85em;color:#7a4b00;word-break:break-word}
 """
 
 
+def parts_cards(est: Estimate) -> list[tuple[str, str]]:
+    """The parts of the total, when time was added for macros, waits or a learned start."""
+    if not est.timed_parts:
+        return []
+    parts = est.parts
+    cards = [("Motion (Klipper's planner)", format_duration(parts.motion_s)),
+             ("Macros and prep", format_duration(parts.added_s))]
+    cards += [("%s x%d" % (p.name, p.count), "%s, %s" % (format_duration(p.seconds), p.source))
+              for p in est.timed_parts]
+    if parts.before_first_extrusion_s:
+        cards.append(("Before the first extrusion",
+                      format_duration(parts.before_first_extrusion_s)))
+    return cards
+
+
 def render_html(data: ReportData) -> str:
     """The whole page."""
     est = data.estimate
     slicer = data.slicer
-    cards = [("Klipper time", format_duration(est.total_s))]
+    cards = [("Klipper time", format_duration(est.total_s))] + parts_cards(est)
     if slicer.estimate_s is not None:
-        diff = 100.0 * (slicer.estimate_s - est.total_s) / est.total_s if est.total_s else 0.0
+        motion_s = est.parts.motion_s  # the slicer times the moves only
+        diff = 100.0 * (slicer.estimate_s - motion_s) / motion_s if motion_s else 0.0
         said = "%s (%+.0f %%)" % (format_duration(slicer.estimate_s), diff)
         cards.append(("%s said" % slicer.name, said))
     if est.first_layer_s is not None:

@@ -11,7 +11,11 @@ copies every line byte for byte except the ones kestimator owns:
   reads only P, so the silent-mode (`Q`/`S`) and time-to-change (`C`/`D`) forms the slicer
   wrote are not kept;
 - the slicer's own time comments, which the slicer adapter rewrites in place;
-- one marker line, `; kestimator <version> ...`, right before the first M73.
+- one marker line, `; kestimator <version> ...`, right before the first M73, and after it,
+  when the estimate counts time before the first extrusion (start macro, homing, heating),
+  one line saying how long: `; time before first extrusion (kestimator) = ...`. The time
+  comments hold what Klipper's print_duration measures, which starts at the first
+  extrusion, so that line is the only place that time is written.
 
 Inserted lines take the line ending of the line they stand next to. A second run drops
 its own lines and writes them again, so it is byte-identical. The output goes to a
@@ -39,6 +43,7 @@ except ImportError:  # Windows: no flock; the compare-before-replace check still
     fcntl = None  # type: ignore[assignment]
 
 from kestimator import __version__
+from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import (
     Estimate,
@@ -49,11 +54,14 @@ from kestimator.estimate import (
 )
 from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
 
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
+PREP_PREFIX = "; time before first extrusion (kestimator) = "
+_PREP_PREFIX_B = PREP_PREFIX.encode()
 _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
 BGCODE_MAGIC = b"GCDE"
 SECONDS_PER_MINUTE = 60.0
@@ -111,6 +119,12 @@ def marker_line(total_s: float, slicer_s: float | None, limits_source: str) -> s
         limits_source.replace("\n", " ") or "unknown")
 
 
+def prep_line(prep_s: float) -> str:
+    """The line that says how long the print takes before its first extrusion."""
+    return "%s%s (%.3f s), not in the estimated printing time" % (
+        PREP_PREFIX, format_duration(prep_s), prep_s)
+
+
 def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None:
     """The slicer's own estimate: from our marker in `head` if a previous run rewrote it."""
     match = _MARKER_SLICER_RE.search(head)
@@ -152,6 +166,8 @@ class InjectPlan:
     times: KlipperTimes
     adapter: SlicerAdapter
     marker: str
+    prep_line: str | None = None
+    """Written after the marker when time is counted before the first extrusion."""
     # A time comment Moonraker reads, added where the file has none (SlicerAdapter.
     # moonraker_time_comment): before the marker (head) or at the end of the file (tail).
     head_comment: str | None = None
@@ -161,15 +177,23 @@ class InjectPlan:
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
                       limits_source: str,
                       moonraker_comment: tuple[str, str] | None = None) -> InjectPlan:
-        """Build the plan from a sampled estimate (estimate_file(..., sample=True))."""
+        """Build the plan from a sampled estimate (estimate_file(..., sample=True)).
+
+        The time comments get what print_duration will measure: the total less the time
+        counted before the first extrusion (M73 lines count down the whole total).
+        """
+        prep_s = est.parts.before_first_extrusion_s
         model_s = est.total_s - est.layers[0][1] if est.layers else None
-        times = KlipperTimes(total_s=est.total_s, first_layer_s=est.first_layer_s,
-                             model_s=model_s, marks=est.marks)
+        marks = est.marks if not prep_s else {
+            line: max(0.0, t - prep_s) for line, t in est.marks.items()}
+        times = KlipperTimes(total_s=est.total_s - prep_s, first_layer_s=est.first_layer_s,
+                             model_s=model_s, marks=marks)
         return cls(total_s=est.total_s, sample_lines=est.sample_lines,
                    sample_times=est.sample_times,
                    layer_lines=frozenset(line for line, _ in est.layers),
                    last_move_line=est.last_move_line, times=times, adapter=adapter,
                    marker=marker_line(est.total_s, slicer_s, limits_source),
+                   prep_line=prep_line(prep_s) if prep_s > 0.0 else None,
                    head_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == HEAD else None,
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
@@ -277,6 +301,8 @@ class Rewriter:
             if plan.head_comment is not None:
                 out.append(plan.head_comment.encode("utf-8") + line_eol)
             out.append(plan.marker.encode() + line_eol)
+            if plan.prep_line is not None:
+                out.append(plan.prep_line.encode() + line_eol)
             out.append(self._m73(*progress_pr(self._t, plan.total_s), line_eol))
         elif self._advance(self.lineno):
             pr = progress_pr(self._t, plan.total_s)
@@ -382,7 +408,7 @@ class Rewriter:
         return stop
 
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
-        if code.startswith(_MARKER_PREFIX_B):
+        if code.startswith(_MARKER_PREFIX_B) or code.startswith(_PREP_PREFIX_B):
             return []
         if self.lineno in self.plan.layer_lines and self._started:
             self._advance(self.lineno)
@@ -442,7 +468,7 @@ PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
 
 def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
-               path: str = "<input>") -> PlanResult:
+               path: str = "<input>", macros: MacroTimes | None = None) -> PlanResult:
     """Pass 1 over byte lines: estimate with progress samples, build the rewrite plan.
 
     `head` and `tail` are the first and last MiB (the same bytes for small input); they
@@ -453,30 +479,35 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
     adapter = adapter_for(slicer.family)
     slicer_s = slicer_estimate_from_head(head, slicer)
     est = estimate_lines(lines, limits, path, homing_time=homing_time, heat_time=heat_time,
-                         sample=True, mark_prefixes=adapter.mark_prefixes)
+                         sample=True, mark_prefixes=adapter.mark_prefixes, macros=macros)
     if est.last_move_line is None:
         raise KestimatorError("the file has no moves: nothing to estimate", path)
     plan = InjectPlan.from_estimate(
         est, adapter, slicer_s, limits_source,
-        adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail), est.total_s))
+        # What the rewritten time comments hold: print_duration, without the time before the
+        # first extrusion.
+        adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail),
+                                       est.total_s - est.parts.before_first_extrusion_s))
     return plan, est, slicer, slicer_s
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-              heat_time: float = 0.0, progress: ProgressCallback | None = None) -> PlanResult:
+              heat_time: float = 0.0, progress: ProgressCallback | None = None,
+              macros: MacroTimes | None = None) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
     lines: Iterable[bytes] = iter_lines(path)
     if progress is not None:
         lines = counted_lines(lines, progress)
     return plan_lines(lines, head, tail, limits, limits_source, homing_time,
-                      heat_time, path)
+                      heat_time, path, macros)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
                 limits_source: str = "", homing_time: float = 0.0,
                 heat_time: float = 0.0,
-                progress: ProgressCallback | None = None) -> InjectResult:
+                progress: ProgressCallback | None = None,
+                macros: MacroTimes | None = None) -> InjectResult:
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
 
     `progress` hears the bytes read so far over both passes: the file is read twice, so
@@ -489,7 +520,7 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     with _exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                                heat_time, progress)
+                                                heat_time, progress, macros)
         rewriter = Rewriter(plan)
         _write_atomically(src, dest, rewriter, before, progress)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,

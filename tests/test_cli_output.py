@@ -33,9 +33,12 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "features": (dict,), "slicer": (dict,), "filament": (dict,), "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
     "warnings_dropped": (int,), "limits_guessed": (bool,), "untimed_commands": (dict,),
+    "parts": (dict,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
+PARTS_FIELDS = ("motion_s", "added_s", "before_first_extrusion_s", "print_duration_s",
+                "total_s", "first_extrusion_t", "sources", "untimed_macros")
 FILAMENT_FIELDS = ("extruded_mm", "diameter_mm", "volume_cm3", "density_g_cm3", "weight_g",
                    "slicer_mm", "slicer_g")
 
@@ -79,8 +82,10 @@ def test_json_has_every_documented_field_with_its_type(
     assert doc["schema"] == cli.JSON_SCHEMA_VERSION == 1 and doc["kestimator"] == __version__
     assert tuple(doc["slicer"]) == SLICER_FIELDS
     assert tuple(doc["filament"]) == FILAMENT_FIELDS
+    assert tuple(doc["parts"]) == PARTS_FIELDS
     docs = (PROJECT / "docs/CLI.md").read_text(encoding="utf-8")
-    for field in (*ESTIMATE_FIELDS, *SLICER_FIELDS, *FILAMENT_FIELDS, "duration_s",
+    for field in (*ESTIMATE_FIELDS, *SLICER_FIELDS, *FILAMENT_FIELDS, *PARTS_FIELDS,
+                  "duration_s",
                   "output", "m73_written"):
         assert "`%s`" % field in docs, field
 

@@ -258,3 +258,36 @@ def test_corpus_has_the_cura_files_these_tests_name() -> None:
     if not names:
         pytest.skip("the shared corpus is not beside this checkout")
     assert set(CORPUS_CURA) <= names
+
+
+def test_moonraker_choice_uses_the_times_learned_from_its_history(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from kestimator_cura.machine import SOURCE_MOONRAKER
+
+    from kestimator import learn
+    from tests.fake_moonraker import CORPUS_SETTINGS, FakeMoonraker
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv("MOONRAKER_API_KEY", raising=False)
+    nut = CORPUS / "gcode" / "cura" / "cura413_ender3_nut_small.gcode"
+    chunks = split_like_cura(_text(nut))
+    server = FakeMoonraker(CORPUS_SETTINGS).start()
+    try:
+        url = server.url
+        learn.save(learn.LearnedTimes(
+            learn.normalise_url(url), "2026-11-23T10:00:00Z",
+            before_first_extrusion_s=learn.LearnedValue(300.0, 2.0, 4, 1)))
+        outcome = klipper_time.compute(chunks, LimitsChoice(SOURCE_MOONRAKER,
+                                                            moonraker_url=url), {})
+    finally:
+        server.stop()
+    plain = estimate_file(nut, limits_from_klipper(_cfg_choice()).limits)
+    est = outcome.plan.estimate
+    assert est.total_s == pytest.approx(plain.total_s + 300.0, abs=1e-6)
+    text = outcome.summary()
+    assert "5m 00s of it before the first extrusion" in text
+    assert "learned from 4 prints" in text
+    joined = "".join(outcome.rewritten)
+    # Cura's ;TIME: holds what print_duration measures: the learned start is not in it.
+    assert re.search(r"^;TIME:(\d+)", joined, re.MULTILINE).group(1) == "%d" % round(
+        plain.total_s)

@@ -39,6 +39,7 @@ API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction")
 """The Klipper sections kestimator reads; nothing else of the printer's config is cached."""
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
+HTTP_NOT_FOUND = 404
 CACHE_FORMAT = 1
 _SECTION_FLAGS = (("gcode_arcs", "arcs_enabled"),
                   ("firmware_retraction", "firmware_retraction_enabled"))
@@ -120,9 +121,13 @@ def fetch_settings(url: str, api_key: str | None = None,
         if status in (401, 403):
             raise KestimatorError(f"Moonraker at {url} refused the request ({status} {reason}):"
                                   " give its API key with --api-key or in the profile") from None
-        if status >= 500:
+        if status >= 500 or status == HTTP_NOT_FOUND:
+            # Moonraker registers Klipper's endpoints (this query among them) only once
+            # Klipper has connected: without a running Klipper it answers 404.
             raise MoonrakerUnreachableError(
-                f"Moonraker at {url} answered {status} {reason}") from None
+                f"Moonraker at {url} answered {status} {reason}" + (
+                    " (no Klipper connected to it)" if status == HTTP_NOT_FOUND else "")
+            ) from None
         raise KestimatorError(f"Moonraker at {url} answered {status} {reason}") from None
     except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
         why = getattr(exc, "reason", None) or exc

@@ -5,13 +5,17 @@ Owns where the profile lives (``--profile``, else ``$XDG_CONFIG_HOME/kestimator/
 ``~/.config/kestimator/config.toml`` when that is unset), its keys, and the choice of a
 ``[printers."<name>"]`` table: by ``--printer NAME``, else the one named like the slicer's
 printer preset (``printer_settings_id``), else none. A table's keys replace the top-level ones
-and its ``[limits]`` add to the top-level ``[limits]``::
+and its ``[limits]`` and ``[macros]`` add to the top-level ones::
 
     printer_cfg = "~/printer_data/config/printer.cfg"  # or: moonraker = "http://voron.local"
     api_key = "..."                                    # Moonraker's, if it asks for one
     moonraker_timeout_s = 3
     homing_time_s = 25          # what one G28 takes on this printer (default 0)
     heat_time_s = 90            # what one heater wait takes (default 0)
+
+    [macros]                     # seconds one run of a macro takes on this printer
+    PRINT_START = 420
+    TIMELAPSE_TAKE_FRAME = 3.2
 
     [limits]                     # any Limits field (docs/LIMITS.md), e.g.
     klipper_generation = "mcr"
@@ -36,6 +40,7 @@ from typing import Any
 
 from kestimator.config.fields import check_limit_value
 from kestimator.errors import KestimatorError
+from kestimator.macros import check_seconds
 
 PROFILE_RELATIVE_PATH = Path("kestimator") / "config.toml"
 _MACHINE_KEYS = ("printer_cfg", "moonraker")
@@ -44,7 +49,7 @@ _TEXT_KEYS = ("printer_cfg", "moonraker", "api_key")
 # --homing-time / --heat-time win over them.
 DURATION_KEYS = ("homing_time_s", "heat_time_s")
 _TOP_KEYS = frozenset((*_TEXT_KEYS, *DURATION_KEYS, "moonraker_timeout_s", "limits",
-                       "printers"))
+                       "macros", "printers"))
 _TABLE_KEYS = _TOP_KEYS - {"printers"}
 
 
@@ -65,6 +70,8 @@ class Profile:
     """Field -> ``profile <path>`` (with the table, if the value is the table's)."""
     homing_time_s: float | None = None
     heat_time_s: float | None = None
+    macros: Mapping[str, float] = dataclasses.field(default_factory=dict)
+    """Macro name (upper case, as Klipper looks it up) -> seconds one run takes."""
 
     @property
     def description(self) -> str:
@@ -106,25 +113,30 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
         raise KestimatorError('[printers] must hold tables: [printers."<name>"]', name)
     # Every table is checked, not only the one chosen: a typo shows on the first run.
     checked_limits: dict[str, dict[str, object]] = {}
+    checked_macros: dict[str, dict[str, float]] = {}
     for table_name, table in tables.items():
         where = f'[printers."{table_name}"]'
         _check_keys(table, _TABLE_KEYS, where + " ", name)
         checked_limits[table_name] = _limits(table.get("limits", {}), where + ".limits", name)
+        checked_macros[table_name] = _macros(table.get("macros", {}), where + ".macros", name)
     chosen = printer if printer is not None else (
         slicer_preset if slicer_preset in tables else None)
     if chosen is not None and chosen not in tables:
         known = ", ".join(sorted(tables)) or "none"
         raise KestimatorError(f'no [printers."{chosen}"] table (there are: {known})', name)
     settings: dict[str, Any] = {key: value for key, value in document.items()
-                                if key not in ("printers", "limits")}
+                                if key not in ("printers", "limits", "macros")}
     limits = _limits(document.get("limits", {}), "[limits]", name)
+    macros = _macros(document.get("macros", {}), "[macros]", name)
     limit_sources = dict.fromkeys(limits, _describe(name, None))
     if chosen is not None:
         table = tables[chosen]
         if any(key in table for key in _MACHINE_KEYS):
             for key in _MACHINE_KEYS:
                 settings.pop(key, None)
-        settings.update({key: value for key, value in table.items() if key != "limits"})
+        settings.update({key: value for key, value in table.items()
+                         if key not in ("limits", "macros")})
+        macros.update(checked_macros[chosen])
         table_limits = checked_limits[chosen]
         limits.update(table_limits)
         limit_sources.update(dict.fromkeys(table_limits, _describe(name, chosen)))
@@ -153,7 +165,7 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
                    moonraker_timeout_s=None if timeout_s is None else float(timeout_s),
                    limits=limits, limit_sources=limit_sources,
                    homing_time_s=durations["homing_time_s"],
-                   heat_time_s=durations["heat_time_s"])
+                   heat_time_s=durations["heat_time_s"], macros=macros)
 
 
 def toml_available() -> bool:
@@ -195,4 +207,20 @@ def _limits(table: object, where: str, path: str) -> dict[str, object]:
             checked[field] = check_limit_value(field, value)
         except ValueError as exc:
             raise KestimatorError(f"{where}: {exc}", path) from None
+    return checked
+
+
+def _macros(table: object, where: str, path: str) -> dict[str, float]:
+    """A ``[macros]`` table: macro name -> seconds, names upper-cased as Klipper does."""
+    if not isinstance(table, dict):
+        raise KestimatorError(f"{where} must be a table of macro name = seconds", path)
+    checked: dict[str, float] = {}
+    for macro, value in table.items():
+        name = macro.strip().upper()
+        if not name or any(c.isspace() for c in name):
+            raise KestimatorError(f"{where}: {macro!r} is not a macro name", path)
+        try:
+            checked[name] = check_seconds(value)
+        except ValueError as exc:
+            raise KestimatorError(f"{where}: {macro} {exc}", path) from None
     return checked

@@ -49,6 +49,7 @@ from kestimator.config.profile import (
 )
 from kestimator.errors import KestimatorError
 from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
+from kestimator.macros import MacroTime
 from kestimator.slicers import (
     FILE_ORIGIN,
     SlicerInfo,
@@ -143,6 +144,10 @@ class ResolvedLimits:
     """Seconds per G28 from the profile (None: not set there)."""
     heat_time_s: float | None = None
     """Seconds per heater wait from the profile (None: not set there)."""
+    macro_times: Mapping[str, MacroTime] = dataclasses.field(default_factory=dict)
+    """Macro name -> seconds one run takes, from the profile's ``[macros]``."""
+    moonraker_api_key: str | None = dataclasses.field(default=None, repr=False)
+    """The key the Moonraker of ``machine`` was asked with (never shown)."""
     guess_warning: str | None = None
     """The one line that says the limits are guesses and how to give the real ones (also
     in ``warnings``); None when a printer.cfg or Moonraker decided them."""
@@ -275,6 +280,11 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         slicer=slicer, slicer_settings=slicer_settings, warnings=tuple(warnings),
         homing_time_s=profile.homing_time_s if profile is not None else None,
         heat_time_s=profile.heat_time_s if profile is not None else None,
+        macro_times={} if profile is None else {
+            name: MacroTime(seconds, profile.description)
+            for name, seconds in profile.macros.items()},
+        moonraker_api_key=_api_key(request, profile, environ)
+        if (machine is not None and machine.description.startswith("moonraker ")) else None,
         guess_warning=guess_warning)
 
 
@@ -323,13 +333,19 @@ def _machine(request: LimitRequest, profile: Profile | None,
         return SourcedValues(os.fspath(printer_cfg), values, sources)
     if moonraker_url is None:
         return None
-    api_key = (request.api_key or (profile.api_key if profile is not None else None)
-               or environ.get(API_KEY_ENVIRONMENT) or None)
+    api_key = _api_key(request, profile, environ)
     timeout_s = profile.moonraker_timeout_s if profile is not None else None
     cache_directory = request.cache_directory or default_cache_dir(environ)
     return moonraker_values(moonraker_url, api_key,
                             timeout_s if timeout_s is not None else DEFAULT_TIMEOUT_S,
                             cache_directory)
+
+
+def _api_key(request: LimitRequest, profile: Profile | None,
+             environ: Mapping[str, str]) -> str | None:
+    """Moonraker's API key: the request's, else the profile's, else the environment's."""
+    return (request.api_key or (profile.api_key if profile is not None else None)
+            or environ.get(API_KEY_ENVIRONMENT) or None)
 
 
 def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,

@@ -22,6 +22,7 @@ from collections.abc import Iterator, Sequence
 
 from kestimator.estimate import Estimate
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter, plan_lines
 from kestimator.slicers import SlicerInfo, detect
 from kestimator.slicers.base import DETECT_WINDOW_BYTES
@@ -133,7 +134,8 @@ class ChunkPlan:
         return self.estimate.total_s
 
 
-def plan_chunks(chunks: Sequence[str], limits: Limits, limits_source: str) -> ChunkPlan:
+def plan_chunks(chunks: Sequence[str], limits: Limits, limits_source: str,
+                macros: MacroTimes | None = None) -> ChunkPlan:
     """Pass 1: estimate the chunks with progress samples and build the rewrite plan.
 
     The core's ``plan_lines`` on the joined lines. Raises KestimatorError when the G-code
@@ -141,7 +143,8 @@ def plan_chunks(chunks: Sequence[str], limits: Limits, limits_source: str) -> Ch
     """
     head, tail = _head_and_tail(chunks)
     plan, est, slicer, slicer_s = plan_lines(iter_lines(chunks), head, tail, limits,
-                                             limits_source, path=SOURCE_NAME)
+                                             limits_source, path=SOURCE_NAME,
+                                             macros=macros)
     return ChunkPlan(plan=plan, estimate=est, slicer=slicer, slicer_estimate_s=slicer_s,
                      limits_source=limits_source)
 

@@ -49,12 +49,28 @@ class Outcome:
 
     def summary(self) -> str:
         """What the user reads in Cura."""
+        est = self.plan.estimate
         lines = ["Klipper print time: %s" % format_duration(self.total_s)]
+        parts = est.parts
+        if est.timed_parts:
+            lines[0] += " until the part is done"
+            lines.append("Motion %s (Klipper's planner) + macros and prep %s: %s." % (
+                format_duration(parts.motion_s), format_duration(parts.added_s),
+                ", ".join("%s x%d %s (%s)" % (p.name, p.count, format_duration(p.seconds),
+                                              p.source) for p in est.timed_parts)))
+            if parts.before_first_extrusion_s:
+                lines.append("%s of it before the first extrusion: not in the time the "
+                             "printer's web page counts down." % format_duration(
+                                 parts.before_first_extrusion_s))
         slicer_s = self.plan.slicer_estimate_s
-        if slicer_s is not None and self.total_s > 0:
+        motion_s = parts.motion_s
+        if slicer_s is not None and motion_s > 0:
             lines.append("Cura estimated %s (%+.0f %%)." % (
-                format_duration(slicer_s), 100.0 * (slicer_s - self.total_s) / self.total_s))
-        first_layer_s = self.plan.estimate.first_layer_s
+                format_duration(slicer_s), 100.0 * (slicer_s - motion_s) / motion_s))
+        if est.untimed_macros:
+            lines.append("No time known (0 s) for: %s." % ", ".join(
+                "%s x%d" % kv for kv in est.untimed_macros.items()))
+        first_layer_s = est.first_layer_s
         if first_layer_s is not None:
             lines.append("First layer: %s." % format_duration(first_layer_s))
         lines.append("Limits: %s." % self.limits.source)
@@ -69,7 +85,7 @@ def compute(chunks: Sequence[str], choice: LimitsChoice, settings: Mapping[str, 
     thread). Raises KestimatorError when the limits or the G-code cannot be used."""
     snapshot = tuple(chunks)
     limits = choose_limits(choice, settings, *file_ends(snapshot), environ=environ)
-    plan = plan_chunks(snapshot, limits.limits, limits.marker_source)
+    plan = plan_chunks(snapshot, limits.limits, limits.marker_source, limits.macros)
     rewritten = rewrite_chunks(snapshot, plan.plan)
     return Outcome(source_chunks=snapshot, rewritten=tuple(rewritten), plan=plan,
                    limits=limits)

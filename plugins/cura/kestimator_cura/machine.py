@@ -27,6 +27,7 @@ from kestimator.config.moonraker import moonraker_values
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.errors import KestimatorError
 from kestimator.limits import Limits
+from kestimator.macros import MacroTimes
 from kestimator.slicers import adapter_for
 from kestimator.slicers.base import FileEnds
 from kestimator.slicers.settings import SlicerConfig, SlicerValue
@@ -88,6 +89,8 @@ class ChosenLimits:
     limits: Limits
     source: str
     notes: tuple[str, ...] = ()
+    macros: MacroTimes | None = None
+    """Times learned from the printer's job history (``kestimator learn``), if any."""
     marker_source: str = MACHINE_MARKER_SOURCE
     """What the file's marker line records: the kind of source and a file or host name,
     never a directory (the core's ``ResolvedLimits.marker_source``)."""
@@ -137,7 +140,13 @@ def limits_from_klipper(choice: LimitsChoice,
         moonraker_url=choice.moonraker_url if choice.source == SOURCE_MOONRAKER else None,
         use_profile=False, read_slicer_environment=False, environ=environ)
     resolved = resolve_limits(request)
-    return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings),
+    macros = None
+    if choice.source == SOURCE_MOONRAKER and resolved.machine is not None:
+        from kestimator import learn
+        learned = learn.load(resolved.machine.split()[1])
+        if learned is not None:
+            macros = learned.macro_times()
+    return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings), macros,
                         resolved.marker_source)
 
 

@@ -1,0 +1,379 @@
+"""What a printer's own job history teaches: the time before the first extrusion, per timelapse
+frame and per tool change, and whether the printer runs slower than the planner.
+
+Owns reading Moonraker's history (``GET /server/history/list``: ``{"result": {"count", "jobs":
+[{"job_id", "filename", "status", "start_time", "end_time", "print_duration",
+"total_duration", "filament_used", "metadata", "auxiliary_data", "exists"}]}}``, see
+moonraker/components/history.py), matching each job to the file it printed (``exists`` is
+Moonraker's check that the file is still there with the modification time stored in the job's
+metadata: a file re-sliced or replaced since was printed with another config), timing that file
+with this printer's limits, the robust statistics, and the store: one JSON file per printer
+beside the Moonraker settings cache (``learned-<hash of the URL>.json``).
+
+Klipper's ``print_stats`` (klippy/extras/print_stats.py at 84104bbbd) gives, for a job that was
+not paused, ``total_duration - print_duration`` = the time before the first extrusion, and
+``print_duration`` = everything after it. So per job: start = total - print - (Klipper's motion
+before the first extrusion); per frame = (print - motion after the first extrusion) / frames.
+Each series is reduced newest first to its median; values further from it than
+``OUTLIER_MADS`` scaled median absolute deviations (at least ``MIN_TOLERANCE_R`` of the median,
+and ``MIN_TOLERANCE_S``) are rejected (a pause or a filament change lengthens one job), and a
+value needs ``MIN_JOBS`` jobs left.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import json
+import os
+import re
+import statistics
+import tempfile
+import urllib.parse
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from kestimator.config.moonraker import (
+    API_KEY_HEADER,
+    DEFAULT_TIMEOUT_S,
+    MAX_ANSWER_BYTES,
+    cache_path,
+    default_cache_dir,
+    normalise_url,
+)
+from kestimator.errors import KestimatorError
+from kestimator.estimate import Estimate, estimate_file
+from kestimator.limits import Limits
+from kestimator.macros import LEARNED_PREP_LABEL, TOOL_CHANGE, MacroTime, MacroTimes
+
+HISTORY_PATH = "/server/history/list"
+FILES_PATH = "/server/files/gcodes/"
+MAX_HISTORY_JOBS = 50
+MIN_JOBS = 3
+OUTLIER_MADS = 3.0
+MAD_TO_SIGMA = 1.4826
+MIN_TOLERANCE_R = 0.02
+MIN_TOLERANCE_S = 1.0
+# A motion correction is kept only when the printer is slower than the planner by more
+# than this ratio and by more than twice the spread.
+MIN_SLOWDOWN_R = 0.01
+FRAME_MACRO = "TIMELAPSE_TAKE_FRAME"
+_TOOL_RE = re.compile(r"T\d+$")
+STORE_FORMAT = 1
+COMPLETED = "completed"
+MAX_FILE_BYTES = 1 << 31
+_DATE_STORED = "%Y-%m-%dT%H:%M:%SZ"
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnedValue:
+    """One learned number: the median of the jobs kept, their spread, how many."""
+
+    value: float
+    spread: float
+    """Scaled median absolute deviation of the jobs kept (same unit as value)."""
+    jobs: int
+    rejected: int
+
+
+@dataclasses.dataclass(frozen=True)
+class LearnedTimes:
+    """What one printer's history taught, and when."""
+
+    url: str
+    learned_at: str
+    before_first_extrusion_s: LearnedValue | None = None
+    per_run_s: Mapping[str, LearnedValue] = dataclasses.field(default_factory=dict)
+    """``TIMELAPSE_TAKE_FRAME`` per frame, ``T`` per tool change (any T<n>)."""
+    motion_ratio: LearnedValue | None = None
+    """Actual / planned motion time, only when measurably above 1."""
+    jobs_read: int = 0
+    notes: tuple[str, ...] = ()
+
+    def source(self, value: LearnedValue) -> str:
+        """``learned from 5 prints (spread 2.1 s, 2026-11-23)``."""
+        return "learned from %d prints (spread %.3g s, %s)" % (
+            value.jobs, value.spread, self.learned_at[:10])
+
+    def macro_times(self, profile: Mapping[str, MacroTime] | None = None) -> MacroTimes:
+        """The profile's macro times with the learned ones over them."""
+        macros = dict(profile or {})
+        for name, value in self.per_run_s.items():
+            macros[name] = MacroTime(value.value, self.source(value))
+        prep = self.before_first_extrusion_s
+        return MacroTimes(macros=macros, before_first_extrusion=None if prep is None
+                          else MacroTime(prep.value, self.source(prep)))
+
+    def lines(self) -> list[str]:
+        """For people: one line per learned value."""
+        out = []
+        prep = self.before_first_extrusion_s
+        if prep is not None:
+            out.append("time %s: %.1f s (%s)" % (LEARNED_PREP_LABEL, prep.value,
+                                                 self.source(prep)))
+        names = {FRAME_MACRO: "per timelapse frame", TOOL_CHANGE: "per tool change"}
+        for name, value in sorted(self.per_run_s.items()):
+            out.append("%s (%s): %.2f s (%s)" % (names.get(name, "per run"), name,
+                                                 value.value, self.source(value)))
+        ratio = self.motion_ratio
+        if ratio is not None:
+            out.append("motion: the printer takes %.1f %% longer than Klipper's planner "
+                       "(spread %.1f %%, %d prints)" % (100 * (ratio.value - 1),
+                                                        100 * ratio.spread, ratio.jobs))
+        if not out:
+            out.append("nothing learned yet: %d jobs read, at least %d usable ones are "
+                       "needed per value" % (self.jobs_read, MIN_JOBS))
+        return out
+
+
+def robust(values: Sequence[float]) -> tuple[LearnedValue | None, list[int]]:
+    """Median of `values` (newest first) without outliers, and the indexes rejected."""
+    if not values:
+        return None, []
+    median = statistics.median(values)
+    mad = MAD_TO_SIGMA * statistics.median(abs(v - median) for v in values)
+    tolerance = max(OUTLIER_MADS * mad, MIN_TOLERANCE_R * abs(median), MIN_TOLERANCE_S)
+    kept = [v for v in values if abs(v - median) <= tolerance]
+    rejected = [i for i, v in enumerate(values) if abs(v - median) > tolerance]
+    if len(kept) < MIN_JOBS:
+        return None, rejected
+    centre = statistics.median(kept)
+    spread = MAD_TO_SIGMA * statistics.median(abs(v - centre) for v in kept)
+    return LearnedValue(centre, spread, len(kept), len(rejected)), rejected
+
+
+@dataclasses.dataclass(frozen=True)
+class JobTiming:
+    """One completed job and Klipper's times for its file."""
+
+    job_id: str
+    filename: str
+    total_duration: float
+    print_duration: float
+    motion_before_s: float
+    motion_after_s: float
+    frames: int
+    tool_changes: int
+
+
+def timing_of(job: Mapping[str, Any], est: Estimate) -> JobTiming:
+    """Pair a job with the estimate of its file (no macro times: Klipper's motion only)."""
+    first = est.first_extrusion_t if est.first_extrusion_t is not None else est.total_s
+    ignored = est.ignored_commands
+    return JobTiming(
+        job_id=str(job.get("job_id")), filename=str(job.get("filename")),
+        total_duration=float(job["total_duration"]),
+        print_duration=float(job["print_duration"]), motion_before_s=first,
+        motion_after_s=est.total_s - first, frames=ignored.get(FRAME_MACRO, 0),
+        # The first T command selects the tool the print starts with: no change.
+        tool_changes=max(0, sum(n for name, n in ignored.items() if _TOOL_RE.match(name)) - 1))
+
+
+def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_read: int,
+               notes: Sequence[str]) -> LearnedTimes:
+    """The statistics over the matched jobs (newest first)."""
+    notes = list(notes)
+    prep_values = [t.total_duration - t.print_duration - t.motion_before_s for t in timings]
+    prep, rejected = robust(prep_values)
+    notes += ["job %s (%s): time before the first extrusion %.0f s is an outlier (a pause?)"
+              % (timings[i].job_id, timings[i].filename, prep_values[i]) for i in rejected]
+    plain = [t for t in timings if not t.frames and not t.tool_changes and t.motion_after_s > 0]
+    ratio, _ = robust([t.print_duration / t.motion_after_s for t in plain]) if plain \
+        else (None, [])
+    factor = 1.0
+    if ratio is not None and (ratio.value - 1.0 <= max(MIN_SLOWDOWN_R, 2 * ratio.spread)):
+        ratio = None
+    if ratio is not None:
+        factor = ratio.value
+    per_run: dict[str, LearnedValue] = {}
+    for name, count in ((FRAME_MACRO, lambda t: t.frames if not t.tool_changes else 0),
+                        (TOOL_CHANGE, lambda t: t.tool_changes if not t.frames else 0)):
+        usable = [t for t in timings if count(t) > 0]
+        values = [(t.print_duration - factor * t.motion_after_s) / count(t) for t in usable]
+        learned, rejected = robust(values)
+        notes += ["job %s (%s): %.2f s per run of %s is an outlier" % (
+            usable[i].job_id, usable[i].filename, values[i], name) for i in rejected]
+        if learned is not None:
+            per_run[name] = learned
+    return LearnedTimes(url=url, learned_at=learned_at, before_first_extrusion_s=prep,
+                        per_run_s=per_run, motion_ratio=ratio, jobs_read=jobs_read,
+                        notes=tuple(notes))
+
+
+class _Client:
+    """GET requests to one Moonraker: no proxy, no redirects, the key in its header only."""
+
+    def __init__(self, url: str, api_key: str | None, timeout_s: float) -> None:
+        import urllib.request
+
+        class NoRedirect(urllib.request.HTTPRedirectHandler):
+            def redirect_request(self, req: urllib.request.Request, fp: Any, code: int,
+                                 msg: str, headers: Any, newurl: str) -> None:
+                return None
+
+        self.url = url
+        self.api_key = api_key
+        self.timeout_s = timeout_s
+        self.opener = urllib.request.build_opener(urllib.request.ProxyHandler({}),
+                                                  NoRedirect())
+
+    def open(self, path: str) -> Any:
+        import http.client
+        import urllib.error
+        import urllib.request
+
+        request = urllib.request.Request(self.url + path)
+        if self.api_key:
+            request.add_header(API_KEY_HEADER, self.api_key)
+        try:
+            return self.opener.open(request, timeout=self.timeout_s)
+        except urllib.error.HTTPError as exc:
+            exc.close()
+            if exc.code in (401, 403):
+                raise KestimatorError(f"Moonraker at {self.url} refused the request "
+                                      f"({exc.code}): give its API key with --api-key") from None
+            raise KestimatorError(f"Moonraker at {self.url} answered {exc.code} to "
+                                  f"{path.split('?')[0]}") from None
+        except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
+            why = getattr(exc, "reason", None) or exc
+            raise KestimatorError(f"Moonraker at {self.url} did not answer ({why})") from None
+
+    def jobs(self, limit: int) -> list[dict[str, Any]]:
+        with self.open(f"{HISTORY_PATH}?limit={limit}&order=desc") as response:
+            body = response.read(MAX_ANSWER_BYTES + 1)
+        try:
+            jobs = json.loads(body)["result"]["jobs"]
+        except (ValueError, KeyError, TypeError):
+            raise KestimatorError(f"Moonraker at {self.url} did not answer with its job "
+                                  "history (result.jobs)") from None
+        if not isinstance(jobs, list):
+            raise KestimatorError(f"Moonraker at {self.url}: result.jobs is not a list")
+        return [job for job in jobs if isinstance(job, dict)]
+
+    def download(self, filename: str, directory: str) -> str:
+        path = os.path.join(directory, "job.gcode")
+        with self.open(FILES_PATH + urllib.parse.quote(filename)) as response, \
+                open(path, "wb") as out:
+            done = 0
+            while True:
+                block = response.read(1 << 20)
+                if not block:
+                    break
+                done += len(block)
+                if done > MAX_FILE_BYTES:
+                    raise KestimatorError(f"{filename} on Moonraker is too large to learn from")
+                out.write(block)
+        return path
+
+
+def _job_problem(job: Mapping[str, Any]) -> str | None:
+    status = job.get("status")
+    if status != COMPLETED:
+        return "status %s" % _shown(status)
+    if not job.get("exists", False):
+        return "its file is gone or changed since (printed with another slicing or config)"
+    for key in ("total_duration", "print_duration"):
+        value = job.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                0.0 <= value < 1e9):
+            return "no usable %s" % key
+    if not isinstance(job.get("filename"), str) or not job["filename"]:
+        return "no file name"
+    return None
+
+
+def _shown(value: object) -> str:
+    """A value from a server, safe to print: printable ASCII, at most 60 characters."""
+    text = "".join(c if " " <= c <= "~" else "?" for c in str(value))
+    return text[:60]
+
+
+def _now_text() -> str:
+    return datetime.datetime.now(datetime.timezone.utc).strftime(_DATE_STORED)
+
+
+def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
+                         timeout_s: float = DEFAULT_TIMEOUT_S,
+                         max_jobs: int = MAX_HISTORY_JOBS,
+                         now: Callable[[], str] = _now_text) -> LearnedTimes:
+    """Read the history, time each completed job's file with `limits`, learn."""
+    url = normalise_url(url)
+    client = _Client(url, api_key, max(timeout_s, 30.0))
+    jobs = client.jobs(max_jobs)
+    notes: list[str] = []
+    timings: list[JobTiming] = []
+    estimates: dict[str, Estimate] = {}
+    with tempfile.TemporaryDirectory(prefix="kestimator-learn-") as directory:
+        for job in jobs:
+            label = "job %s (%s)" % (_shown(job.get("job_id")), _shown(job.get("filename")))
+            problem = _job_problem(job)
+            if problem is not None:
+                notes.append("%s: not used, %s" % (label, problem))
+                continue
+            filename = job["filename"]
+            est = estimates.get(filename)
+            if est is None:
+                try:
+                    est = estimate_file(client.download(filename, directory), limits)
+                except KestimatorError as exc:
+                    notes.append("%s: not used, %s" % (label, _shown(exc.message)))
+                    continue
+                estimates[filename] = est
+            timings.append(timing_of(dict(job, job_id=_shown(job.get("job_id")),
+                                          filename=_shown(filename)), est))
+    return learn_from(timings, url, now(), len(jobs), notes)
+
+
+def store_path(url: str, directory: Path) -> Path:
+    """The learned times of one Moonraker, beside its settings cache."""
+    settings = cache_path(normalise_url(url), directory)
+    return settings.with_name(settings.name.replace("moonraker-", "learned-", 1))
+
+
+def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
+    """Write the learned times atomically; the file's path."""
+    directory = directory if directory is not None else default_cache_dir(os.environ)
+    path = store_path(learned.url, directory)
+    document = {"format": STORE_FORMAT, **dataclasses.asdict(learned)}
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    handle, temp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as out:
+            json.dump(document, out, indent=1, sort_keys=True)
+        os.replace(temp, path)
+    except BaseException:
+        os.unlink(temp)
+        raise
+    return path
+
+
+def _value(raw: object) -> LearnedValue | None:
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise ValueError("not an object")
+    value = LearnedValue(float(raw["value"]), float(raw["spread"]), int(raw["jobs"]),
+                         int(raw["rejected"]))
+    if not (0.0 <= value.value < 1e7 and value.jobs >= MIN_JOBS):
+        raise ValueError("out of range")
+    return value
+
+
+def load(url: str, directory: Path | None = None) -> LearnedTimes | None:
+    """The stored learned times of the Moonraker at `url`, None if none (or unusable)."""
+    directory = directory if directory is not None else default_cache_dir(os.environ)
+    url = normalise_url(url)
+    try:
+        document = json.loads(store_path(url, directory).read_text(encoding="utf-8"))
+        if document.get("format") != STORE_FORMAT or document.get("url") != url:
+            return None
+        per_run = {str(name): _value(raw) for name, raw in document["per_run_s"].items()}
+        return LearnedTimes(
+            url=url, learned_at=str(document["learned_at"]),
+            before_first_extrusion_s=_value(document["before_first_extrusion_s"]),
+            per_run_s={name: v for name, v in per_run.items() if v is not None},
+            motion_ratio=_value(document["motion_ratio"]),
+            jobs_read=int(document["jobs_read"]), notes=tuple(document["notes"]))
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
