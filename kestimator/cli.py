@@ -105,11 +105,44 @@ used, 2 a wrong command line, 3 a bug in kestimator.
 """
 
 
+# A help line this short ending in ':' is a heading ("examples:"), kept on its own.
+HEADING_MAX_CHARS = 30
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and epilogs wrapped at the terminal's width: lines that start at the
+    margin are joined into paragraphs and filled; indented lines (examples) are kept."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        import textwrap
+        out: list[str] = []
+        paragraph: list[str] = []
+
+        def flush() -> None:
+            if paragraph:
+                out.extend(textwrap.wrap(" ".join(paragraph), width,
+                                         initial_indent=indent, subsequent_indent=indent,
+                                         break_on_hyphens=False))
+                paragraph.clear()
+        for line in text.splitlines():
+            if not line.strip():
+                flush()
+                out.append("")
+            elif line[:1] in (" ", "\t") or (line.rstrip().endswith(":")
+                                             and len(line) <= HEADING_MAX_CHARS):
+                flush()
+                out.append(indent + line)
+            else:
+                paragraph.append(line.strip())
+        flush()
+        return "\n".join(out)
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kestimator",
         description=DESCRIPTION, epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        formatter_class=_HelpFormatter)
     parser.add_argument("-V", "--version", action="version",
                         version="kestimator " + __version__)
     parser.add_argument("--debug", action="store_true",
@@ -121,7 +154,7 @@ def _build_parser() -> argparse.ArgumentParser:
                     "slicer's own estimate and the difference, first-layer time, layers, "
                     "filament, where the limits came from, warnings and the time per "
                     "feature.",
-        epilog=ESTIMATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=ESTIMATE_EPILOG, formatter_class=_HelpFormatter)
     est.add_argument("file", help="the G-code file")
     _add_limit_options(est)
     output = est.add_mutually_exclusive_group()
@@ -139,10 +172,14 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Rewrite a G-code file so M73 progress lines and the slicer's time "
                     "comments show Klipper's time. In place (atomically) unless -o is given; "
                     "every other line is kept byte for byte.",
-        epilog=INJECT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=INJECT_EPILOG, formatter_class=_HelpFormatter)
     inj.add_argument("file", help="the G-code file (the slicer appends it last)")
     inj.add_argument("-o", "--output", metavar="OUT",
                      help="write the result here and leave FILE untouched")
+    inj.add_argument("--no-layer-info", dest="layer_info", action="store_false",
+                     help="do not add SET_PRINT_STATS_INFO TOTAL_LAYER/CURRENT_LAYER lines "
+                          "(added where the file sets no layer numbers, so Mainsail, Fluidd "
+                          "and KlipperScreen show the layer)")
     _add_limit_options(inj)
     output = inj.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true",
@@ -155,7 +192,7 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Print every printer limit kestimator would use for FILE and where each "
                     "came from: --set, the printer.cfg line or Moonraker, the profile, the "
                     "slicer setting in the file (a guess), or a default.",
-        epilog=LIMITS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=LIMITS_EPILOG, formatter_class=_HelpFormatter)
     lim.add_argument("file", nargs="?",
                      help="the G-code file (its slicer settings stand in when no printer "
                           "config is known)")
@@ -167,7 +204,7 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Write one self-contained HTML page (no network, no scripts) with "
                     "Klipper's time per layer, progress against the slicer's own M73, time "
                     "per feature and the speed moves reach against the speed they ask for.",
-        epilog=REPORT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=REPORT_EPILOG, formatter_class=_HelpFormatter)
     rep.add_argument("file", help="the G-code file")
     rep.add_argument("-o", "--output", metavar="HTML", required=True,
                      help="where to write the page")
@@ -207,7 +244,10 @@ INJECT_EPILOG = """examples:
   kestimator inject print.gcode --printer-cfg ~/printer_data/config/printer.cfg
   kestimator inject print.gcode -o print-klipper.gcode
 As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line is:
-  kestimator inject --printer-cfg /path/to/printer.cfg
+  kestimator inject --moonraker http://voron.local:7125
+(Moonraker's answer is cached, so the hook works with the printer off; or --printer-cfg
+with a path, quoted if it has a space; with a profile that names the printer, just
+`kestimator inject`.)
 """
 
 
@@ -338,7 +378,8 @@ def _is_terminal(stream: Any) -> bool:
 
 
 class _ProgressBar:
-    """Bytes read, drawn on stderr: with rich when installed, else one rewritten line.
+    """Bytes read, drawn on stderr with the time spent and the time left: with rich when
+    installed, else one rewritten line.
 
     Shown only for files of at least PROGRESS_MIN_BYTES when stderr is a terminal; calling
     it is then `progress(bytes_done)`. Used as a context manager, it clears itself.
@@ -349,14 +390,27 @@ class _ProgressBar:
         self.total = max(total_bytes, 1)
         self._rich: Any = None
         self._task: Any = None
-        self._last_pct = -1
+        self._last_shown = ""
+        self._started = 0.0
+        self._width = 0
 
     def __enter__(self) -> _ProgressBar:
+        import time
+        self._started = time.monotonic()
         console = _rich_console(stderr=True)
         if console is not None:
-            from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
+            from rich.progress import (
+                BarColumn,
+                Progress,
+                TaskProgressColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
             self._rich = Progress(TextColumn("{task.description}"), BarColumn(),
-                                  TaskProgressColumn(), console=console, transient=True)
+                                  TaskProgressColumn(), TimeElapsedColumn(),
+                                  TextColumn("elapsed,"), TimeRemainingColumn(),
+                                  TextColumn("left"), console=console, transient=True)
             self._rich.start()
             self._task = self._rich.add_task(self.label, total=self.total)
         return self
@@ -365,24 +419,39 @@ class _ProgressBar:
         if self._rich is not None:
             self._rich.update(self._task, completed=min(done, self.total))
             return
-        pct = min(100, 100 * done // self.total)
-        if pct != self._last_pct:
-            self._last_pct = pct
-            sys.stderr.write("\r%s %3d %%" % (self.label, pct))
+        import time
+        fraction = min(1.0, done / self.total)
+        elapsed = time.monotonic() - self._started
+        left = elapsed * (1.0 - fraction) / fraction if fraction > 0 else None
+        text = "%s %3d %%  %s elapsed, %s left" % (
+            self.label, int(100 * fraction), _clock(elapsed),
+            "?" if left is None else _clock(left))
+        if text != self._last_shown:
+            self._last_shown = text
+            self._width = max(self._width, len(text))
+            sys.stderr.write("\r" + text.ljust(self._width))
             sys.stderr.flush()
 
     def __exit__(self, *exc: object) -> None:
         if self._rich is not None:
             self._rich.stop()
-        elif self._last_pct >= 0:
-            sys.stderr.write("\r%s\r" % (" " * (len(self.label) + 6)))
+        elif self._last_shown:
+            sys.stderr.write("\r%s\r" % (" " * self._width))
             sys.stderr.flush()
+
+
+def _clock(seconds: float) -> str:
+    """`0:07` or `1:02:03`: a duration as a clock shows it."""
+    whole = int(seconds + 0.5)
+    hours, rest = divmod(whole, 3600)
+    minutes, secs = divmod(rest, 60)
+    return "%d:%02d:%02d" % (hours, minutes, secs) if hours else "%d:%02d" % (minutes, secs)
 
 
 def _progress(args: argparse.Namespace, label: str, passes: int = 1
               ) -> contextlib.AbstractContextManager[_ProgressBar | None]:
     """A progress bar for a large file on a terminal, else a context yielding None."""
-    if args.json or args.quiet or not _is_terminal(sys.stderr):
+    if getattr(args, "json", False) or args.quiet or not _is_terminal(sys.stderr):
         return contextlib.nullcontext()
     try:
         size = os.path.getsize(args.file)
@@ -525,7 +594,8 @@ def cmd_inject(args: argparse.Namespace) -> int:
         result = inject_file(args.file, resolved.limits, output=args.output,
                              limits_source=resolved.marker_source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
-                             progress=progress, macros=args.macros)
+                             progress=progress, macros=args.macros,
+                             layer_info=args.layer_info)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
                                list(resolved.warnings), limits_guessed=resolved.guessed)
@@ -593,28 +663,96 @@ def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]
     }
 
 
-def _print_limits(doc: dict[str, Any], out: Any) -> None:
-    slicer = doc["slicer"]
-    lines = ["%s" % (doc["file"] or "(no file)")]
-    if slicer is not None:
-        lines.append("  slicer  : %s%s" % (slicer["name"], " " + slicer["version"]
-                                           if slicer["version"] else ""))
-    lines.append("  machine : %s" % (doc["machine"] or "none (no printer.cfg or Moonraker)"))
-    lines.append("  profile : %s" % (doc["profile"] or "none"))
-    width = max(len(field) for field in doc["limits"])
+# The unit of each limit, as `kestimator limits` shows it.
+LIMIT_UNITS = {
+    "max_velocity": "mm/s", "max_accel": "mm/s²", "square_corner_velocity": "mm/s",
+    "max_z_velocity": "mm/s", "max_z_accel": "mm/s²", "nozzle_diameter": "mm",
+    "filament_diameter": "mm", "max_extrude_cross_section": "mm²",
+    "max_extrude_only_velocity": "mm/s", "max_extrude_only_accel": "mm/s²",
+    "max_extrude_only_distance": "mm", "instantaneous_corner_velocity": "mm/s",
+    "arc_resolution": "mm", "retract_length": "mm", "retract_speed": "mm/s",
+    "unretract_extra_length": "mm", "unretract_speed": "mm/s", "max_accel_to_decel": "mm/s²",
+}
+SLICER_SOURCE_PREFIX = "slicer:"
+
+
+def limit_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """(setting, value, unit, source, what the slicer assumed) for every limit; the last is
+    empty unless the file's slicer settings proposed another value that lost."""
+    rows = []
     for field, entry in doc["limits"].items():
-        lines.append("  %-*s %-10s %s" % (width, field, _shown(entry["value"]),
-                                           entry["source"]))
+        assumed = [c["value"] for c in entry["overridden"]
+                   if str(c["source"]).startswith(SLICER_SOURCE_PREFIX)]
+        rows.append((field, _shown(entry["value"]), LIMIT_UNITS.get(field, ""),
+                     str(entry["source"]),
+                     "" if not assumed or assumed[0] == entry["value"] else _shown(assumed[0])))
+    return rows
+
+
+def _limits_head(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    slicer = doc["slicer"]
+    head = [("file", doc["file"] or "(no file)")]
+    if slicer is not None:
+        head.append(("slicer", slicer["name"] + (" " + slicer["version"]
+                                                 if slicer["version"] else "")))
+    head.append(("machine", doc["machine"] or "none (no printer.cfg or Moonraker)"))
+    head.append(("profile", doc["profile"] or "none"))
+    return head
+
+
+def _limits_tail(doc: dict[str, Any]) -> list[str]:
+    lines = []
     accelerations = doc["slicer_settings"]["accelerations"]
     if accelerations:
-        lines.append("  accelerations the file sets itself (mm/s^2, not limits): " + ", ".join(
+        lines.append("accelerations the file sets itself (mm/s², not limits): " + ", ".join(
             "%s %g" % (key, value) for key, value in accelerations.items()))
-    for note in doc["slicer_settings"]["notes"]:
-        lines.append("  note: " + note)
-    for warning in doc["warnings"]:
-        if not warning.startswith(GUESS_WARNING_START):  # said on stderr
-            lines.append("  warning: " + warning)
+    lines.extend("note: " + note for note in doc["slicer_settings"]["notes"])
+    lines.extend("warning: " + w for w in doc["warnings"]
+                 if not w.startswith(GUESS_WARNING_START))  # that one is said on stderr
+    return lines
+
+
+def _print_limits(doc: dict[str, Any], out: Any) -> None:
+    """The limits as a table: setting, value and unit, where it came from, and what the
+    slicer assumed where its settings in the file say something else."""
+    lines = ["  %-8s: %s" % pair for pair in _limits_head(doc)]
+    rows = limit_rows(doc)
+    any_assumed = any(row[4] for row in rows)
+    titles = ("setting", "value", "unit", "source", "slicer assumed")
+    widths = [max(len(titles[i]), *(len(row[i]) for row in rows)) for i in range(3)]
+    header = "  %-*s  %*s %-*s  %s" % (widths[0], titles[0], widths[1], titles[1], widths[2],
+                                       titles[2], titles[3])
+    lines.append(header + ("  | " + titles[4] if any_assumed else ""))
+    for name, value, unit, source, assumed in rows:
+        line = "  %-*s  %*s %-*s  %s" % (widths[0], name, widths[1], value, widths[2], unit,
+                                         source)
+        lines.append(line + ("  | slicer: %s" % assumed if assumed else ""))
+    lines.extend("  " + text for text in _limits_tail(doc))
     out.write("\n".join(lines) + "\n")
+
+
+def _print_limits_rich(doc: dict[str, Any], console: Any) -> None:
+    """The same table drawn with rich."""
+    from rich import box
+    from rich.table import Table
+    from rich.text import Text
+
+    for label, text in _limits_head(doc):
+        console.print(Text.assemble(("%-8s " % label, "bold"), text))
+    rows = limit_rows(doc)
+    table = Table(box=box.SIMPLE_HEAD)
+    table.add_column("Setting")
+    table.add_column("Value", justify="right")
+    table.add_column("Unit")
+    table.add_column("Source", overflow="fold")
+    assumed = any(row[4] for row in rows)
+    if assumed:
+        table.add_column("Slicer assumed", justify="right", style="yellow")
+    for row in rows:
+        table.add_row(*(Text(cell) for cell in (row if assumed else row[:4])))
+    console.print(table)
+    for text in _limits_tail(doc):
+        console.print(Text(text, style="yellow" if text.startswith("warning") else "dim"))
 
 
 def _shown(value: object) -> str:
@@ -640,7 +778,11 @@ def cmd_limits(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
-        _print_limits(printable_doc(doc), sys.stdout)
+        console = _rich_console()
+        if console is None:
+            _print_limits(printable_doc(doc), sys.stdout)
+        else:
+            _print_limits_rich(printable_doc(doc), console)
         for name, entry in doc["macros"].items():
             sys.stdout.write(printable("  macro %s: %g s (%s)" % (
                 name, entry["seconds"], entry["source"])) + "\n")
@@ -683,13 +825,23 @@ def cmd_learn(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+REPORT_EXTENSIONS = (".html", ".htm", ".xhtml")
+
+
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
+    extension = os.path.splitext(args.output)[1].lower()
+    if extension not in REPORT_EXTENSIONS:
+        raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
+                         "in a browser to save a picture)" % (extension or "a file without "
+                                                              "an extension"))
     check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
     _check_time_options(args)
-    data = collect(args.file, resolved.limits, resolved.summary,
-                   homing_time=args.homing_time, heat_time=args.heat_time, macros=args.macros)
+    with _progress(args, "timing") as progress:
+        data = collect(args.file, resolved.limits, resolved.summary,
+                       homing_time=args.homing_time, heat_time=args.heat_time,
+                       macros=args.macros, bytes_read=progress)
     page = render_html(data)
     try:
         with open(args.output, "w", encoding="utf-8") as out:
@@ -705,6 +857,61 @@ def cmd_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+class UsageError(KestimatorError):
+    """A wrong command line found after parsing: one line, exit status 2."""
+
+
+# The commands; options given before one of them are moved after it.
+COMMANDS = ("estimate", "inject", "limits", "report", "learn")
+_TOP_LEVEL_ONLY = frozenset(("-h", "--help", "-V", "--version"))
+# Options whose value is a path: a value with an unquoted space or Windows backslashes is
+# explained (a slicer's post-processing line splits at spaces).
+_PATH_OPTIONS = frozenset(("--printer-cfg", "--profile", "-o", "--output"))
+
+
+def _fix_argv(argv: list[str]) -> list[str]:
+    """`kestimator FILE` runs `estimate FILE`; options before the command go after it."""
+    if any(arg in _TOP_LEVEL_ONLY for arg in argv) and not any(a in COMMANDS for a in argv):
+        return argv
+    index = next((i for i, arg in enumerate(argv) if arg in COMMANDS), None)
+    if index is None:
+        # `kestimator FILE`: the first word that is not an option names an existing file.
+        first = next((arg for arg in argv if not arg.startswith("-")), None)
+        if first is None or not os.path.isfile(first):
+            return argv
+        return ["estimate", *argv]
+    if index == 0 or any(arg in _TOP_LEVEL_ONLY for arg in argv[:index]):
+        return argv
+    return [argv[index], *argv[:index], *argv[index + 1:]]
+
+
+def _path_mistake(argv: list[str]) -> str | None:
+    """One line on a path option whose value a slicer's hook line cut at a space, or that is
+    written with Windows backslashes where it does not exist."""
+    for i, arg in enumerate(argv[:-1]):
+        option, equals, value = arg.partition("=")
+        if option not in _PATH_OPTIONS:
+            continue
+        start = i if equals else i + 1
+        value = value if equals else argv[start]
+        if option in ("-o", "--output") or os.path.exists(value):
+            continue
+        joined = value
+        for extra in argv[start + 1:]:
+            joined += " " + extra
+            if os.path.exists(joined):
+                return ("%s %s does not exist, but %s does: the path has a space, so quote it "
+                        "(in a slicer's post-processing line too): %s \"%s\""
+                        % (option, printable(value), printable(joined), option,
+                           printable(joined)))
+        if "\\" in value:
+            return ("%s %s does not exist: write the path with forward slashes (C:/Users/...) "
+                    "and quote it if it has a space, e.g. %s \"%s\""
+                    % (option, printable(value), option,
+                       printable(value.replace("\\", "/"))))
+    return None
+
+
 def _error_text(exc: KestimatorError) -> str:
     """One line; names the slicer's final file when we ran on its temporary copy."""
     text = str(exc)
@@ -717,7 +924,12 @@ def _error_text(exc: KestimatorError) -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status."""
     parser = _build_parser()
-    args = parser.parse_args(argv)
+    arguments = _fix_argv(list(sys.argv[1:] if argv is None else argv))
+    mistake = _path_mistake(arguments)
+    if mistake is not None:
+        sys.stderr.write("kestimator: error: %s\n" % mistake)
+        return EXIT_USAGE
+    args = parser.parse_args(arguments)
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
@@ -732,6 +944,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_report(args)
         if args.command == "learn":
             return cmd_learn(args)
+    except UsageError as exc:
+        sys.stderr.write("kestimator: error: %s\n" % _error_text(exc))
+        return EXIT_USAGE
     except KestimatorError as exc:
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()

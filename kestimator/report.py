@@ -19,7 +19,7 @@ from collections.abc import Sequence
 
 from kestimator import __version__
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate, estimate_file
+from kestimator.estimate import Estimate, ProgressCallback, estimate_file
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.planner import Move
@@ -95,12 +95,14 @@ def _time_at_line(est: Estimate, line: int) -> float:
 
 
 def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
-            heat_time: float = 0.0, macros: MacroTimes | None = None) -> ReportData:
-    """Estimate the file with move statistics and read the slicer's own M73 progress."""
+            heat_time: float = 0.0, macros: MacroTimes | None = None,
+            bytes_read: ProgressCallback | None = None) -> ReportData:
+    """Estimate the file with move statistics and read the slicer's own M73 progress
+    (`bytes_read` hears the bytes the estimate has read, for a progress bar)."""
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
                         macros=macros,
-                        sample=True, observer=speed)
+                        sample=True, observer=speed, progress=bytes_read)
     slicer = slicer_of_file(path)  # through our marker in an injected file
     progress: list[tuple[float, float]] = []
     with open(path, "rb") as f:

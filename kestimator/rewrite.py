@@ -60,6 +60,9 @@ from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
 
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
+# A SET_PRINT_STATS_INFO line the file's slicer (or start G-code) wrote, not ours.
+_FOREIGN_LAYER_INFO_RE = re.compile(
+    rb"^[ \t]*SET_PRINT_STATS_INFO\b(?![^\n]*; kestimator\r?$)", re.MULTILINE | re.IGNORECASE)
 PREP_PREFIX = "; time before first extrusion (kestimator) = "
 _PREP_PREFIX_B = PREP_PREFIX.encode()
 _MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
@@ -74,7 +77,10 @@ _M73 = rb"[Mm]73(?:[ \t;\r\n]|\Z)"
 _m73_at = re.compile(_M73).match
 # Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
 # our marker) and M73 lines (dropped), as `process` recognises them after lstrip().
-_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s)" % _M73
+# Our own SET_PRINT_STATS_INFO lines (dropped and written again) need attention too.
+LAYER_INFO_COMMAND = b"SET_PRINT_STATS_INFO"
+LAYER_INFO_SUFFIX = b" ; kestimator"
+_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s|%s )" % (_M73, LAYER_INFO_COMMAND)
 _attention_at = re.compile(_ATTENTION).match
 # The next such line, found by the LF that ends the line before it.
 _next_attention = re.compile(rb"\n" + _ATTENTION).search
@@ -99,6 +105,12 @@ def _after_lines(data: bytes, pos: int, count: int) -> int:
 def _is_m73(code: bytes) -> bool:
     """True for an M73 command line (already left-stripped)."""
     return _m73_at(code) is not None
+
+
+def is_layer_info_line(code: bytes) -> bool:
+    """True for a SET_PRINT_STATS_INFO line inject wrote (`code` left-stripped)."""
+    return code.startswith(LAYER_INFO_COMMAND) and code.rstrip(b"\r\n").endswith(
+        LAYER_INFO_SUFFIX)
 
 
 def progress_pr(t: float, total_s: float) -> tuple[int, int]:
@@ -172,11 +184,14 @@ class InjectPlan:
     # moonraker_time_comment): before the marker (head) or at the end of the file (tail).
     head_comment: str | None = None
     tail_comment: str | None = None
+    # Layers for SET_PRINT_STATS_INFO TOTAL_LAYER / CURRENT_LAYER lines; 0 writes none.
+    layer_info_total: int = 0
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
                       limits_source: str,
-                      moonraker_comment: tuple[str, str] | None = None) -> InjectPlan:
+                      moonraker_comment: tuple[str, str] | None = None,
+                      layer_info: bool = False) -> InjectPlan:
         """Build the plan from a sampled estimate (estimate_file(..., sample=True)).
 
         The time comments get what print_duration will measure: the total less the time
@@ -197,7 +212,8 @@ class InjectPlan:
                    head_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == HEAD else None,
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
-                   and moonraker_comment[0] == TAIL else None)
+                   and moonraker_comment[0] == TAIL else None,
+                   layer_info_total=len(est.layers) if layer_info else 0)
 
 
 class Rewriter:
@@ -215,6 +231,7 @@ class Rewriter:
         # The same prefixes as UTF-8: a line is decoded only if its bytes start with one.
         self._prefixes_b = tuple(prefix.encode("utf-8") for prefix in self._prefixes)
         self.m73_written = 0
+        self._layer = 0
         # Fast path: up to this line, a line starting with "G" is copied as it is (no
         # progress sample is crossed and the last move is not reached before it).
         self._quiet_until = 0
@@ -292,6 +309,8 @@ class Rewriter:
             return self._comment(raw, code, eol)
         if _is_m73(code):
             return []
+        if is_layer_info_line(code):
+            return []  # ours: written again at the layer markers
         out: list[bytes] = []
         plan = self.plan
         line_eol = eol or self.eol
@@ -407,15 +426,34 @@ class Rewriter:
         self._eol_line = data[stop - 2:stop]
         return stop
 
+    def _layer_marker(self, raw: bytes, eol: bytes) -> list[bytes]:
+        """A layer marker: an M73 after it (once the print started) and, when the plan
+        asks, SET_PRINT_STATS_INFO TOTAL_LAYER before the first and CURRENT_LAYER after
+        each, so Mainsail, Fluidd and KlipperScreen show layer numbers."""
+        line_eol = eol or self.eol
+        before: list[bytes] = []
+        after: list[bytes] = []
+        total = self.plan.layer_info_total
+        if total:
+            self._layer += 1
+            if self._layer == 1:
+                before.append(b"%s TOTAL_LAYER=%d%s" % (LAYER_INFO_COMMAND, total,
+                                                        LAYER_INFO_SUFFIX) + line_eol)
+            after.append(b"%s CURRENT_LAYER=%d%s" % (LAYER_INFO_COMMAND, self._layer,
+                                                     LAYER_INFO_SUFFIX) + line_eol)
+        if self._started:
+            self._advance(self.lineno)
+            pr = progress_pr(self._t, self.plan.total_s)
+            after.insert(0, self._m73(pr[0], pr[1], line_eol))
+        if not eol:  # the file ends in this marker: never add a line ending to it
+            return before + after + [raw]
+        return before + [raw] + after
+
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
         if code.startswith(_MARKER_PREFIX_B) or code.startswith(_PREP_PREFIX_B):
             return []
-        if self.lineno in self.plan.layer_lines and self._started:
-            self._advance(self.lineno)
-            pr = progress_pr(self._t, self.plan.total_s)
-            if eol:
-                return [raw, self._m73(pr[0], pr[1], eol)]
-            return [self._m73(pr[0], pr[1], self.eol), raw]
+        if self.lineno in self.plan.layer_lines:
+            return self._layer_marker(raw, eol)
         if self._prefixes and code.startswith(self._prefixes_b):
             text = code.decode("utf-8", "surrogateescape").rstrip("\r\n")
             if text.startswith(self._prefixes):
@@ -468,7 +506,8 @@ PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
 
 def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
-               path: str = "<input>", macros: MacroTimes | None = None) -> PlanResult:
+               path: str = "<input>", macros: MacroTimes | None = None,
+               layer_info: bool = True) -> PlanResult:
     """Pass 1 over byte lines: estimate with progress samples, build the rewrite plan.
 
     `head` and `tail` are the first and last MiB (the same bytes for small input); they
@@ -487,31 +526,36 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
         # What the rewritten time comments hold: print_duration, without the time before the
         # first extrusion.
         adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail),
-                                       est.total_s - est.parts.before_first_extrusion_s))
+                                       est.total_s - est.parts.before_first_extrusion_s),
+        # Layer numbers only where the file sets none itself (its first and last MiB).
+        layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
+        and _FOREIGN_LAYER_INFO_RE.search(tail) is None)
     return plan, est, slicer, slicer_s
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
               heat_time: float = 0.0, progress: ProgressCallback | None = None,
-              macros: MacroTimes | None = None) -> PlanResult:
+              macros: MacroTimes | None = None, layer_info: bool = True) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
     lines: Iterable[bytes] = iter_lines(path)
     if progress is not None:
         lines = counted_lines(lines, progress)
     return plan_lines(lines, head, tail, limits, limits_source, homing_time,
-                      heat_time, path, macros)
+                      heat_time, path, macros, layer_info)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
                 limits_source: str = "", homing_time: float = 0.0,
                 heat_time: float = 0.0,
                 progress: ProgressCallback | None = None,
-                macros: MacroTimes | None = None) -> InjectResult:
+                macros: MacroTimes | None = None,
+                layer_info: bool = True) -> InjectResult:
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
 
     `progress` hears the bytes read so far over both passes: the file is read twice, so
-    the count ends at twice its size.
+    the count ends at twice its size. `layer_info`: add SET_PRINT_STATS_INFO TOTAL_LAYER /
+    CURRENT_LAYER lines where the file sets no layer numbers itself.
     """
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
@@ -520,7 +564,7 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     with _exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                                heat_time, progress, macros)
+                                                heat_time, progress, macros, layer_info)
         rewriter = Rewriter(plan)
         _write_atomically(src, dest, rewriter, before, progress)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,

@@ -43,7 +43,8 @@ from kestimator_cura.machine import (  # noqa: E402
     limits_from_machine,
 )
 
-OWNED_PREFIXES = ("M73", MARKER_PREFIX, ";TIME:", ";PRINT.TIME:", ";TIME_ELAPSED:")
+OWNED_PREFIXES = ("M73", MARKER_PREFIX, ";TIME:", ";PRINT.TIME:", ";TIME_ELAPSED:",
+                  "SET_PRINT_STATS_INFO")
 # CuraEngine 4.13 CLI; the Cura 5.0 and 4.10 applications' files are CRLF.
 CORPUS_CURA = ("cura/cura413_ender3_nut_small.gcode",
                "cura/cancelobj_cura5.0.0_inverted_pyramid.gcode",

@@ -63,8 +63,8 @@ def test_limits_text_lists_every_setting_with_its_source(
     assert "  slicer  : PrusaSlicer 2.3.3+x64" in out
     assert "  machine : none (no printer.cfg or Moonraker)" in out
     lines = {line.split()[0]: line for line in out.splitlines()[4:] if line.startswith("  ")}
-    assert lines["max_accel"].split()[1:3] == ["1500", "slicer:"]
-    assert lines["max_z_accel"].split()[1:] == ["50", "--set"]
+    assert lines["max_accel"].split()[1:4] == ["1500", "mm/s²", "slicer:"]
+    assert lines["max_z_accel"].split()[1:] == ["50", "mm/s²", "--set", "|", "slicer:", "500"]
     assert lines["arcs_enabled"].split()[1:4] == ["true", "kestimator", "assumption:"]
     assert err.startswith("kestimator: warning: no printer.cfg or Moonraker given")
     assert "no printer.cfg or Moonraker given" not in out
