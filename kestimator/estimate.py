@@ -186,6 +186,11 @@ class Timeline:
         self.first_command_line: int | None = None
         self._warned_macros: set[str] = set()
         self._commands: dict[str, Command] = {}
+        # What the printer's kinematics does that is not modelled: said once, up front;
+        # its commands that change motion are named where they run.
+        for message in self.toolhead.kin.warnings:
+            self.warn(message, None, "kinematics:" + message)
+        self._kin_commands = self.toolhead.kin.commands
         learned = self.macros.before_first_extrusion
         if learned is not None:
             # The printer's own history measured everything before the first extrusion:
@@ -364,6 +369,8 @@ class Timeline:
             return
         if self.first_command_line is None:
             self.first_command_line = self.lineno
+        if cmd.name in self._kin_commands:
+            self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
         self.interp.tag = self.lineno
         try:
             self.interp.execute(cmd)

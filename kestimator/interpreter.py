@@ -387,29 +387,32 @@ class Interpreter:
 
     # Homing and position jumps
     def cmd_G28(self, cmd: Command) -> None:
-        """Home: the named axes (all of XYZ if none) become 0 after a full stop."""
+        """Home the named axes (all of XYZ if none): after a full stop the head is where the
+        kinematics' homing leaves it (each axis at its position_endstop, a delta at its
+        home position), and the G-code offsets of the homed axes are reset."""
         axes = [pos for pos, axis in enumerate("XYZ") if axis in cmd.params]
         if not axes:
             axes = [0, 1, 2]
-        newpos = list(self.toolhead.commanded_pos)
-        for axis in axes:
-            newpos[axis] = 0.0
-        self.toolhead.set_position((newpos[0], newpos[1], newpos[2], newpos[3]))
+        newpos, homed = self.toolhead.kin.home(self.toolhead.commanded_pos, axes)
+        self.toolhead.set_position(newpos, homed)
         if self.homing_time > 0.0:
             self.add_time(self.homing_time, "G28", HOMING_SOURCE)
         self.reset_last_position()
-        for axis in axes:
+        for axis in ("xyz".index(a) for a in homed):
             self.base_position[axis] = self.homing_position[axis]
 
     def cmd_SET_KINEMATIC_POSITION(self, cmd: Command) -> None:
-        """Declare the toolhead position without moving (force_move)."""
+        """Declare the toolhead position without moving (force_move); SET_HOMED (default
+        all of XYZ) are homed from now on."""
         params = self._params(cmd)
         pos = list(self.toolhead.commanded_pos)
         for i, axis in enumerate("XYZ"):
             value = _float(params, axis)
             if value is not None:
                 pos[i] = value
-        self.toolhead.set_position((pos[0], pos[1], pos[2], pos[3]))
+        set_homed = params.get("SET_HOMED", "xyz").lower()
+        homed = "".join(a for a in "xyz" if a in set_homed)
+        self.toolhead.set_position((pos[0], pos[1], pos[2], pos[3]), homed)
         self.reset_last_position()
 
     # Toolhead commands (toolhead.py)

@@ -21,6 +21,8 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
+from kestimator.kinematics.base import MachineConfig
+
 # What `SET_VELOCITY_LIMIT ACCEL_TO_DECEL` (and [printer] max_accel_to_decel) means depends
 # on the Klipper generation the printer runs.
 KLIPPER_GENERATIONS = ("mainline", "mcr", "absolute")
@@ -76,6 +78,11 @@ class Limits:
     klipper_generation: str = "mainline"
     # Only read by the "absolute" and "mcr" generations; 0 means "not set".
     max_accel_to_decel: float = 0.0
+    # The printer's [printer] / [stepper_*] / [dual_carriage] sections, for the kinematics
+    # (kestimator.kinematics): None when the limits come from a source without steppers.
+    # Not a settable limit: not among `field_names()`, and not compared (two Limits with the
+    # same values are equal whether or not they know the printer's steppers).
+    machine: MachineConfig | None = dataclasses.field(default=None, compare=False)
 
     @property
     def filament_area(self) -> float:
@@ -89,8 +96,8 @@ class Limits:
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:
-        """Every settable key, in declaration order."""
-        return tuple(f.name for f in dataclasses.fields(cls))
+        """Every settable key, in declaration order (`machine` is not one)."""
+        return tuple(f.name for f in dataclasses.fields(cls) if f.name != "machine")
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "Limits":

@@ -2,7 +2,7 @@
 
 Re-implemented from mainline Klipper at commit 84104bbbd (GNU GPLv3):
 `klippy/toolhead.py` (ToolHead: move, dwell, wait_moves, flush handling, print-time
-tracking), `klippy/kinematics/cartesian.py` (Z limits), `klippy/kinematics/extruder.py`
+tracking), `klippy/kinematics/extruder.py`
 (extruder limits), `klippy/extras/motion_queuing.py` (the step-generation restart delay) and
 `klippy/extras/stepper_enable.py` (M84 dwells).
 
@@ -10,14 +10,22 @@ Time starts at 0 when the first motion (or dwell) starts. A full look-ahead flus
 exactly where Klipper's toolhead comes to rest: dwells, M400, homing, heater waits and
 stepper disabling. After homing or a stepper-enable change, Klipper restarts step
 generation 2 x kin_flush_delay after the last move; that gap is counted as Klipper does.
+
+`ToolHead.move` calls the printer's kinematics (`kestimator.kinematics`) for every move with
+XYZ motion, as upstream's `self.kin.check_move(move)`: range checks and the kinematics' own
+speed limits. The head starts homed at X=Y=Z=0 (the oracle's convention: the start macro that
+homes is not in the file).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 
+from kestimator.kinematics import MoveError, load_kinematics
 from kestimator.limits import Limits
 from kestimator.planner import LookAheadQueue, Move
+
+__all__ = ["MoveError", "ToolHead"]
 
 # Seconds of moves queued before the first flush after the toolhead was at rest.
 BUFFER_TIME_HIGH = 1.0
@@ -28,16 +36,8 @@ KIN_FLUSH_DELAY_T = 0.001
 DISABLE_STALL_T = 0.100
 # Junction deviation scale: sqrt(2) - 1.
 _JD_FACTOR = 2.0**0.5 - 1.0
-# Kinematics whose only per-axis limits are on Z (max_z_velocity / max_z_accel).
-Z_LIMITED_KINEMATICS = frozenset(
-    ("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz", "limited_cartesian",
-     "limited_corexy", "limited_corexz"))
 
 TimingCallback = Callable[[float], None]
-
-
-class MoveError(Exception):
-    """Klipper would reject this move (the G-code layer adds file and line)."""
 
 
 class ToolHead:
@@ -68,10 +68,10 @@ class ToolHead:
         self.need_step_gen_t = float("-inf")
         self.motors_enabled = False
         self.on_moves = on_moves
-        # Extruder and Z limits, looked up once.
-        self._z_limited = limits.kinematics in Z_LIMITED_KINEMATICS
-        self._max_z_velocity = limits.max_z_velocity
-        self._max_z_accel = limits.max_z_accel
+        # The printer's kinematics, homed at X=Y=Z=0 before the file's first line.
+        self.kin = load_kinematics(limits)
+        self.kin.set_position(self.commanded_pos, "xyz")
+        # Extruder limits, looked up once.
         self._max_e_velocity = limits.max_extrude_only_velocity
         self._max_e_accel = limits.max_extrude_only_accel
         self._max_e_dist = limits.max_extrude_only_distance
@@ -155,10 +155,13 @@ class ToolHead:
         """Where the last queued move ends (x, y, z, e)."""
         return (self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e)
 
-    def set_position(self, newpos: tuple[float, float, float, float]) -> None:
-        """Homing / SET_KINEMATIC_POSITION: rest, then jump to newpos without moving."""
+    def set_position(self, newpos: tuple[float, float, float, float],
+                     homing_axes: str = "") -> None:
+        """Homing / SET_KINEMATIC_POSITION: rest, then jump to newpos without moving;
+        `homing_axes` ("xyz" letters) are homed from now on."""
         self.flush_step_generation()
         self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e = newpos
+        self.kin.set_position(newpos, homing_axes)
 
     def move(self, newpos: tuple[float, float, float, float], speed: float,
              tag: int = 0) -> Move | None:
@@ -173,9 +176,8 @@ class ToolHead:
                     self.junction_deviation, self.mcr_pseudo_accel, self._instant_corner_v, tag)
         if not move.move_d:
             return None
-        if move.is_kinematic_move and move.axes_d_z and self._z_limited:
-            z_ratio = move.move_d / abs(move.axes_d_z)
-            move.limit_speed(self._max_z_velocity * z_ratio, self._max_z_accel * z_ratio)
+        if move.is_kinematic_move:
+            self.kin.check_move(move)
         if move.axes_d_e:
             self._check_extruder_move(move)
         self.commanded_x = move.end_x

@@ -28,7 +28,8 @@ NUT = CORPUS / "gcode/prusaslicer/ps25_nut_accelA_small.gcode"
 TORUS = CORPUS / "gcode/prusaslicer/ps25_torus_x4_labels_marlin.gcode"
 GUESSED_NUT = (
     "kestimator: warning: no printer.cfg or Moonraker given: limits are the slicer's guesses "
-    "and Klipper's defaults (max_velocity 300, max_accel 3000), so times are approximate; "
+    "and Klipper's defaults (max_velocity 300, max_accel 3000), so times are approximate, "
+    "moves are not range-checked and G28 homes to 0; "
     "pass --printer-cfg PATH or --moonraker URL, or set printer_cfg or moonraker in the "
     "profile (~/.config/kestimator/config.toml)\n")
 ANSI_RE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
@@ -117,7 +118,8 @@ def test_compat_post_process_says_guessed_limits_with_a_fix_it_accepts(
                if "no printer.cfg or Moonraker given" in line]
     assert warning == ["kestimator-compat: warning: no printer.cfg or Moonraker given: limits "
                        "are the slicer's guesses and Klipper's defaults (max_velocity 300, "
-                       "max_accel 3000), so times are approximate; " + compat.COMPAT_GUESS_FIX]
+                       "max_accel 3000), so times are approximate, moves are not "
+                       "range-checked and G28 homes to 0; " + compat.COMPAT_GUESS_FIX]
     # It never advises an option it rejects.
     assert "--printer-cfg" not in proc.stderr
     rejected = run("--printer-cfg", str(CORPUS_CFG), "estimate", str(NUT), program="compat")

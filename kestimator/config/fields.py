@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping
 
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
+from kestimator.kinematics.base import MachineConfig
 from kestimator.limits import KLIPPER_GENERATIONS, Limits
 
 _BOUNDS = {option.field: option for option in FLOAT_OPTIONS}
@@ -31,6 +32,8 @@ class SourcedValues:
     sources: Mapping[str, str]
     """Field -> provenance text (e.g. "printer.cfg:12", "moonraker <url>: [printer] ...")."""
     warnings: tuple[str, ...] = ()
+    machine: MachineConfig | None = None
+    """The sections the kinematics reads (printer.cfg and Moonraker only)."""
 
 
 def field_kind(field: str) -> type:

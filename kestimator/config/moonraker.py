@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from kestimator.config.fields import SourcedValues
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
 from kestimator.errors import KestimatorError
+from kestimator.kinematics.base import MachineConfig, is_machine_section
 
 if TYPE_CHECKING:
     import urllib.error
@@ -37,7 +38,9 @@ DEFAULT_TIMEOUT_S = 3.0
 QUERY_PATH = "/printer/objects/query?configfile=settings"
 API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction")
-"""The Klipper sections kestimator reads; nothing else of the printer's config is cached."""
+"""The Klipper sections kestimator reads, besides the kinematics' ones
+(``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); nothing else
+of the printer's config is cached."""
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
 HTTP_NOT_FOUND = 404
 CACHE_FORMAT = 1
@@ -197,7 +200,26 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             f"{description}: [printer] reports max_accel_to_decel "
             + ("and minimum_cruise_ratio (only Klipper 2024-03..2025-08 reads both)" if both
                else "without minimum_cruise_ratio (Klipper before 2024-03)"))
-    return SourcedValues(description, values, sources)
+    return SourcedValues(description, values, sources,
+                         machine=machine_from_settings(settings, description))
+
+
+def machine_from_settings(settings: Mapping[str, Mapping[str, Any]],
+                          description: str) -> MachineConfig:
+    """The kinematics' sections of Klipper's settings, as the text a printer.cfg would hold
+    (so the kinematics read both the same way), each sourced ``<description>: [section]``."""
+    return MachineConfig.build(description, {
+        name: {option: (_as_text(value), f"{description}: [{name}] {option}")
+               for option, value in options.items()}
+        for name, options in settings.items() if is_machine_section(name)})
+
+
+def _as_text(value: object) -> str:
+    """A settings value as printer.cfg text: lists (gear_ratio) as "a:b, c:d"."""
+    if isinstance(value, (list, tuple)):
+        return ", ".join(":".join(_as_text(v) for v in item) if isinstance(item, (list, tuple))
+                         else _as_text(item) for item in value)
+    return str(value)
 
 
 def _number(raw: object) -> float | None:
@@ -253,7 +275,8 @@ def _write_cache(path: Path, url: str, settings: Settings,
         "format": CACHE_FORMAT,
         "url": url,
         "fetched": fetched.astimezone(datetime.timezone.utc).strftime(_TIME_STORED),
-        "settings": {name: settings[name] for name in CACHED_SECTIONS if name in settings},
+        "settings": {name: options for name, options in settings.items()
+                     if name in CACHED_SECTIONS or is_machine_section(name)},
     }
     try:
         path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)

@@ -23,6 +23,7 @@ import operator
 import os
 
 from kestimator.errors import KestimatorError
+from kestimator.kinematics.base import MachineConfig
 from kestimator.limits import KLIPPER_GENERATIONS, Limits, find_generation_directive
 
 # Klipper recognises the SAVE_CONFIG block only by these three whole lines, preceded by a
@@ -109,10 +110,19 @@ def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[
     or, for options Klipper requires but the config lacks, `REQUIRED_FALLBACK`.
     """
     values, provenance = printer_cfg_values(path)
-    limits = Limits.from_values(values)
+    limits = Limits.from_values(values).replace(machine=machine_config(path))
     for field in Limits.field_names():
         provenance.setdefault(field, ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT))
     return limits, provenance
+
+
+def machine_config(path: str | os.PathLike[str]) -> MachineConfig:
+    """The sections the kinematics reads ([printer], [stepper_*], [dual_carriage], probes),
+    each option with its "<file>:<line>"."""
+    config = _read_config(os.fspath(path))
+    return MachineConfig.build(os.fspath(path), {
+        name: {option: (raw.value, raw.location) for option, raw in options.items()}
+        for name, options in config.sections.items()})
 
 
 def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object], dict[str, str]]:

@@ -39,6 +39,7 @@ from kestimator.config.printer_cfg import (
     KLIPPER_DEFAULT,
     RELATIVE_BOUNDS,
     REQUIRED_FALLBACK,
+    machine_config,
     printer_cfg_values,
 )
 from kestimator.config.profile import (
@@ -48,6 +49,7 @@ from kestimator.config.profile import (
     toml_available,
 )
 from kestimator.errors import KestimatorError
+from kestimator.kinematics import load_kinematics
 from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
 from kestimator.macros import MacroTime
 from kestimator.slicers import (
@@ -254,6 +256,11 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         shadowed[field] = tuple(c for c in proposed if not usable or c is not usable[0])
     _convert_accel_to_decel(chosen)
     limits, chosen = _build(chosen)
+    if machine is not None and machine.machine is not None:
+        limits = limits.replace(machine=machine.machine)
+    # Built once here so that a value Klipper refuses stops now, with its file and line
+    # (what it does not model is said by the estimate, which builds it again).
+    load_kinematics(limits)
     sources = {field: chosen[field].source if field in chosen
                else _default_source(field, machine is not None)
                for field in Limits.field_names()}
@@ -269,7 +276,7 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
                      if level in levels] + ["Klipper's defaults"]
         guess_warning = (
             GUESS_WARNING_START + ": limits are %s (max_velocity %g, max_accel %g), "
-            "so times are approximate; %s"
+            "so times are approximate, moves are not range-checked and G28 homes to 0; %s"
             % (", ".join(stand_ins[:-1]) + " and " + stand_ins[-1] if len(stand_ins) > 1
                else stand_ins[0], limits.max_velocity, limits.max_accel, request.guess_fix))
         warnings.append(guess_warning)
@@ -330,7 +337,8 @@ def _machine(request: LimitRequest, profile: Profile | None,
         printer_cfg, moonraker_url = profile.printer_cfg, profile.moonraker
     if printer_cfg is not None:
         values, sources = printer_cfg_values(printer_cfg)
-        return SourcedValues(os.fspath(printer_cfg), values, sources)
+        return SourcedValues(os.fspath(printer_cfg), values, sources,
+                             machine=machine_config(printer_cfg))
     if moonraker_url is None:
         return None
     api_key = _api_key(request, profile, environ)

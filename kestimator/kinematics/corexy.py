@@ -1,0 +1,28 @@
+"""Klipper's `corexy` kinematics.
+
+Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/corexy.py`
+(GNU GPLv3): the same rails, ranges and Z limits as cartesian (its `check_move`,
+`set_position` and homing positions are cartesian's), without [dual_carriage].
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from kestimator.kinematics.base import Kinematics, MachineConfig
+from kestimator.kinematics.cartesian import CartKinematics
+
+if TYPE_CHECKING:
+    from kestimator.limits import Limits
+
+
+class CoreXYKinematics(CartKinematics):
+    """Rails stepper_x/y/z; motor mixing does not change the limits."""
+
+    name = "corexy"
+    dual_carriage_axes: tuple[str, ...] = ()
+
+
+def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
+    """The kinematics for [printer] kinematics: corexy."""
+    return CoreXYKinematics(config, limits)

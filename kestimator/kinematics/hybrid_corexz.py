@@ -1,0 +1,27 @@
+"""Klipper's `hybrid_corexz` (Markforged) kinematics.
+
+Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/hybrid_corexz.py`
+(GNU GPLv3): the same rails, ranges and Z limits as cartesian; [dual_carriage] is on X only.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from kestimator.kinematics.base import Kinematics, MachineConfig
+from kestimator.kinematics.cartesian import CartKinematics
+
+if TYPE_CHECKING:
+    from kestimator.limits import Limits
+
+
+class HybridCoreXZKinematics(CartKinematics):
+    """Rails stepper_x/y/z (and an optional [dual_carriage] on X)."""
+
+    name = "hybrid_corexz"
+    dual_carriage_axes: tuple[str, ...] = ("x",)
+
+
+def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
+    """The kinematics for [printer] kinematics: hybrid_corexz."""
+    return HybridCoreXZKinematics(config, limits)

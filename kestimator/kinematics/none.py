@@ -1,0 +1,25 @@
+"""Klipper's `none` kinematics: no steppers, no limits, homing does nothing.
+
+Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/none.py`
+(GNU GPLv3): `check_move` accepts every move at the toolhead's own limits.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from kestimator.kinematics.base import Kinematics, MachineConfig
+
+if TYPE_CHECKING:
+    from kestimator.limits import Limits
+
+
+class NoneKinematics(Kinematics):
+    """Nothing to check."""
+
+    name = "none"
+
+
+def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
+    """The kinematics for [printer] kinematics: none (needs no config)."""
+    return NoneKinematics()

@@ -1,0 +1,12 @@
+; polar: moves passing near the centre are slowed by max_angular_velocity
+G28
+G90
+M83
+G1 X100 Y0 Z1 F12000
+;LAYER_CHANGE
+G1 X-100 Y1 F12000
+G1 X-100 Y60 F12000
+G1 X50 Y-50 Z2 F12000
+;LAYER_CHANGE
+G1 X0 Y-30 E2 F3000
+G1 X200 Y10 F12000

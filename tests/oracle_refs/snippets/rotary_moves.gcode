@@ -1,0 +1,13 @@
+; rotary_delta: Z moves capped at max_z_velocity (velocity only), G28 to the home position
+G90
+M83
+G1 X20 Y20 Z5 F6000
+;LAYER_CHANGE
+G1 X-30 Y80 F12000
+G1 X10 Y20 Z1 F12000
+G1 Z50 F12000
+G28
+;LAYER_CHANGE
+G1 X-40 Y10 Z200 E1 F18000
+G1 X0 Y0 Z240 F9000
+G1 X8 Y5 F9000

@@ -1,0 +1,11 @@
+; Z limits scaled by distance / |dz|, pure Z and diagonal moves
+G90
+M83
+G1 Z5 F3000
+;LAYER_CHANGE
+G1 X5 Y5 Z1 F18000
+G1 X5 Y5 Z0.2 F600
+;LAYER_CHANGE
+G1 X6 Y2 Z3 E0.5 F3000
+G1 X2 Y6 Z0.5 F3000
+G1 Z10 F30000
