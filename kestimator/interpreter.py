@@ -403,7 +403,7 @@ class Interpreter:
 
     def cmd_SET_KINEMATIC_POSITION(self, cmd: Command) -> None:
         """Declare the toolhead position without moving (force_move); SET_HOMED (default
-        all of XYZ) are homed from now on."""
+        all of XYZ) are homed from now on, CLEAR_HOMED (or CLEAR) no longer."""
         params = self._params(cmd)
         pos = list(self.toolhead.commanded_pos)
         for i, axis in enumerate("XYZ"):
@@ -412,7 +412,13 @@ class Interpreter:
                 pos[i] = value
         set_homed = params.get("SET_HOMED", "xyz").lower()
         homed = "".join(a for a in "xyz" if a in set_homed)
+        clear = params.get("CLEAR_HOMED")
+        if clear is None:
+            # "CLEAR" is an alias for "CLEAR_HOMED"
+            clear = params.get("CLEAR", "")
+        cleared = "".join(a for a in "xyz" if a in clear.lower())
         self.toolhead.set_position((pos[0], pos[1], pos[2], pos[3]), homed)
+        self.toolhead.kin.clear_homing_state(cleared)
         self.reset_last_position()
 
     # Toolhead commands (toolhead.py)

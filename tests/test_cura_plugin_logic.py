@@ -261,6 +261,41 @@ def test_corpus_has_the_cura_files_these_tests_name() -> None:
     assert set(CORPUS_CURA) <= names
 
 
+class _FakeQtCore:
+    """A binding's QtCore module: ``QCoreApplication.instance()`` is the running app or None."""
+
+    def __init__(self, running: bool) -> None:
+        self.QCoreApplication = self  # noqa: N815 (Qt's name)
+        self._running = running
+
+    def instance(self) -> object | None:
+        return self if self._running else None
+
+
+def test_qt_binding_is_the_one_cura_runs_not_merely_an_importable_one() -> None:
+    """Bug: PyQt6 was picked whenever importable, and Cura 4.13 (PyQt5) aborted on a dialog."""
+    from kestimator_cura.qt import qt_binding_name
+
+    cura4_with_pyqt6_loaded = {"PyQt6.QtCore": _FakeQtCore(False),
+                               "PyQt5.QtCore": _FakeQtCore(True)}
+    assert qt_binding_name(cura4_with_pyqt6_loaded) == "PyQt5"
+    assert qt_binding_name({"PyQt5.QtCore": _FakeQtCore(True)}) == "PyQt5"
+    assert qt_binding_name({"PyQt6.QtCore": _FakeQtCore(True),
+                            "PyQt5.QtCore": _FakeQtCore(False)}) == "PyQt6"
+    assert qt_binding_name({"PyQt5.QtCore": _FakeQtCore(False)}) == "PyQt5"
+
+
+def test_panel_times_add_up_to_klippers_and_keep_curas_split() -> None:
+    cura = {"inset_0": 300.0, "infill": 200.0, "travel": 100.0, "none": 0.0,
+            "skin": float("nan")}
+    times = klipper_time.klipper_feature_times(cura, 1234.567)
+    assert sum(times.values()) == 1234.567
+    assert set(times) == set(cura)
+    assert times["inset_0"] / times["infill"] == pytest.approx(1.5)
+    assert times["none"] == 0.0 and times["skin"] == 0.0
+    assert klipper_time.klipper_feature_times({"none": 0.0}, 60.0) == {"none": 60.0}
+
+
 def test_moonraker_choice_uses_the_times_learned_from_its_history(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from kestimator_cura.machine import SOURCE_MOONRAKER

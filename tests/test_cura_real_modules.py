@@ -103,8 +103,45 @@ def test_uranium_plugin_registry_loads_the_extension_with_its_menu(
     result, _ = source_run
     assert result["extension_class"] == "KestimatorExtension"
     assert result["menu_name"] == "Klipper print time"
-    assert result["menu"] == ["Use Cura's machine settings", "Use a Klipper printer.cfg...",
-                              "Use Moonraker...", "Show the Klipper print time"]
+    assert result["menu"] == ["Limits now: Cura's machine settings",
+                              "\u2713 Use Cura's machine settings",
+                              "Use a Klipper printer.cfg...", "Use Moonraker...",
+                              "Show the Klipper print time"]
+
+
+def test_extensions_menu_names_and_ticks_the_active_limits_source(
+        source_run: tuple[dict[str, Any], Path]) -> None:
+    result, _ = source_run
+    assert result["menu_printer_cfg"][:4] == [
+        "Limits now: printer.cfg %s" % CORPUS_CFG, "Use Cura's machine settings",
+        "\u2713 Use a Klipper printer.cfg...", "Use Moonraker..."]
+    assert result["switched"]["menu"][1] == "\u2713 Use Cura's machine settings"
+
+
+def test_changing_the_limit_source_after_a_save_times_the_slice_again(
+        source_run: tuple[dict[str, Any], Path]) -> None:
+    """Bug: the save wrote the marker into Cura's list and startJob() then did nothing."""
+    result, out = source_run
+    switched = result["switched"]
+    assert switched["total_s"] == result["machine"]["total_s"]
+    assert switched["total_s"] != result["printer_cfg"]["total_s"]
+    assert "Limits: Cura machine settings" in switched["message"]
+    assert (out / "switched.gcode").read_bytes() == (out / "machine.gcode").read_bytes()
+
+
+def test_klipper_time_goes_to_curas_print_information_with_curas_split_and_materials(
+        source_run: tuple[dict[str, Any], Path]) -> None:
+    result, _ = source_run
+    plate, engine_times, engine_amounts = result["panel"]["engine"]
+    plate, times, amounts = result["panel"]["last"]
+    assert plate == 0 and amounts == engine_amounts
+    assert sum(times.values()) == pytest.approx(result["machine"]["total_s"], abs=1e-9)
+    assert set(times) == set(engine_times)
+    assert times["inset_0"] / times["infill"] == pytest.approx(
+        engine_times["inset_0"] / engine_times["infill"])
+    assert "Cura's print information shows Klipper's time." in result["machine"]["message"]
+    assert "Cura estimated" in result["machine"]["message"]
+    assert result["switched"]["panel_total_s"] == pytest.approx(result["machine"]["total_s"])
 
 
 def test_saved_file_equals_kestimator_inject_and_keeps_the_list(

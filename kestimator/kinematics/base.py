@@ -325,6 +325,9 @@ class Kinematics:
     def set_position(self, newpos: Position, homing_axes: str) -> None:
         """The toolhead jumped to newpos; ``homing_axes`` ("xyz" letters) are now homed."""
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """SET_KINEMATIC_POSITION CLEAR: ``clear_axes`` ("xyz" letters) are no longer homed."""
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """Where G28 of ``axes`` (0..2) leaves the head, and the axes it homed: as the
         oracle's stand-in for homing does (klippy's G28 ends there)."""

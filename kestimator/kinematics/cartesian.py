@@ -66,6 +66,12 @@ class CartKinematics(Kinematics):
             axis = "xyz".index(axis_name)
             self.limits[axis] = self.rails[axis].get_range()
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """Cleared axes must be homed again before they move."""
+        for axis, axis_name in enumerate("xyz"):
+            if axis_name in clear_axes:
+                self.limits[axis] = UNHOMED
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """Each homed axis ends at its position_endstop."""
         newpos = list(pos)

@@ -150,6 +150,12 @@ class DeltaKinematics(Kinematics):
         if homing_axes == "xyz":
             self.need_home = False
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """Clearing any axis unhomes the whole head (upstream clears no axis alone)."""
+        if clear_axes:
+            self.limit_xy2 = -1.0
+            self.need_home = True
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """All towers home together: the head ends at home_position, whatever was asked."""
         hp = self.home_position

@@ -113,6 +113,12 @@ class DeltesianKinematics(Kinematics):
         for axis_name in homing_axes:
             self.homed_axis["xyz".index(axis_name)] = True
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """Cleared axes must be homed again before they move."""
+        for axis, axis_name in enumerate("xyz"):
+            if axis_name in clear_axes:
+                self.homed_axis[axis] = False
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """X or Z: both towers, to X=0 and the top; Y: to stepper_y's position_endstop."""
         newpos = list(pos)

@@ -71,6 +71,13 @@ class PolarKinematics(Kinematics):
         if "x" in homing_axes and "y" in homing_axes:
             self.limit_xy2 = self.rails[0].get_range()[1]**2
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """X and Y cannot be cleared separately."""
+        if "x" in clear_axes or "y" in clear_axes:
+            self.limit_xy2 = -1.0
+        if "z" in clear_axes:
+            self.limit_z = (1.0, -1.0)
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """X or Y homes both (arm endstop, 0); Z homes to its position_endstop."""
         newpos = list(pos)

@@ -125,6 +125,12 @@ class RotaryDeltaKinematics(Kinematics):
         if homing_axes == "xyz":
             self.need_home = False
 
+    def clear_homing_state(self, clear_axes: str) -> None:
+        """Clearing any axis unhomes the whole head (upstream clears no axis alone)."""
+        if clear_axes:
+            self.limit_xy2 = -1.0
+            self.need_home = True
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """All shoulders home together: the head ends at home_position."""
         hp = self.home_position

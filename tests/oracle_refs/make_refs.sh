@@ -27,8 +27,12 @@ corexz slic3r/cancelobj_slic3r1.3.1dev.gcode
 corexz snippets/home_then_move.gcode
 corexz snippets/z_moves.gcode
 corexz snippets/out_of_range_x.gcode
+corexz_force_move snippets/kinematic_position.gcode
+corexz_force_move snippets/kinematic_position_clear.gcode
 corexy_maxend cura/cura413_ender3_nut_small.gcode
 corexy_maxend snippets/home_then_move.gcode
+corexy_probe snippets/home_then_move.gcode
+corexy_probe snippets/z_moves.gcode
 delta orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode
 delta snippets/home_then_move.gcode
 delta snippets/z_moves.gcode

@@ -91,6 +91,12 @@ class Controller:
 
 class Backend:
     backendStateChange = Signal()
+    printDurationMessage = Signal()  # CuraEngineBackend's; PrintInformation listens to it
+
+
+ENGINE_TIMES = {"inset_0": 300.0, "infill": 200.0, "travel": 100.0, "none": 0.0}
+"""What the engine reports per feature for the slice (a stand-in: any positive split)."""
+ENGINE_AMOUNTS = [1234.5]
 
 
 class BuildPlates:
@@ -163,6 +169,16 @@ class Host(Application):
         return self._plugin_registry
 
 
+class PanelRecorder:
+    """What Cura's PrintInformation receives from printDurationMessage."""
+
+    def __init__(self) -> None:
+        self.seen: list[tuple[int, dict[str, float], list[float]]] = []
+
+    def record(self, plate: int, times: dict[str, float], amounts: list[float]) -> None:
+        self.seen.append((plate, dict(times), list(amounts)))
+
+
 class PauseScript:
     """What a post-processing script does: returns the list with a dwell added to layer 1."""
 
@@ -181,7 +197,13 @@ def slice_done_and_wait(host: Host, extension: Any) -> Any:
     """Slicing finished: run the event loop until the plugin's job has reported."""
     before = len(host.shown)
     host.getBackend().backendStateChange.emit(BackendState.Processing)
+    host.getBackend().printDurationMessage.emit(0, dict(ENGINE_TIMES), list(ENGINE_AMOUNTS))
     host.getBackend().backendStateChange.emit(BackendState.Done)
+    return wait_for_message(host, extension, before)
+
+
+def wait_for_message(host: Host, extension: Any, before: int) -> Any:
+    """Run the event loop until the plugin shows a message (its job reported)."""
     deadline = time.monotonic() + JOB_TIMEOUT_S
     while len(host.shown) == before:
         if time.monotonic() > deadline:
@@ -211,6 +233,9 @@ def main(argv: list[str]) -> int:
     registry.loadPlugin("kestimator_cura")
     host.pluginsLoaded.emit()
     extension = registry.getPluginObject("kestimator_cura")
+    recorder = PanelRecorder()  # Uranium's signals hold weak references: keep it here
+    host.getBackend().printDurationMessage.connect(recorder.record)
+    panel = recorder.seen
     post_processing = registry.getPluginObject("PostProcessingPlugin")
     import kestimator
 
@@ -231,6 +256,7 @@ def main(argv: list[str]) -> int:
     outcome = slice_done_and_wait(host, extension)
     result["machine"] = {"message": host.shown[-1], "total_s": outcome.total_s,
                          "limits_source": outcome.limits.source}
+    result["panel"] = {"last": panel[-1], "engine": panel[0]}
     save(host, out / "machine.gcode")
 
     # 2. A printer.cfg from the preferences; no post-processing scripts.
@@ -250,6 +276,20 @@ def main(argv: list[str]) -> int:
     first_save = list(scene.gcode_dict[0])
     save(host, out / "printer_cfg_again.gcode")
     result["printer_cfg"]["second_save_unchanged"] = scene.gcode_dict[0] == first_save
+    result["menu_printer_cfg"] = extension.getMenuItemList()
+
+    # 2b. After that save, the user switches back to Cura's machine settings (menu): the
+    # saved list carries the marker, yet it is timed again and the next save has the new
+    # times.
+    before = len(host.shown)
+    extension.activateMenuItem("Use Cura's machine settings")
+    wait_for_message(host, extension, before)
+    result["switched"] = {"message": host.shown[-1],
+                          "total_s": extension.lastOutcome().total_s,
+                          "menu": extension.getMenuItemList(),
+                          "panel_total_s": sum(panel[-1][1].values())}
+    save(host, out / "switched.gcode")
+    preferences.setValue("kestimator/limits_source", "printer_cfg")
 
     # 3. With a post-processing script: it runs first, the plugin times what it wrote.
     post_processing._script_list = [PauseScript()]

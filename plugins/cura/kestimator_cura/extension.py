@@ -21,7 +21,9 @@ modules (`klipper_time`, `chunks`, `machine`). The flow:
 
 from __future__ import annotations
 
+import gc
 import os
+from collections.abc import Mapping
 from typing import Any
 
 from UM.Backend.Backend import BackendState
@@ -33,8 +35,9 @@ from UM.Message import Message
 from kestimator.errors import KestimatorError
 
 from .chunks import is_processed, same_chunks
-from .klipper_time import Outcome, compute
+from .klipper_time import Outcome, compute, klipper_feature_times
 from .machine import (
+    API_KEY_ENVIRONMENT,
     EXTRUDER_KEYS,
     MACHINE_KEYS,
     SOURCE_MACHINE,
@@ -42,10 +45,13 @@ from .machine import (
     SOURCE_PRINTER_CFG,
     LimitsChoice,
 )
+from .qt import qt_module
 
 PREFERENCE_SOURCE = "kestimator/limits_source"
 PREFERENCE_PRINTER_CFG = "kestimator/printer_cfg"
 PREFERENCE_MOONRAKER_URL = "kestimator/moonraker_url"
+PREFERENCE_MOONRAKER_API_KEY = "kestimator/moonraker_api_key"
+"""Stored in cura.cfg like every preference; never logged, never shown (password field)."""
 MENU_NAME = "Klipper print time"
 MESSAGE_TITLE = "Klipper print time (kestimator)"
 MESSAGE_LIFETIME_S = 0
@@ -54,32 +60,50 @@ MENU_USE_MACHINE = "Use Cura's machine settings"
 MENU_USE_PRINTER_CFG = "Use a Klipper printer.cfg..."
 MENU_USE_MOONRAKER = "Use Moonraker..."
 MENU_SHOW = "Show the Klipper print time"
+MENU_ACTIVE = "Limits now: "
+"""The first item: the active source, named (clicking it shows the last time)."""
+MENU_TICK = "\u2713 "
+"""Before the item of the active source."""
+MENU_SOURCES = {MENU_USE_MACHINE: SOURCE_MACHINE, MENU_USE_PRINTER_CFG: SOURCE_PRINTER_CFG,
+                MENU_USE_MOONRAKER: SOURCE_MOONRAKER}
+DIALOG_MOONRAKER_URL = "Moonraker"
+DIALOG_MOONRAKER_KEY = "Moonraker API key"
 
 
 def _qt_widgets() -> Any:
-    """QtWidgets of the Qt binding this Cura runs (PyQt6 from Cura 5, PyQt5 before)."""
+    """QtWidgets of the Qt binding this Cura runs (see `qt_binding_name`)."""
+    return qt_module("QtWidgets")
+
+
+def extension_models() -> list[Any]:
+    """The Extensions-menu models (Uranium's ``ExtensionModel``) QML created: in Cura 4 one
+    for the menu bar and one for Cura's own use, in Cura 5 one in ``ExtensionMenu.qml``.
+    QML parents them differently in each version, so they are looked up among the live
+    Python objects rather than in the window's object tree."""
     try:
-        from PyQt6 import QtWidgets
+        from UM.Qt.Bindings.ExtensionModel import ExtensionModel
     except ImportError:
-        from PyQt5 import QtWidgets
-    return QtWidgets
+        return []
+    return [obj for obj in gc.get_objects() if isinstance(obj, ExtensionModel)]
 
 
 class KlipperTimeJob(Job):
     """Computes one slice's Klipper time and rewritten chunks on a worker thread."""
 
     def __init__(self, chunks: list[str], choice: LimitsChoice,
-                 settings: dict[str, object], generation: int) -> None:
+                 settings: dict[str, object], generation: int,
+                 environ: Mapping[str, str] | None = None) -> None:
         super().__init__()
         self.chunks = tuple(chunks)
         self.choice = choice
         self.settings = settings
         self.generation = generation
+        self.environ = environ
 
     def run(self) -> None:
         """Job entry point (worker thread): sets the Outcome, or the KestimatorError."""
         try:
-            self.setResult(compute(self.chunks, self.choice, self.settings))
+            self.setResult(compute(self.chunks, self.choice, self.settings, self.environ))
         except KestimatorError as exc:
             self.setError(exc)
 
@@ -94,19 +118,27 @@ class KestimatorExtension(Extension):
         # The chunks the last job failed on and why: a save of the same chunks does not
         # try again (a Moonraker that is offline would make Cura wait once more).
         self._failure: tuple[tuple[str, ...], str] | None = None
+        # (source, rewritten) last written into Cura's list: that list now carries our
+        # marker, and a new limit source is timed from the source chunks again.
+        self._applied: tuple[tuple[str, ...], tuple[str, ...]] | None = None
         self._generation = 0
         self._message: Message | None = None
         self._connected = False
         self._jobs: list[KlipperTimeJob] = []
+        self._panel = PrintInformationPanel(application)
         preferences = application.getPreferences()
         preferences.addPreference(PREFERENCE_SOURCE, SOURCE_MACHINE)
         preferences.addPreference(PREFERENCE_PRINTER_CFG, "")
         preferences.addPreference(PREFERENCE_MOONRAKER_URL, "")
+        preferences.addPreference(PREFERENCE_MOONRAKER_API_KEY, "")
         self.setMenuName(MENU_NAME)
-        self.addMenuItem(MENU_USE_MACHINE, self.useMachineSettings)
-        self.addMenuItem(MENU_USE_PRINTER_CFG, self.askPrinterCfg)
-        self.addMenuItem(MENU_USE_MOONRAKER, self.askMoonraker)
-        self.addMenuItem(MENU_SHOW, self.showLastTime)
+        self._menu: list[tuple[str, Any]] = [
+            (MENU_ACTIVE, self.showLastTime),
+            (MENU_USE_MACHINE, self.useMachineSettings),
+            (MENU_USE_PRINTER_CFG, self.askPrinterCfg),
+            (MENU_USE_MOONRAKER, self.askMoonraker),
+            (MENU_SHOW, self.showLastTime),
+        ]
         plugins_loaded = getattr(application, "pluginsLoaded", None)
         if plugins_loaded is None:
             self.connectSignals()
@@ -123,15 +155,54 @@ class KestimatorExtension(Extension):
         backend = self._application.getBackend()
         if backend is not None:
             backend.backendStateChange.connect(self._onBackendStateChange)
+            self._panel.connect(backend)
+        registry = self._registry()
+        changed = getattr(registry, "pluginsEnabledOrDisabledChanged", None)  # Uranium 5
+        if changed is not None:
+            changed.connect(self._onPluginsEnabledOrDisabled)
+
+    def _registry(self) -> Any:
+        getter = getattr(self._application, "getPluginRegistry", None)
+        return getter() if getter is not None else None
+
+    def isDisabled(self) -> bool:
+        """True once the user disabled the plugin (Cura keeps it loaded until a restart):
+        Cura's own times are back in the panel and saves are left as Cura makes them."""
+        registry = self._registry()
+        plugin_id = self.getPluginId()
+        getter = getattr(registry, "getDisabledPlugins", None)
+        return bool(plugin_id) and getter is not None and plugin_id in getter()
+
+    def _onPluginsEnabledOrDisabled(self) -> None:
+        if self.isDisabled():
+            self._panel.restore()
+            self._hideMessage()
 
     def _currentChunks(self) -> list[str] | None:
         scene = self._application.getController().getScene()
         gcode_dict = getattr(scene, "gcode_dict", None)
         if not gcode_dict:
             return None
-        plate = self._application.getMultiBuildPlateModel().activeBuildPlate
+        plate = self._activePlate()
         chunks = gcode_dict.get(plate)
         return chunks if chunks else None
+
+    def _activePlate(self) -> int:
+        return int(self._application.getMultiBuildPlateModel().activeBuildPlate)
+
+    def _sourceChunks(self) -> tuple[list[str], tuple[str, ...]] | None:
+        """Cura's live list and the chunks to time: the list itself, or, when it holds what
+        our last save wrote into it, the chunks it held before. None when there is nothing
+        to time, or the list carries a marker not written here (left alone)."""
+        live = self._currentChunks()
+        if live is None:
+            return None
+        applied = self._applied
+        if applied is not None and same_chunks(live, applied[1]):
+            return live, applied[0]
+        if is_processed(live):
+            return None
+        return live, tuple(live)
 
     def _machineSettings(self) -> dict[str, object]:
         stack = self._application.getGlobalContainerStack()
@@ -156,6 +227,16 @@ class KestimatorExtension(Extension):
             Logger.log("w", "kestimator: unknown limits source %r, using Cura's machine", source)
             return LimitsChoice()
 
+    def _environ(self) -> dict[str, str]:
+        """The process environment, with the API key from the preferences if one is set
+        there (it wins over ``MOONRAKER_API_KEY``)."""
+        environ = dict(os.environ)
+        key = str(self._application.getPreferences().getValue(PREFERENCE_MOONRAKER_API_KEY)
+                  or "").strip()
+        if key:
+            environ[API_KEY_ENVIRONMENT] = key
+        return environ
+
     # Slicing finished: time it in the background
     def _onBackendStateChange(self, state: Any) -> None:
         if state == BackendState.Done:
@@ -164,16 +245,20 @@ class KestimatorExtension(Extension):
             self._generation += 1  # results still on their way are for the old G-code
             self._outcome = None
             self._failure = None
+            self._applied = None
+            self._panel.forget()  # Cura resets its panel for the new slice itself
             self._hideMessage()
 
     def startJob(self) -> KlipperTimeJob | None:
         """Time the current slice on a worker thread; the job, or None if nothing to do."""
-        chunks = self._currentChunks()
-        if chunks is None or is_processed(chunks):
+        if self.isDisabled():
+            return None
+        found = self._sourceChunks()
+        if found is None:
             return None
         self._generation += 1
-        job = KlipperTimeJob(chunks, self.limitsChoice(), self._machineSettings(),
-                             self._generation)
+        job = KlipperTimeJob(list(found[1]), self.limitsChoice(), self._machineSettings(),
+                             self._generation, self._environ())
         job.finished.connect(self._onJobFinished)
         self._jobs.append(job)  # Uranium's signals hold weak references only
         job.start()
@@ -182,15 +267,17 @@ class KestimatorExtension(Extension):
     def _onJobFinished(self, job: KlipperTimeJob) -> None:
         if job in self._jobs:
             self._jobs.remove(job)
-        if job.generation != self._generation:
+        if job.generation != self._generation or self.isDisabled():
             return
         error = job.getError()
         if error is not None:
             self._failure = (job.chunks, str(error))
+            self._panel.restore()
             self._show("No Klipper print time: %s" % error, warning=True)
             return
         self._failure = None
         self._outcome = job.getResult()
+        self._panel.show(self._activePlate(), self._outcome.total_s)
         self.showLastTime()
 
     # Saving
@@ -204,23 +291,74 @@ class KestimatorExtension(Extension):
 
     def processForSave(self) -> bool:
         """Rewrite the active plate's chunks in place; True if they were rewritten."""
-        chunks = self._currentChunks()
-        if chunks is None:
+        if self.isDisabled():
             return False
-        if is_processed(chunks):
-            Logger.log("d", "kestimator: the G-code already has Klipper's times")
+        found = self._sourceChunks()
+        if found is None:
+            if self._currentChunks() is not None:
+                Logger.log("d", "kestimator: the G-code already has a kestimator marker")
             return False
+        live, source = found
         failure = self._failure
-        if failure is not None and same_chunks(chunks, failure[0]):
+        if failure is not None and same_chunks(source, failure[0]):
             raise KestimatorError(failure[1])
         outcome = self._outcome
-        if outcome is None or not outcome.matches(chunks):
+        if outcome is None or not outcome.matches(source):
             Logger.log("i", "kestimator: the G-code changed since slicing (post-processing "
                             "scripts?) or was not timed yet: timing it now")
-            outcome = compute(chunks, self.limitsChoice(), self._machineSettings())
+            outcome = compute(source, self.limitsChoice(), self._machineSettings(),
+                              self._environ())
             self._outcome = outcome
-        outcome.apply_to(chunks)
+        if same_chunks(live, outcome.rewritten):
+            Logger.log("d", "kestimator: the G-code already has these Klipper times")
+            return False
+        outcome.apply_to(live, source)
+        self._applied = (outcome.source_chunks, outcome.rewritten)
         return True
+
+    # Extensions menu
+    def menuLabels(self) -> list[str]:
+        """The menu's item texts now: the active source is named and ticked."""
+        source = self.limitsChoice().source
+        labels = []
+        for key, _ in self._menu:
+            if key == MENU_ACTIVE:
+                labels.append(MENU_ACTIVE + self.limitsChoice().description)
+            elif MENU_SOURCES.get(key) == source:
+                labels.append(MENU_TICK + key)
+            else:
+                labels.append(key)
+        return labels
+
+    def getMenuItemList(self) -> list[str]:
+        """Uranium's ExtensionModel reads the items here (Extension's own list is unused)."""
+        return self.menuLabels()
+
+    def activateMenuItem(self, name: str) -> None:
+        """Uranium calls this with the text of the item the user clicked."""
+        for (key, function), label in zip(self._menu, self.menuLabels(), strict=True):
+            if name in (label, key) or (key == MENU_ACTIVE and name.startswith(MENU_ACTIVE)):
+                function()
+                return
+        Logger.log("w", "kestimator: no menu item %r", name)
+
+    def _refreshMenu(self) -> None:
+        """Rename the items of the Extensions menus Cura already built: Uranium's
+        ExtensionModel reads an extension's items once, into a ListModel per menu, and has
+        no way to refresh them. Those models are found among the live objects and their rows
+        renamed with ListModel.setProperty (public), the way QML's bindings pick it up."""
+        labels = self.menuLabels()
+        renamed = 0
+        for model in extension_models():
+            for item in model.items:
+                actions = item.get("actions")
+                if item.get("extension") is not self or actions is None:
+                    continue
+                for row, label in enumerate(labels):
+                    if row < actions.count:
+                        actions.setProperty(row, "text", label)
+                renamed += 1
+        Logger.log("d", "kestimator: menu items renamed in %d menu(s)", renamed)
 
     # Preferences (Extensions menu)
     def _setChoice(self, source: str, key: str | None = None, value: str = "") -> None:
@@ -230,6 +368,7 @@ class KestimatorExtension(Extension):
         preferences.setValue(PREFERENCE_SOURCE, source)
         self._outcome = None
         self._failure = None
+        self._refreshMenu()
         self.startJob()
 
     def useMachineSettings(self) -> None:
@@ -248,15 +387,24 @@ class KestimatorExtension(Extension):
             self._setChoice(SOURCE_PRINTER_CFG, PREFERENCE_PRINTER_CFG, path)
 
     def askMoonraker(self) -> None:
-        """Menu: give the printer's Moonraker URL."""
+        """Menu: give the printer's Moonraker URL, then its API key (if it needs one)."""
         widgets = _qt_widgets()
-        current = str(self._application.getPreferences().getValue(PREFERENCE_MOONRAKER_URL)
-                      or "")
+        preferences = self._application.getPreferences()
+        current = str(preferences.getValue(PREFERENCE_MOONRAKER_URL) or "")
         url, ok = widgets.QInputDialog.getText(
-            None, "Moonraker", "Moonraker URL (e.g. http://printer.local):",
+            None, DIALOG_MOONRAKER_URL, "Moonraker URL (e.g. http://printer.local):",
             widgets.QLineEdit.EchoMode.Normal, current)
-        if ok and url.strip():
-            self._setChoice(SOURCE_MOONRAKER, PREFERENCE_MOONRAKER_URL, url.strip())
+        if not ok or not url.strip():
+            return
+        key = str(preferences.getValue(PREFERENCE_MOONRAKER_API_KEY) or "")
+        new_key, ok = widgets.QInputDialog.getText(
+            None, DIALOG_MOONRAKER_KEY,
+            "Moonraker API key, if Moonraker asks for one (empty: none).\n"
+            "Kept in Cura's preferences (cura.cfg).",
+            widgets.QLineEdit.EchoMode.Password, key)
+        if ok:
+            preferences.setValue(PREFERENCE_MOONRAKER_API_KEY, new_key.strip())
+        self._setChoice(SOURCE_MOONRAKER, PREFERENCE_MOONRAKER_URL, url.strip())
 
     # Messages
     def showLastTime(self) -> None:
@@ -265,7 +413,9 @@ class KestimatorExtension(Extension):
             self._show("Slice a model first; its Klipper print time shows here. Limits: %s."
                        % self.limitsChoice().description)
         else:
-            self._show(self._outcome.summary())
+            self._show(self._outcome.summary(
+                in_panel=self._panel.showing,
+                cura_estimate_s=self._panel.curaEstimate(self._activePlate())))
 
     def lastOutcome(self) -> Outcome | None:
         """The last computed result (None before the first slice is timed)."""
@@ -286,3 +436,85 @@ class KestimatorExtension(Extension):
                                 **options)
         self._message.show()
 
+
+class PrintInformationPanel:
+    """Klipper's time in Cura's own print-information panel (under the preview, in the save
+    dialog), through the backend's ``printDurationMessage`` signal.
+
+    Cura has no API to set the print time. ``CuraEngineBackend.printDurationMessage`` (plate,
+    seconds per feature, material amounts) is the public signal Cura's ``PrintInformation``
+    takes the time from; this records what the engine sent and emits it again with each
+    feature's time scaled so the total is Klipper's (the per-feature tooltip keeps Cura's
+    proportions, the material amounts are Cura's). ``restore`` emits Cura's own again. A
+    message from the engine after ours (it may come after the slice is done) is recorded as
+    Cura's and ours is put back on the next event-loop tick.
+    """
+
+    def __init__(self, application: Any) -> None:
+        self._application = application
+        self._backend: Any = None
+        self._emitting = False
+        self._cura: dict[int, tuple[dict[str, float], list[float]]] = {}
+        self._shown: tuple[int, float] | None = None
+        """(plate, Klipper seconds) while the panel shows Klipper's time."""
+
+    def connect(self, backend: Any) -> None:
+        """Listen to the engine's durations (call once)."""
+        signal = getattr(backend, "printDurationMessage", None)
+        if signal is None:
+            Logger.log("w", "kestimator: this Cura has no printDurationMessage; Cura's panel "
+                            "keeps its own time")
+            return
+        self._backend = backend
+        signal.connect(self._onPrintDuration)
+
+    def _onPrintDuration(self, plate: int | None, times: Mapping[str, float] | None,
+                         amounts: Any) -> None:
+        # Cura emits (None, {}, []) when the scene changes: never raise into Cura here.
+        if self._emitting or plate is None:
+            return
+        self._cura[int(plate)] = (dict(times or {}), list(amounts or []))
+        shown = self._shown
+        if shown is not None and shown[0] == int(plate) and times:
+            self._application.callLater(self.show, shown[0], shown[1])
+
+    def show(self, plate: int, total_s: float) -> bool:
+        """Put Klipper's ``total_s`` into the panel of build plate ``plate``."""
+        cura = self._cura.get(plate)
+        if self._backend is None or cura is None or not cura[0]:
+            return False
+        self._emit(plate, klipper_feature_times(cura[0], total_s), cura[1])
+        self._shown = (plate, total_s)
+        return True
+
+    def restore(self) -> None:
+        """Cura's own time back into the panel."""
+        shown = self._shown
+        self._shown = None
+        if shown is not None and shown[0] in self._cura:
+            times, amounts = self._cura[shown[0]]
+            self._emit(shown[0], dict(times), amounts)
+
+    def curaEstimate(self, plate: int) -> float | None:
+        """Cura's own total for ``plate`` as the engine reported it (None if unknown)."""
+        cura = self._cura.get(plate)
+        if cura is None:
+            return None
+        total = sum(value for value in cura[0].values() if value == value and value > 0)
+        return float(total) if total > 0 else None
+
+    @property
+    def showing(self) -> bool:
+        """True while the panel shows Klipper's time."""
+        return self._shown is not None
+
+    def forget(self) -> None:
+        """A new slice is on its way: Cura resets and refills the panel itself."""
+        self._shown = None
+
+    def _emit(self, plate: int, times: dict[str, float], amounts: list[float]) -> None:
+        self._emitting = True
+        try:
+            self._backend.printDurationMessage.emit(plate, times, list(amounts))
+        finally:
+            self._emitting = False

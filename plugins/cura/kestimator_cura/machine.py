@@ -11,7 +11,8 @@ the setting values off the global stack into a plain dict and passes them here.
   printer, and the source says so.
 - ``printer_cfg`` / ``moonraker``: the core's resolver decides every value from the real
   machine, exactly as ``kestimator estimate --no-profile --printer-cfg/--moonraker`` does
-  (the Moonraker API key comes from ``MOONRAKER_API_KEY``, never from Cura's preferences).
+  (the Moonraker API key comes from ``MOONRAKER_API_KEY`` in ``environ``: the Cura-facing
+  layer puts the key from the plugin's preferences there when one is set).
   The resolver imports the core's profile reader, which needs ``tomli`` on Python 3.10 (Cura
   5.0 to 5.6 bundle 3.10 without it); there the printer.cfg or Moonraker values are read
   directly, which under these options gives the same limits.
