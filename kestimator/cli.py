@@ -53,7 +53,6 @@ from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
-from kestimator.macros import MacroTimes
 from kestimator.report import collect, render_html
 from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
 
@@ -300,10 +299,7 @@ def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits
                                ("heat_time", resolved.heat_time_s)):
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
-    args.macros = MacroTimes(macros=dict(resolved.macro_times))
-    learned = _learned(args, resolved)
-    if learned is not None:
-        args.macros = learned.macro_times(resolved.macro_times)
+    args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
     return resolved
 
 
@@ -321,21 +317,12 @@ def _warn_stderr(text: str) -> None:
     sys.stderr.flush()
 
 
-def _moonraker_url(resolved: ResolvedLimits) -> str | None:
-    """The Moonraker the limits came from (also from its offline cache), if any."""
-    machine = resolved.machine or ""
-    if not machine.startswith("moonraker "):
-        return None
-    return machine.split()[1]
-
-
 def _learned(args: argparse.Namespace,
              resolved: ResolvedLimits) -> learn.LearnedTimes | None:
     """What `kestimator learn` stored for the Moonraker the limits came from."""
-    url = _moonraker_url(resolved)
-    if url is None or getattr(args, "no_learned", False):
+    if getattr(args, "no_learned", False):
         return None
-    return learn.load(url)
+    return learn.learned_for(resolved)
 
 
 def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitRequest:
@@ -809,7 +796,7 @@ def _learned_json(learned: learn.LearnedTimes) -> dict[str, Any]:
 def cmd_learn(args: argparse.Namespace) -> int:
     """`kestimator learn`."""
     resolved = resolve.resolve_limits(_limit_request(args, None))
-    url = _moonraker_url(resolved)
+    url = learn.moonraker_url_of(resolved)
     if url is None:
         raise KestimatorError("learn reads a printer's job history from Moonraker: give "
                               "--moonraker URL (or name it in the profile)")

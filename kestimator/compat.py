@@ -40,12 +40,12 @@ from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
 
 from kestimator import __version__
-from kestimator.cli_output import printable
+from kestimator.cli_output import parts_to_json, printable
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
-from kestimator.macros import MacroTimes
+from kestimator.learn import macro_times_for
 from kestimator.planner import Move
 from kestimator.rewrite import check_gcode_file, inject_file
 
@@ -120,6 +120,7 @@ def estimate_document(est: Estimate, totals: MoveTotals, limits_source: str,
         "kestimator_version": __version__,
         "limits_source": limits_source,
         "kestimator_warnings": list(warnings) + est.warnings,
+        "kestimator_parts": parts_to_json(est),
     }]}
 
 
@@ -168,13 +169,13 @@ def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
         est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals,
                              homing_time=resolved.homing_time_s or 0.0,
                              heat_time=resolved.heat_time_s or 0.0,
-                             macros=MacroTimes(macros=dict(resolved.macro_times)))
+                             macros=macro_times_for(resolved))
     else:
         check_gcode_file(args.input)
         est = estimate_file(args.input, resolved.limits, observer=totals,
                             homing_time=resolved.homing_time_s or 0.0,
                             heat_time=resolved.heat_time_s or 0.0,
-                            macros=MacroTimes(macros=dict(resolved.macro_times)))
+                            macros=macro_times_for(resolved))
     doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
     if args.format == "json":
         # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
@@ -212,7 +213,7 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
                              limits_source=resolved.marker_source,
                              homing_time=resolved.homing_time_s or 0.0,
                              heat_time=resolved.heat_time_s or 0.0,
-                             macros=MacroTimes(macros=dict(resolved.macro_times)))
+                             macros=macro_times_for(resolved))
         append_ident_line(tmp)
         now = os.stat(path)
         if (now.st_size, now.st_mtime_ns, now.st_ino) != (

@@ -24,6 +24,7 @@ from kestimator.macros import (
     ADD_TIME_SOURCE,
     FIRST_EXTRUSION_MM,
     LEARNED_PREP_LABEL,
+    MOTION_CORRECTION_LABEL,
     MacroTimes,
     Parts,
     TimedPart,
@@ -267,6 +268,36 @@ class Timeline:
         if prep:
             part.before_first_extrusion_s += seconds
 
+    def _correct_motion(self, total: float) -> float:
+        """Apply a learned motion ratio to the motion after the first extrusion.
+
+        The extra time is spread evenly over everything after the first extrusion: the
+        times recorded there (layers, marks, progress samples) stretch by one factor and
+        every feature's time grows in proportion, so the parts still add up.
+        """
+        ratio = self.macros.motion_ratio
+        first = self.first_extrusion_t
+        if ratio is None or ratio.seconds <= 1.0 or first is None or total <= first:
+            return total
+        added_after = sum(p.seconds - p.before_first_extrusion_s
+                          for p in self.timed_parts.values())
+        extra = (ratio.seconds - 1.0) * max(0.0, total - first - added_after)
+        factor = (total - first + extra) / (total - first)
+
+        def stretch(t: float) -> float:
+            return t if t <= first else first + (t - first) * factor
+        self.layers = [(line, stretch(t)) for line, t in self.layers]
+        self.marks = [(line, stretch(t)) for line, t in self.marks]
+        times = self.sample_times
+        for i in range(len(times)):
+            times[i] = stretch(times[i])
+        grow = (total + extra) / total
+        self.feature_time = [t * grow for t in self.feature_time]
+        part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
+        part.count = 1
+        part.seconds = extra
+        return total + extra
+
     def _unknown_command(self, name: str) -> None:
         """A command Klipper does not know: a macro, timed if the table has it."""
         timed = self.macros.time_of(name)
@@ -427,6 +458,7 @@ class Timeline:
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
+        total = self._correct_motion(total)
         interp = self.interp
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "

@@ -42,6 +42,7 @@ from kestimator.config.moonraker import (
     default_cache_dir,
     normalise_url,
 )
+from kestimator.config.resolve import ResolvedLimits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.limits import Limits
@@ -102,8 +103,12 @@ class LearnedTimes:
         for name, value in self.per_run_s.items():
             macros[name] = MacroTime(value.value, self.source(value))
         prep = self.before_first_extrusion_s
+        ratio = self.motion_ratio
         return MacroTimes(macros=macros, before_first_extrusion=None if prep is None
-                          else MacroTime(prep.value, self.source(prep)))
+                          else MacroTime(prep.value, self.source(prep)),
+                          motion_ratio=None if ratio is None else MacroTime(
+                              ratio.value, "learned from %d prints (spread %.1f %%, %s)" % (
+                                  ratio.jobs, 100 * ratio.spread, self.learned_at[:10])))
 
     def lines(self) -> list[str]:
         """For people: one line per learned value."""
@@ -323,6 +328,28 @@ def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
             timings.append(timing_of(dict(job, job_id=_shown(job.get("job_id")),
                                           filename=_shown(filename)), est))
     return learn_from(timings, url, now(), len(jobs), notes)
+
+
+def moonraker_url_of(resolved: ResolvedLimits) -> str | None:
+    """The Moonraker the limits came from (also from its offline cache), if any."""
+    machine = resolved.machine or ""
+    if not machine.startswith("moonraker "):
+        return None
+    return machine.split()[1]
+
+
+def learned_for(resolved: ResolvedLimits) -> LearnedTimes | None:
+    """What was learned for the Moonraker the limits came from, if anything."""
+    url = moonraker_url_of(resolved)
+    return None if url is None else load(url)
+
+
+def macro_times_for(resolved: ResolvedLimits, use_learned: bool = True) -> MacroTimes:
+    """The profile's macro times, with what was learned for this printer over them."""
+    learned = learned_for(resolved) if use_learned else None
+    if learned is None:
+        return MacroTimes(macros=dict(resolved.macro_times))
+    return learned.macro_times(resolved.macro_times)
 
 
 def store_path(url: str, directory: Path) -> Path:

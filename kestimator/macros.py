@@ -23,6 +23,7 @@ ADD_TIME_SOURCE = "ESTIMATOR_ADD_TIME"
 HOMING_SOURCE = "homing time (--homing-time / homing_time_s)"
 HEAT_SOURCE = "heat time (--heat-time / heat_time_s)"
 LEARNED_PREP_LABEL = "before the first extrusion"
+MOTION_CORRECTION_LABEL = "motion correction (printer slower than the planner)"
 # The name under which a time per tool change (any T<n>) is kept.
 TOOL_CHANGE = "T"
 
@@ -42,6 +43,9 @@ class MacroTimes:
 
     macros: Mapping[str, MacroTime] = dataclasses.field(default_factory=dict)
     before_first_extrusion: MacroTime | None = None
+    motion_ratio: MacroTime | None = None
+    """Learned: the printer's motion after the first extrusion takes this many times the
+    planner's (``seconds`` holds the ratio; only above 1)."""
 
     def time_of(self, name: str) -> MacroTime | None:
         """The time of one run of the command `name`, if known (a tool change T<n> takes

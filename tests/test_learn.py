@@ -85,3 +85,46 @@ def test_what_a_server_sends_is_shown_filtered() -> None:
                                "total_duration": "1", "print_duration": 1.0}) == (
         "no usable total_duration")
     assert learn._job_problem({"status": "klippy_shutdown"}) == "status klippy_shutdown"
+
+
+def test_compat_uses_the_learned_times_of_the_profiles_moonraker(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    import datetime
+    import shutil
+
+    from kestimator import compat
+    from kestimator.config.moonraker import _write_cache, cache_path
+    from kestimator.config.resolve import LimitRequest, resolve_limits
+    from kestimator.estimate import estimate_file
+    from kestimator.rewrite import PREP_PREFIX
+    from tests.conftest import CORPUS, CORPUS_CFG
+    from tests.fake_moonraker import CORPUS_SETTINGS
+
+    offline = "http://127.0.0.1:9"  # nothing listens: the printer is offline
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv("MOONRAKER_API_KEY", raising=False)
+    (tmp_path / "config" / "kestimator").mkdir(parents=True)
+    (tmp_path / "config" / "kestimator" / "config.toml").write_text(
+        'moonraker = "%s"\n' % offline)
+    cache = tmp_path / "cache" / "kestimator"
+    _write_cache(cache_path(offline, cache), offline, CORPUS_SETTINGS,
+                 datetime.datetime(2026, 11, 20, tzinfo=datetime.timezone.utc))
+    learn.save(LearnedTimes(offline, "2026-11-23T10:00:00Z",
+                            before_first_extrusion_s=LearnedValue(300.0, 2.0, 4, 1)), cache)
+    nut = CORPUS / "gcode" / "prusaslicer" / "ps25_nut_accelA_small.gcode"
+    plain = estimate_file(nut, resolve_limits(LimitRequest(
+        printer_cfg=str(CORPUS_CFG), use_profile=False)).limits)
+    assert compat.main(["estimate", "-f", "json", str(nut)]) == 0
+    sequence = json.loads(capsys.readouterr().out)["sequences"][0]
+    assert sequence["total_time"] == pytest.approx(plain.total_s + 300.0, abs=1e-6)
+    assert sequence["kestimator_parts"]["print_duration_s"] == pytest.approx(
+        plain.total_s, abs=1e-6)
+    copy = tmp_path / nut.name
+    shutil.copyfile(nut, copy)
+    assert compat.main(["post-process", str(copy)]) == 0
+    data = copy.read_bytes()
+    assert (PREP_PREFIX + "5m 00s (300.000 s)").encode() in data
+    assert b"; estimated printing time (normal mode) = 3m 42s" in data

@@ -188,3 +188,28 @@ def test_report_shows_the_parts(tmp_path: Path) -> None:
     assert "<span>Motion (Klipper&#x27;s planner)</span><b>3m 42s</b>" in page
     assert "<span>PRINT_START x1</span><b>7m 00s, profile %s</b>" % profile in page
     assert "<span>Before the first extrusion</span><b>7m 00s</b>" in page
+
+
+def test_a_learned_motion_ratio_stretches_the_time_after_the_first_extrusion() -> None:
+    limits = _resolved_limits()
+    plain = estimate_file(NUT, limits, sample=True)
+    first = plain.first_extrusion_t
+    assert first is not None
+    slow = MacroTimes(motion_ratio=MacroTime(1.05, "learned from 4 prints"))
+    est = estimate_file(NUT, limits, macros=slow, sample=True)
+    extra = 0.05 * (plain.total_s - first)
+    assert est.total_s == pytest.approx(plain.total_s + extra, abs=1e-9)
+    assert est.parts.motion_s == pytest.approx(plain.total_s, abs=1e-9)
+    assert est.parts.print_duration_s == pytest.approx(est.total_s, abs=1e-9)
+    assert est.timed_parts[0].name.startswith("motion correction")
+    (_, start), (_, second) = plain.layers[:2]
+    assert start <= first < second  # the first layer's marker comes before its extrusion
+    assert est.first_layer_s == pytest.approx(first + (second - first) * 1.05 - start,
+                                              abs=1e-9)
+    assert est.sample_times[-1] == pytest.approx(
+        first + (plain.sample_times[-1] - first) * 1.05, abs=1e-9)
+    assert sum(est.features.values()) == pytest.approx(est.total_s, abs=1e-6)
+    # Not slower: nothing changes.
+    same = estimate_file(NUT, limits, macros=MacroTimes(
+        motion_ratio=MacroTime(1.0, "x")))
+    assert same.total_s == plain.total_s and same.timed_parts == []

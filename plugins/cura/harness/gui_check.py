@@ -24,8 +24,9 @@ written here into Cura's plugin folder; it is test equipment, not the product):
    menu's model (``ExtensionModel.subMenuTriggered``, what the QML menu item calls) and the
    plugin's real QFileDialog; saves again; enters a Moonraker URL and API key in the plugin's
    QInputDialogs (the URL is unreachable: the message says so and Cura's own time is back in
-   the panel); switches back to Cura's machine settings; and, where Uranium signals it (Cura
-   5), disables the plugin and reads the panel once more.
+   the panel); switches back to Cura's machine settings; moves the cube (Cura slices again,
+   the new slice is timed and shown); and, where Uranium signals it (Cura 5), disables the
+   plugin and reads the panel once more.
 
 Each step prints PASS or FAIL from the helper's log lines and the saved files.
 Usage: ``gui_check.py [--cura 4.13|5.0] [--root DIR] [--printer-cfg CFG] [--keep DIR]``;
@@ -356,7 +357,21 @@ class Helper(Extension):
             self._later(1500, lambda: self._trigger("Use Cura's machine settings"))
         elif step == 4:  # back to Cura's machine settings
             self._report("machine_again")
+            self._later(2500, self._move_cube)
+        elif step == 5:  # the scene changed: Cura sliced again, the new slice is timed
+            self._report("moved")
             self._later(2500, self._finish)
+
+    def _move_cube(self):
+        from UM.Math.Vector import Vector
+        from UM.Operations.TranslateOperation import TranslateOperation
+        from UM.Scene.Iterator.DepthFirstIterator import DepthFirstIterator
+        root = self._app.getController().getScene().getRoot()
+        for node in DepthFirstIterator(root):
+            if node.callDecoration("isSliceable"):
+                TranslateOperation(node, Vector(40, 0, 30)).push()
+                note("moved", name=node.getName())
+                return
 
     def _pick_printer_cfg(self):
         self._driver = DialogDriver([PRINTER_CFG])
@@ -620,10 +635,17 @@ def run(target: CuraTarget, printer_cfg: Path, keep: Path | None) -> int:
         step("back to Cura's machine settings through the menu",
              again.get("panel_s") == machine.get("panel_s")
              and "\u2713 Use Cura's machine settings" in _first_menu(again), again)
+        moved = _state(found, "moved")
+        step("the scene changed: Cura sliced again and the new slice's time is in the panel",
+             len(messages) >= 5 and isinstance(moved.get("klipper_s"), float)
+             and moved.get("panel_s") == round(moved["klipper_s"]),  # type: ignore[arg-type]
+             (messages[4:5], moved))
         disabled = _state(found, "disabled")
         if disabled:
+            moved_cura = moved.get("cura_s")
             step("disabling the plugin puts Cura's time back in the panel",
-                 disabled.get("panel_s") == moon.get("panel_s"), disabled)
+                 isinstance(moved_cura, float) and disabled.get("panel_s") == round(moved_cura)
+                 and moved_cura != moved.get("klipper_s"), disabled)
         for name in ("machine", "final"):
             print("INFO: screenshot %s -- %s" % (name, out / (name + ".png")))
         errors = [x for x in text.splitlines()

@@ -142,9 +142,9 @@ def limits_from_klipper(choice: LimitsChoice,
         use_profile=False, read_slicer_environment=False, environ=environ)
     resolved = resolve_limits(request)
     macros = None
-    if choice.source == SOURCE_MOONRAKER and resolved.machine is not None:
+    if choice.source == SOURCE_MOONRAKER:
         from kestimator import learn
-        learned = learn.load(resolved.machine.split()[1])
+        learned = learn.learned_for(resolved)
         if learned is not None:
             macros = learned.macro_times()
     return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings), macros,
