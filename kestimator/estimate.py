@@ -416,6 +416,12 @@ class Timeline:
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
+            toolhead = self.toolhead
+            if toolhead.lookahead.is_empty() and not self._rest_until:
+                # Nothing queued: the layer starts now, after any dwell or motors-off pause
+                # since the last move (the oracle reads Klipper's print_time there).
+                self.layers.append((self.lineno, toolhead.print_time))
+                return
             self._record(self.layers, self.lineno)
             return
         if self.mark_prefixes and text.startswith(self.mark_prefixes):

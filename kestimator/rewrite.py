@@ -227,6 +227,9 @@ class Rewriter:
         self._t = 0.0
         self._last_pr: tuple[int, int] | None = None
         self._started = False
+        # After the last move's M73 P100 R0 no other M73 follows (the dwells and waits after
+        # it would otherwise read as progress going back, e.g. P97 after P100).
+        self._finished = False
         self._prefixes = plan.adapter.time_comment_prefixes
         # The same prefixes as UTF-8: a line is decoded only if its bytes start with one.
         self._prefixes_b = tuple(prefix.encode("utf-8") for prefix in self._prefixes)
@@ -323,12 +326,13 @@ class Rewriter:
             if plan.prep_line is not None:
                 out.append(plan.prep_line.encode() + line_eol)
             out.append(self._m73(*progress_pr(self._t, plan.total_s), line_eol))
-        elif self._advance(self.lineno):
+        elif not self._finished and self._advance(self.lineno):
             pr = progress_pr(self._t, plan.total_s)
             if pr != self._last_pr:
                 out.append(self._m73(pr[0], pr[1], line_eol))
         self._set_quiet_until()
         if self.lineno == plan.last_move_line:
+            self._finished = True
             if eol:
                 out.append(raw)
                 out.append(self._m73(100, 0, eol))
@@ -441,7 +445,7 @@ class Rewriter:
                                                         LAYER_INFO_SUFFIX) + line_eol)
             after.append(b"%s CURRENT_LAYER=%d%s" % (LAYER_INFO_COMMAND, self._layer,
                                                      LAYER_INFO_SUFFIX) + line_eol)
-        if self._started:
+        if self._started and not self._finished:
             self._advance(self.lineno)
             pr = progress_pr(self._t, self.plan.total_s)
             after.insert(0, self._m73(pr[0], pr[1], line_eol))

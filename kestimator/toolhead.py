@@ -227,13 +227,15 @@ class ToolHead:
         self.get_last_move_time()
 
     def motor_off(self) -> None:
-        """M84/M18: stop, dwell, disable the motors that were on, dwell again."""
+        """M84/M18: stop, dwell, disable the motors that were on, dwell again; every axis is
+        unhomed (a later XYZ move without G28 is "Must home axis first")."""
         self.flush_step_generation()
         if self.motors_enabled:
             self.dwell(DISABLE_STALL_T)
             self.get_last_move_time()
             self.dwell(DISABLE_STALL_T)
             self.motors_enabled = False
+        self.kin.clear_homing_state("xyz")
 
     def register_lookahead_callback(self, callback: TimingCallback) -> None:
         """Call back with the time at which every move queued so far has finished."""

@@ -7,17 +7,25 @@ config errors stop with file and line, and the start convention (homed at X=Y=Z=
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
 from kestimator.config.moonraker import machine_from_settings, settings_values
 from kestimator.config.printer_cfg import limits_from_printer_cfg, read_printer_cfg
+from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file, estimate_text
 from kestimator.kinematics import KINEMATICS, load_kinematics
+from kestimator.kinematics.polar import PolarKinematics
 from kestimator.kinematics.standin import StandInKinematics
 from kestimator.limits import Limits
+
+from .conftest import PROJECT
+from .fake_moonraker import FakeMoonraker
 
 REFS = Path(__file__).parent / "oracle_refs"
 
@@ -132,3 +140,41 @@ def test_a_dual_carriage_says_what_it_changes_that_is_not_modelled() -> None:
     est = estimate_text("G1 X10 F6000\nSET_DUAL_CARRIAGE CARRIAGE=1\nG1 X20 F6000\n", limits)
     assert any(":2: [dual_carriage]: SET_DUAL_CARRIAGE switches carriages" in w
                for w in est.warnings)
+
+
+def test_the_cli_times_a_delta_from_its_printer_cfg_as_klipper_does() -> None:
+    ref = json.loads((REFS / "delta" / "delta_radius.json").read_text())
+    proc = subprocess.run(
+        [sys.executable, "-m", "kestimator", "estimate",
+         str(REFS / "snippets" / "delta_radius.gcode"),
+         "--printer-cfg", str(REFS / "delta" / "printer.cfg"), "--json"],
+        capture_output=True, text=True, check=True, cwd=PROJECT)
+    out = json.loads(proc.stdout)
+    assert abs(out["total_s"] - ref["total_s"]) <= 0.01 + 1e-6 * ref["total_s"]
+
+
+def test_moonraker_gives_the_kinematics_its_sections_and_the_cache_keeps_them(
+        tmp_path: Path) -> None:
+    cfg = REFS / "polar" / "printer.cfg"
+    settings = {name: {option: _typed(value.value) for option, value in options.items()}
+                for name, options in read_printer_cfg(cfg).items()}
+    fake = FakeMoonraker(settings).start()
+    try:
+        resolved = resolve_limits(LimitRequest(
+            moonraker_url=fake.url, use_profile=False, cache_directory=tmp_path,
+            environ={}))
+    finally:
+        fake.stop()
+    assert resolved.limits.machine is not None
+    assert isinstance(load_kinematics(resolved.limits), PolarKinematics)
+    offline = resolve_limits(LimitRequest(
+        moonraker_url=fake.url, use_profile=False, cache_directory=tmp_path, environ={}))
+    def values(limits: Limits) -> set[tuple[str, str, str]]:
+        assert limits.machine is not None
+        return {(name, option, value) for name, options in limits.machine.sections
+                for option, value, _ in options}
+    assert "printer offline" in (offline.machine or "")
+    assert values(offline.limits) == values(resolved.limits)
+    gcode = REFS / "snippets" / "polar_center.gcode"
+    ref = json.loads((REFS / "polar" / "polar_center.json").read_text())
+    assert abs(estimate_file(gcode, offline.limits).total_s - ref["total_s"]) <= 0.01

@@ -260,11 +260,13 @@ def moonraker_values(url: str, api_key: str | None = None,
         shown = fetched.strftime(_TIME_SHOWN)
         found = settings_values(settings, f"moonraker {url} (cached {shown}, printer offline)")
         return SourcedValues(found.description, found.values, found.sources,
-                             (f"{exc.message}: using its settings cached at {shown}",))
+                             (f"{exc.message}: using its settings cached at {shown}",),
+                             machine=found.machine)
     found = settings_values(settings, f"moonraker {url}")
     problem = _write_cache(path, url, settings, now())
     if problem is not None:
-        return SourcedValues(found.description, found.values, found.sources, (problem,))
+        return SourcedValues(found.description, found.values, found.sources, (problem,),
+                             machine=found.machine)
     return found
 
 

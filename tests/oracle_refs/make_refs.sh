@@ -27,6 +27,9 @@ corexz slic3r/cancelobj_slic3r1.3.1dev.gcode
 corexz snippets/home_then_move.gcode
 corexz snippets/z_moves.gcode
 corexz snippets/out_of_range_x.gcode
+corexz snippets/motors_off.gcode
+corexz snippets/dwell_then_layer.gcode
+corexz snippets/motors_off_g28.gcode
 corexz_force_move snippets/kinematic_position.gcode
 corexz_force_move snippets/kinematic_position_clear.gcode
 corexy_maxend cura/cura413_ender3_nut_small.gcode
@@ -38,6 +41,8 @@ delta snippets/home_then_move.gcode
 delta snippets/z_moves.gcode
 delta snippets/delta_radius.gcode
 delta snippets/delta_out_of_range.gcode
+delta snippets/motors_off.gcode
+delta snippets/motors_off_g28.gcode
 delta_tight orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode
 polar slic3r/cancelobj_slic3r1.3.1dev.gcode
 polar snippets/polar_center.gcode
