@@ -52,9 +52,15 @@ from kestimator.config.resolve import (
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
+from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.limits import Limits
 from kestimator.report import collect, render_html
-from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
+from kestimator.rewrite import (
+    check_gcode_file,
+    inject_file,
+    slicer_of_file,
+    write_bytes_atomically,
+)
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
            "estimate_to_json", "main"]
@@ -300,6 +306,7 @@ def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    args.resolved = resolved
     return resolved
 
 
@@ -583,6 +590,7 @@ def cmd_inject(args: argparse.Namespace) -> int:
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              progress=progress, macros=args.macros,
                              layer_info=args.layer_info)
+    args.written.append(result.output)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
                                list(resolved.warnings), limits_guessed=resolved.guessed)
@@ -818,24 +826,26 @@ REPORT_EXTENSIONS = (".html", ".htm", ".xhtml")
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
     extension = os.path.splitext(args.output)[1].lower()
+    if not args.output:
+        raise KestimatorError("-o names no file (an empty name)")
     if extension not in REPORT_EXTENSIONS:
         raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
                          "in a browser to save a picture)" % (extension or "a file without "
                                                               "an extension"))
     check_gcode_file(args.file)
+    if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
+        raise KestimatorError("the report would overwrite the G-code it reports on: give "
+                              "another -o", args.output)
     resolved = _resolve(args, args.file)
     _check_time_options(args)
     with _progress(args, "timing") as progress:
         data = collect(args.file, resolved.limits, resolved.summary,
                        homing_time=args.homing_time, heat_time=args.heat_time,
-                       macros=args.macros, bytes_read=progress)
+                       macros=args.macros, limit_warnings=list(resolved.warnings),
+                       limit_sources=resolved.sources, guessed_limits=resolved.guessed,
+                       bytes_read=progress)
     page = render_html(data)
-    try:
-        with open(args.output, "w", encoding="utf-8") as out:
-            out.write(page)
-    except OSError as exc:
-        raise KestimatorError("cannot write the report: %s" % (exc.strerror or exc),
-                              args.output) from None
+    write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
         approximate = ", approximate: the limits are guesses" if resolved.guessed else ""
         sys.stdout.write(printable("kestimator: wrote %s (Klipper time %s%s)" % (
@@ -908,8 +918,92 @@ def _error_text(exc: KestimatorError) -> str:
     return printable(text)
 
 
+class StdoutError(Exception):
+    """Standard output is closed or cannot take what we write (a full disk, /dev/full)."""
+
+
+class _GuardedStdout:
+    """sys.stdout while a command runs: a failed write or flush becomes `StdoutError`,
+    so the command can still say what happened to the file (a broken pipe stays as it is:
+    the reader went away on purpose)."""
+
+    def __init__(self, stream: Any) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        if self._stream is None:
+            raise StdoutError("standard output is closed")
+        try:
+            return int(self._stream.write(text))
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def flush(self) -> None:
+        if self._stream is None:
+            return
+        try:
+            self._stream.flush()
+        except BrokenPipeError:
+            raise
+        except (OSError, ValueError) as exc:
+            raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
+
+    def isatty(self) -> bool:
+        return self._stream is not None and _is_terminal(self._stream)
+
+    def __getattr__(self, name: str) -> Any:
+        if self._stream is None:
+            raise AttributeError(name)
+        return getattr(self._stream, name)
+
+
+def _quiet_stdout() -> None:
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
+    (what is still buffered goes nowhere)."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `kestimator` command; returns the exit status."""
+    """Entry point of the `kestimator` command; returns the exit status.
+
+    Standard output failing (closed, full) is reported on stderr as one line; the exit
+    status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
+    """
+    cleanup_on_termination()
+    real_stdout = sys.stdout
+    sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
+    written: list[str] = []
+    try:
+        status = _main(argv, written)
+        sys.stdout.flush()
+        return status
+    except StdoutError as exc:
+        _quiet_stdout()
+        if written:
+            sys.stderr.write("kestimator: %s was written; its summary could not be shown: "
+                             "standard output: %s\n" % (printable(written[0]), exc))
+            return EXIT_OK
+        sys.stderr.write("kestimator: error: cannot write to standard output: %s\n" % exc)
+        return EXIT_FAILURE
+    except BrokenPipeError:
+        _quiet_stdout()
+        return EXIT_OK
+    except Terminated as exc:
+        # Temporary files are gone (the writers unwind); 128 + signal, as if killed.
+        sys.stderr.write("kestimator: terminated by signal %d\n" % exc.signum)
+        return 128 + exc.signum
+    finally:
+        sys.stdout = real_stdout
+
+
+def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     parser = _build_parser()
     arguments = _fix_argv(list(sys.argv[1:] if argv is None else argv))
     mistake = _path_mistake(arguments)
@@ -917,6 +1011,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write("kestimator: error: %s\n" % mistake)
         return EXIT_USAGE
     args = parser.parse_args(arguments)
+    args.written = written
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
@@ -941,12 +1036,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_FAILURE
     except BrokenPipeError:
         # The reader went away (`kestimator estimate --json | head`): not our failure.
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
+        _quiet_stdout()
         return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_FAILURE
+    except StdoutError:
+        raise
     except Exception as exc:  # a bug: still one line for the user, the traceback on request
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()

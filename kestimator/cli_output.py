@@ -171,6 +171,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "layers": [{"line": line, "t": round(t, 6), "duration_s": round(max(end - t, 0.0), 6)}
                    for (line, t), end in zip(est.layers, ends, strict=True)],
         "features": {name: round(t, 6) for name, t in est.features.items()},
+        "objects": {name: round(t, 6) for name, t in est.objects.items()},
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
                    "first_layer_estimate_s": slicer.first_layer_estimate_s,
                    "difference_s": _rounded(difference),

@@ -32,9 +32,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import stat
 import sys
-import tempfile
 from collections import defaultdict
 from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
@@ -45,6 +43,7 @@ from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
+from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.learn import macro_times_for
 from kestimator.planner import Move
 from kestimator.rewrite import check_gcode_file, inject_file
@@ -73,6 +72,8 @@ STDIN_NAME = "-"
 COMPAT_GUESS_FIX = ("name the printer in kestimator's profile (printer_cfg or moonraker in "
                     "~/.config/kestimator/config.toml of the user Moonraker runs as), or pass "
                     "--config_moonraker_url URL")
+# An internal error's text is cut to this many characters (it may quote a file or a server).
+MAX_ERROR_CHARS = 300
 
 
 class MoveTotals:
@@ -195,42 +196,29 @@ def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
 
 
 def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
-    """``post-process PATH``: inject kestimator's times, then the line Moonraker looks for."""
+    """``post-process PATH``: inject kestimator's times, then the line Moonraker looks for.
+
+    One atomic in-place rewrite (`inject_file`: its lock, so concurrent runs take turns, its
+    checks, owner/mode/xattrs kept, the directory synced); the ident line is appended to the
+    temporary file before it replaces PATH, and that file exists only while it is written.
+    """
     path = args.filename
-    before = check_gcode_file(path)
+    check_gcode_file(path)
     resolved = resolve_limits(_request(args, path))
     _warn(resolved, err)
-    directory = os.path.dirname(os.path.abspath(path))
-    try:
-        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".",
-                                   suffix=".kestimator-compat", dir=directory)
-    except OSError as exc:
-        raise KestimatorError("cannot write next to the file: %s" % (exc.strerror or exc),
-                              path) from None
-    os.close(fd)
-    try:
-        result = inject_file(path, resolved.limits, output=tmp,
-                             limits_source=resolved.marker_source,
-                             homing_time=resolved.homing_time_s or 0.0,
-                             heat_time=resolved.heat_time_s or 0.0,
-                             macros=macro_times_for(resolved))
-        append_ident_line(tmp)
-        now = os.stat(path)
-        if (now.st_size, now.st_mtime_ns, now.st_ino) != (
-                before.st_size, before.st_mtime_ns, before.st_ino):
-            raise KestimatorError("the file changed while it was being processed; it was "
-                                  "left as it is now", path)
-        os.chmod(tmp, stat.S_IMODE(before.st_mode))
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              path) from None
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    result = inject_file(path, resolved.limits, limits_source=resolved.marker_source,
+                         homing_time=resolved.homing_time_s or 0.0,
+                         heat_time=resolved.heat_time_s or 0.0,
+                         macros=macro_times_for(resolved), finish=append_ident_line)
     out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)\n"
-              % (path, result.estimate.total_s, result.m73_written, resolved.summary))
+              % (_printable(path), result.estimate.total_s, result.m73_written,
+                 _printable(resolved.summary)))
     return EXIT_OK
+
+
+def _printable(text: str) -> str:
+    """One line, control characters escaped (file names may hold newlines)."""
+    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in text)
 
 
 def append_ident_line(path: str) -> bool:
@@ -267,6 +255,7 @@ def cmd_dump_config(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of `kestimator-compat`; returns the exit status."""
+    cleanup_on_termination()
     parser = _build_parser()
     args = parser.parse_args(argv)
     out, err = sys.stdout, sys.stderr
@@ -283,10 +272,18 @@ def main(argv: Sequence[str] | None = None) -> int:
             return cmd_post_process(args, out, err)
         return cmd_dump_config(args, out, err)
     except KestimatorError as exc:
-        err.write("kestimator-compat: error: %s\n" % printable(str(exc)))
+        err.write("kestimator-compat: error: %s\n" % _printable(str(exc)))
         return EXIT_FAILURE
     except KeyboardInterrupt:
         err.write("kestimator-compat: interrupted\n")
+        return EXIT_FAILURE
+    except Terminated as exc:
+        err.write("kestimator-compat: terminated by signal %d\n" % exc.signum)
+        return 128 + exc.signum
+    except Exception as exc:  # noqa: BLE001 - Moonraker's log gets one line, never a traceback
+        # (RecursionError, MemoryError's kin, a bug): the file is untouched (atomic write).
+        err.write("kestimator-compat: internal error: %s: %s\n"
+                  % (type(exc).__name__, _printable(str(exc))[:MAX_ERROR_CHARS]))
         return EXIT_FAILURE
 
 

@@ -1,7 +1,8 @@
 """One streaming pass over a G-code file: Klipper's time at every line that matters.
 
 Owns the timeline: reading the file line by line (lines end at LF, as Klipper reads them),
-layer markers, per-feature sums, the `; ESTIMATOR_ADD_TIME` comment, warnings, and the
+layer markers, per-feature and per-object sums (objects from EXCLUDE_OBJECT_START/END, M486
+and `; printing object` labels), the `; ESTIMATOR_ADD_TIME` comment, warnings, and the
 `Estimate` result. The file is never held in memory: only the look-ahead queue (bounded by
 Klipper's own flush rule) and the recorded times (one per layer and per sample) are kept.
 """
@@ -12,12 +13,13 @@ import dataclasses
 import io
 import math
 import os
+import re
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import Command, parse_line, parse_plain_move
+from kestimator.gcode import Command, extended_params, parse_line, parse_plain_move
 from kestimator.interpreter import CommandError, Interpreter
 from kestimator.limits import Limits
 from kestimator.macros import (
@@ -32,6 +34,11 @@ from kestimator.macros import (
 from kestimator.planner import Move
 from kestimator.toolhead import MoveError, ToolHead
 
+# Commands that say which object the following moves belong to.
+OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
+                             "EXCLUDE_OBJECT_END", "M486"))
+# M486's A parameter: the current object's name, to the end of the code.
+_M486_LABEL_RE = re.compile(r"^\s*M486\b.*?\sA(\S.*)$", re.IGNORECASE)
 # Comment markers that start a layer.
 LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
@@ -39,6 +46,11 @@ FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
 ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
 # Feature name for moves before the first feature marker.
 NO_FEATURE = "(none)"
+# Object name for moves outside every labelled object (start, travel between objects, end).
+NO_OBJECT = "(no object)"
+# `; printing object NAME` / `; stop printing object NAME` (PrusaSlicer, SuperSlicer, Orca).
+OBJECT_COMMENT = ";printing object"
+OBJECT_STOP_COMMENT = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
 MAX_WARNINGS = 100
 READ_BUFFER_BYTES = 1 << 20
@@ -79,6 +91,9 @@ class Estimate:
     last_move_line: int | None
     # Net filament the moves push (mm of E, after M221; retractions count negative).
     filament_mm: float = 0.0
+    # Object name -> seconds; NO_OBJECT is time outside every labelled object. Empty when
+    # the file labels no objects. Sums to total_s (as features do).
+    objects: dict[str, float] = dataclasses.field(default_factory=dict)
     # Time added where the file runs macros, waits or says ESTIMATOR_ADD_TIME, by kind.
     timed_parts: list[TimedPart] = dataclasses.field(default_factory=list)
     # Commands that are no Klipper command and have no time (macros whose time is unknown).
@@ -167,12 +182,29 @@ class Timeline:
         self.first_extrusion_t: float | None = None
         self.feature_names: list[str] = [NO_FEATURE]
         self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
-        self.feature_time: list[float] = [0.0]
-        # Moves are tagged with their line; feature changes wait here (line, feature id)
+        # Objects by key (EXCLUDE_OBJECT NAME, M486 id or comment label) and their names.
+        self.object_keys: list[str] = [NO_OBJECT]
+        self.object_ids: dict[str, int] = {NO_OBJECT: 0}
+        self.object_names: dict[str, str] = {}
+        # Comment labels count until a command labels objects (EXCLUDE_OBJECT_*, M486):
+        # then Klipper's own labels win and the comments are ignored.
+        self._object_commands = False
+        self._queued_object = 0
+        # Time is summed per segment, one per (feature id, object id) seen, so the move
+        # loop pays one addition per move whatever is tracked.
+        self.segments: list[tuple[int, int]] = [(0, 0)]
+        self.segment_ids: dict[tuple[int, int], int] = {(0, 0): 0}
+        self.segment_time: list[float] = [0.0]
+        # Moves are tagged with their line; segment changes wait here (line, segment id)
         # until the planner has flushed every move before them.
         self._feature_changes: deque[tuple[int, int]] = deque()
         self._feature = 0
         self._queued_feature = 0
+        self._segment = 0
+        self._queued_segment = 0
+        # Where the time already given to a segment ends: the head at rest between batches
+        # (G4, flush delays, homing) goes to the segment of the last move before it.
+        self._counted_until = 0.0
         self.layers: list[tuple[int, float]] = []
         self.marks: list[tuple[int, float]] = []
         self.mark_prefixes = mark_prefixes
@@ -204,25 +236,28 @@ class Timeline:
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
-        feature_time = self.feature_time
+        segment_time = self.segment_time
         changes = self._feature_changes
-        feature = self._feature
+        segment = self._segment
         t = start_t
+        if start_t > self._counted_until:
+            segment_time[segment] += start_t - self._counted_until
         filament = self.filament_mm
         next_sample_t = self._next_sample_t if self.sample else math.inf
         if self.first_extrusion_t is None:
             self._find_first_extrusion(moves, start_t)
         for move in moves:
             while changes and changes[0][0] <= move.tag:
-                feature = changes.popleft()[1]
+                segment = changes.popleft()[1]
             dt = move.accel_t + move.cruise_t + move.decel_t
-            feature_time[feature] += dt
+            segment_time[segment] += dt
             t += dt
             filament += move.axes_d_e
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
-        self._feature = feature
+        self._segment = segment
+        self._counted_until = t
         self.filament_mm = filament
         self.n_moves += len(moves)
         if self.observer is not None:
@@ -260,9 +295,12 @@ class Timeline:
             part.covered += 1
             return
         before = toolhead.print_time
+        if before > self._counted_until:
+            self.segment_time[self._segment] += before - self._counted_until
         toolhead.add_time(seconds)
-        # add_time stopped the head: every queued feature change has been applied.
-        self.feature_time[self._queued_feature] += toolhead.print_time - before
+        # add_time stopped the head: every queued segment change has been applied.
+        self.segment_time[self._queued_segment] += toolhead.print_time - before
+        self._counted_until = toolhead.print_time
         self._rest_until = toolhead.print_time
         part.seconds += seconds
         if prep:
@@ -273,7 +311,7 @@ class Timeline:
 
         The extra time is spread evenly over everything after the first extrusion: the
         times recorded there (layers, marks, progress samples) stretch by one factor and
-        every feature's time grows in proportion, so the parts still add up.
+        every feature's and object's time grows in proportion, so the parts still add up.
         """
         ratio = self.macros.motion_ratio
         first = self.first_extrusion_t
@@ -292,7 +330,7 @@ class Timeline:
         for i in range(len(times)):
             times[i] = stretch(times[i])
         grow = (total + extra) / total
-        self.feature_time = [t * grow for t in self.feature_time]
+        self.segment_time = [t * grow for t in self.segment_time]
         part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
         part.count = 1
         part.seconds = extra
@@ -400,6 +438,8 @@ class Timeline:
             return
         if self.first_command_line is None:
             self.first_command_line = self.lineno
+        if cmd.name in OBJECT_COMMANDS:
+            self._object_command(cmd)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
         self.interp.tag = self.lineno
@@ -431,6 +471,8 @@ class Timeline:
             if text.startswith(marker):
                 self._set_feature(text[len(marker):].strip())
                 return
+        if "printing object" in text and self._object_comment(text):
+            return
         body = text.lstrip(";").strip()
         if body.startswith(ADD_TIME_MARKER):
             self._add_time(body[len(ADD_TIME_MARKER):].split())
@@ -440,13 +482,85 @@ class Timeline:
         if fid is None:
             fid = self.feature_ids[name] = len(self.feature_names)
             self.feature_names.append(name)
-            self.feature_time.append(0.0)
-        if self.toolhead.lookahead.is_empty():
-            self._feature_changes.clear()
-            self._feature = fid
-        else:
-            self._feature_changes.append((self.lineno, fid))
         self._queued_feature = fid
+        self._set_segment()
+
+    def _set_object(self, key: str | None) -> None:
+        """Moves from this line on belong to object `key` (None: to no object)."""
+        if key is None:
+            oid = 0
+        else:
+            found = self.object_ids.get(key)
+            if found is None:
+                found = self.object_ids[key] = len(self.object_keys)
+                self.object_keys.append(key)
+            oid = found
+        if oid != self._queued_object:
+            self._queued_object = oid
+            self._set_segment()
+
+    def _set_segment(self) -> None:
+        key = (self._queued_feature, self._queued_object)
+        sid = self.segment_ids.get(key)
+        if sid is None:
+            sid = self.segment_ids[key] = len(self.segments)
+            self.segments.append(key)
+            self.segment_time.append(0.0)
+        toolhead = self.toolhead
+        if toolhead.lookahead.is_empty():
+            # Every move so far has been timed: rest until now belongs to the old segment.
+            if toolhead.print_time > self._counted_until:
+                self.segment_time[self._segment] += toolhead.print_time - self._counted_until
+                self._counted_until = toolhead.print_time
+            self._feature_changes.clear()
+            self._segment = sid
+        else:
+            self._feature_changes.append((self.lineno, sid))
+        self._queued_segment = sid
+
+    def _object_command(self, cmd: Command) -> None:
+        """EXCLUDE_OBJECT_START/END or M486: the object the following moves belong to."""
+        self._object_commands = True
+        name = cmd.name
+        if name == "M486":
+            if "S" in cmd.params:
+                try:
+                    index = int(float(cmd.params["S"]))
+                except ValueError:
+                    return
+                self._set_object(None if index < 0 else "M486 S%d" % index)
+            found = _M486_LABEL_RE.search(cmd.code)
+            label = found.group(1).strip() if found else ""
+            if label and self._queued_object:
+                self.object_names[self.object_keys[self._queued_object]] = label
+            return
+        if name == "EXCLUDE_OBJECT_END":
+            self._set_object(None)
+            return
+        if name == "EXCLUDE_OBJECT_START":
+            try:
+                params = extended_params(cmd.code)
+            except ValueError:
+                return  # Klipper rejects the line; execute() says so
+            object_name = params.get("NAME", "").strip().upper()
+            if object_name:
+                self._set_object(object_name)
+                self.object_names.setdefault(object_name, params["NAME"].strip())
+
+    def _object_comment(self, text: str) -> bool:
+        """`; printing object NAME` / `; stop printing object NAME`: True if it was one."""
+        body = ";" + text.lstrip(";").strip()
+        if body.startswith(OBJECT_STOP_COMMENT):
+            if not self._object_commands:
+                self._set_object(None)
+            return True
+        if body.startswith(OBJECT_COMMENT):
+            label = body[len(OBJECT_COMMENT):].strip()
+            if label and not self._object_commands:
+                self._set_object("; " + label)
+                self.object_names.setdefault("; " + label, label)
+            return True
+        return False
 
     def _add_time(self, words: list[str]) -> None:
         try:
@@ -464,6 +578,9 @@ class Timeline:
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
+        if total > self._counted_until:
+            self.segment_time[self._segment] += total - self._counted_until
+            self._counted_until = total
         total = self._correct_motion(total)
         interp = self.interp
         if interp.moved_e_before_mode:
@@ -476,8 +593,20 @@ class Timeline:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
                           "its effect on time is unknown and counted as 0 s" % name)
-        features = {name: self.feature_time[i] for i, name in enumerate(self.feature_names)
-                    if self.feature_time[i] > 0.0 or name != NO_FEATURE}
+        feature_time = [0.0] * len(self.feature_names)
+        object_time = [0.0] * len(self.object_keys)
+        for i, (fid, oid) in enumerate(self.segments):
+            seconds = self.segment_time[i]
+            feature_time[fid] += seconds
+            object_time[oid] += seconds
+        features = {name: feature_time[i] for i, name in enumerate(self.feature_names)
+                    if feature_time[i] > 0.0 or name != NO_FEATURE}
+        objects: dict[str, float] = {}
+        if len(self.object_keys) > 1:
+            for i, key in enumerate(self.object_keys):
+                name = self.object_names.get(key, key)
+                if object_time[i] > 0.0:
+                    objects[name] = objects.get(name, 0.0) + object_time[i]
         return Estimate(
             path=self.path, total_s=total, layers=list(self.layers), features=features,
             n_moves=self.n_moves, n_lines=self.lineno,
@@ -488,7 +617,8 @@ class Timeline:
             last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
-            untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t)
+            untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
+            objects=objects)
 
 
 def _looks_like_gcode(name: str) -> bool:

@@ -39,6 +39,7 @@ from kestimator.config.moonraker import (
     DEFAULT_TIMEOUT_S,
     MAX_ANSWER_BYTES,
     cache_path,
+    clean_api_key,
     default_cache_dir,
     normalise_url,
 )
@@ -218,7 +219,8 @@ class _Client:
                 return None
 
         self.url = url
-        self.api_key = api_key
+        # Whitespace (CR/LF) stripped, control characters refused without showing the key.
+        self.api_key = clean_api_key(api_key)
         self.timeout_s = timeout_s
         self.opener = urllib.request.build_opener(urllib.request.ProxyHandler({}),
                                                   NoRedirect())

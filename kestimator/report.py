@@ -1,10 +1,12 @@
 """`kestimator report`: one self-contained HTML page with inline SVG charts.
 
-Owns what the report shows and how it is drawn: time per layer, progress over time
-(Klipper's truth against the slicer's own M73 where the file has them), time per feature,
-and the speed moves reach against the speed they ask for (where acceleration costs time).
-The page loads nothing from the network and runs no script; charts scale to the screen,
-so it reads on a phone. Standard library only.
+Owns what the report shows and how it is drawn: a banner of what the user must know first
+(guessed limits, warnings), the remaining time the printer's display would show (the
+slicer's own M73 R / ;TIME_ELAPSED: against Klipper's truth), time per layer (with Z), per
+object, per feature, the speed moves reach against the speed they ask for (where acceleration
+costs time), filament, and the limits with their sources. The page loads nothing from the
+network and runs no script; charts are drawn in a 400-unit-wide SVG so text stays at least
+11 CSS px on a 390 px phone, with ticks on round values. Standard library only.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import html
 import math
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 from kestimator import __version__
 from kestimator.durations import format_duration
@@ -27,10 +29,22 @@ from kestimator.rewrite import slicer_of_file
 from kestimator.slicers import SlicerInfo
 
 SPEED_BIN_V = 10.0
-_M73_P_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?P(\d+(?:\.\d+)?)")
-CHART_W = 640
-CHART_H = 260
-PAD_L, PAD_R, PAD_T, PAD_B = 56, 16, 16, 40
+_M73_R_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?R(\d+(?:\.\d+)?)")
+_TIME_ELAPSED_RE = re.compile(rb"^;TIME_ELAPSED:(\d+(?:\.\d+)?)")
+_Z_RE = re.compile(rb"^\s*G[01]\s[^;]*Z(-?\d+(?:\.\d+)?|-?\.\d+)")
+# Chart geometry in SVG user units. Charts are at most 520 px wide on screen (ticks at most
+# 16 px on a desktop); at 390 px (366 px of chart) a unit is 0.915 px, so TICK_FONT-unit
+# ticks render at 11.4 px.
+CHART_W = 400
+CHART_H = 250
+PAD_L, PAD_R, PAD_T, PAD_B = 58, 14, 12, 46
+TICK_FONT = 12.5
+LABEL_FONT = 13.0
+# Round steps for time axes (seconds) and for other axes (x a power of ten).
+TIME_STEPS = (1, 2, 5, 10, 15, 30, 60, 120, 300, 600, 900, 1800, 3600, 7200, 10800, 21600,
+              43200, 86400)
+NUMBER_STEPS = (1.0, 2.0, 2.5, 5.0)
+MAX_TICKS = 5
 COLORS = ("#2f6fdf", "#e0702a", "#3a9d5d", "#b8408f", "#8a6d3b", "#5a5a5a", "#c23b3b",
           "#17a2b8")
 
@@ -85,7 +99,17 @@ class ReportData:
     slicer: SlicerInfo
     limits_source: str
     speed: SpeedStats
-    slicer_progress: list[tuple[float, float]]  # (Klipper time s, slicer's M73 percent)
+    # (Klipper time s, remaining time the slicer's display shows s), in file order.
+    slicer_remaining: list[tuple[float, float]]
+    # Where slicer_remaining comes from ("M73 R", ";TIME_ELAPSED:") or "" when nowhere.
+    remaining_source: str
+    # Z (mm) of each layer marker in est.layers (None where no Z move follows it).
+    layer_z: list[float | None]
+    # Warnings about the limits (e.g. guessed), shown in the banner.
+    limit_warnings: list[str] = dataclasses.field(default_factory=list)
+    # Limit name -> (value, where it came from).
+    limit_rows: list[tuple[str, str, str]] = dataclasses.field(default_factory=list)
+    guessed_limits: bool = False
 
 
 def _time_at_line(est: Estimate, line: int) -> float:
@@ -96,179 +120,427 @@ def _time_at_line(est: Estimate, line: int) -> float:
 
 def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
             heat_time: float = 0.0, macros: MacroTimes | None = None,
+            limit_warnings: Sequence[str] = (),
+            limit_sources: Mapping[str, str] | None = None,
+            guessed_limits: bool = False,
             bytes_read: ProgressCallback | None = None) -> ReportData:
-    """Estimate the file with move statistics and read the slicer's own M73 progress
-    (`bytes_read` hears the bytes the estimate has read, for a progress bar)."""
+    """Estimate the file with move statistics; read the slicer's remaining time and Z."""
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
-                        macros=macros,
-                        sample=True, observer=speed, progress=bytes_read)
+                        macros=macros, sample=True, observer=speed, progress=bytes_read)
     slicer = slicer_of_file(path)  # through our marker in an injected file
-    progress: list[tuple[float, float]] = []
+    m73: list[tuple[float, float]] = []
+    elapsed: list[tuple[float, float]] = []
+    layer_lines = [line for line, _ in est.layers]
+    layer_z: list[float | None] = [None] * len(layer_lines)
+    next_layer = 0   # index of the first layer whose marker is still ahead
+    waiting = -1     # the layer whose Z is not known yet
+    z_now: float | None = None
     with open(path, "rb") as f:
         for lineno, raw in enumerate(f, 1):
-            if raw[:1] not in (b"M", b"m", b" ", b"\t"):
+            while next_layer < len(layer_lines) and layer_lines[next_layer] <= lineno:
+                waiting = next_layer
+                next_layer += 1
+            first = raw[:1]
+            if first in (b"G", b"g", b" ", b"\t"):
+                if b"Z" in raw:
+                    zm = _Z_RE.match(raw)
+                    if zm is not None:
+                        z_now = float(zm.group(1))
+                if waiting >= 0 and b"E" in raw and (b"X" in raw or b"Y" in raw):
+                    # The layer's Z: where its first extruding move runs (after any Z hop).
+                    layer_z[waiting] = z_now
+                    waiting = -1
                 continue
-            match = _M73_P_RE.match(raw)
-            if match is not None:
-                progress.append((_time_at_line(est, lineno), float(match.group(1))))
+            if first in (b"M", b"m"):
+                match = _M73_R_RE.match(raw)
+                if match is not None:
+                    m73.append((_time_at_line(est, lineno), 60.0 * float(match.group(1))))
+            elif first == b";":
+                if raw.startswith(b";TIME_ELAPSED:"):
+                    em = _TIME_ELAPSED_RE.match(raw)
+                    if em is not None:
+                        elapsed.append((_time_at_line(est, lineno), float(em.group(1))))
+                elif waiting >= 0 and raw.startswith(b";Z:"):
+                    try:
+                        layer_z[waiting] = float(raw[3:])
+                        waiting = -1
+                    except ValueError:
+                        pass
+    if m73:
+        remaining, source = m73, "M73 R"
+    elif elapsed and slicer.estimate_s is not None:
+        total = slicer.estimate_s
+        remaining = [(0.0, total)] + [(t, max(0.0, total - e)) for t, e in elapsed]
+        source = ";TIME_ELAPSED:"
+    else:
+        remaining, source = [], ""
+    rows = [(name, _limit_value(getattr(limits, name, None)), src)
+            for name, src in sorted((limit_sources or {}).items())]
     return ReportData(estimate=est, slicer=slicer, limits_source=limits_source, speed=speed,
-                      slicer_progress=progress)
+                      slicer_remaining=remaining, remaining_source=source, layer_z=layer_z,
+                      limit_warnings=list(limit_warnings), limit_rows=rows,
+                      guessed_limits=guessed_limits)
 
 
-def _nice_max(value: float) -> float:
-    if value <= 0:
+def _limit_value(value: object) -> str:
+    if isinstance(value, float):
+        return "%g" % value
+    return "" if value is None else str(value)
+
+
+def time_step(span_s: float) -> float:
+    """A round time step (1 s .. 1 day) giving at most MAX_TICKS steps over `span_s`."""
+    for step in TIME_STEPS:
+        if span_s <= step * MAX_TICKS:
+            return float(step)
+    return float(TIME_STEPS[-1]) * math.ceil(span_s / (TIME_STEPS[-1] * MAX_TICKS))
+
+
+def number_step(span: float) -> float:
+    """A round step (1, 2, 2.5 or 5 x 10^k) giving at most MAX_TICKS steps over `span`."""
+    if span <= 0:
         return 1.0
-    exp = 10 ** math.floor(math.log10(value))
-    for step in (1, 2, 2.5, 5, 10):
-        if value <= step * exp:
-            return step * exp
-    return 10 * exp
+    exp = 10.0 ** math.floor(math.log10(span / MAX_TICKS))
+    for mult in NUMBER_STEPS + (10.0,):
+        if span <= mult * exp * MAX_TICKS:
+            return mult * exp
+    return 10.0 * exp
 
 
-def _axes(x_label: str, y_label: str, y_max: float, y_fmt: str = "%g",
-          x_ticks: Sequence[tuple[float, str]] = ()) -> list[str]:
-    """Frame, grid and labels of a chart whose plot area maps y in [0, y_max]."""
-    plot_w, plot_h = CHART_W - PAD_L - PAD_R, CHART_H - PAD_T - PAD_B
+def tick_time(seconds: float) -> str:
+    """A tick label for a round time: `0`, `45s`, `10m`, `1h`, `1h 30m`."""
+    whole = int(round(seconds))
+    if whole == 0:
+        return "0"
+    hours, rest = divmod(whole, 3600)
+    minutes, secs = divmod(rest, 60)
+    parts = []
+    if hours:
+        parts.append("%dh" % hours)
+    if minutes:
+        parts.append("%dm" % minutes)
+    if secs:
+        parts.append("%ds" % secs)
+    return " ".join(parts)
+
+
+class Axis:
+    """A linear axis from 0 to a round maximum with ticks on every round step."""
+
+    def __init__(self, max_value: float, timed: bool) -> None:
+        step = time_step(max_value) if timed else number_step(max_value)
+        self.step = step
+        self.max = step * max(1, math.ceil(max_value / step - 1e-9))
+        self.timed = timed
+
+    def ticks(self) -> list[tuple[float, str]]:
+        n = int(round(self.max / self.step))
+        return [(k * self.step, tick_time(k * self.step) if self.timed
+                 else "%g" % (k * self.step)) for k in range(n + 1)]
+
+
+PLOT_W = CHART_W - PAD_L - PAD_R
+PLOT_H = CHART_H - PAD_T - PAD_B
+
+
+def _x(axis: Axis, value: float) -> float:
+    return PAD_L + PLOT_W * value / axis.max
+
+
+def _y(axis: Axis, value: float) -> float:
+    return PAD_T + PLOT_H - PLOT_H * value / axis.max
+
+
+def _axes(x_axis: Axis | None, y_axis: Axis, x_label: str, y_label: str,
+          x_ticks: Sequence[tuple[float, str]] | None = None) -> list[str]:
+    """Frame, grid, round ticks and axis labels of a chart."""
     out = ['<rect x="%d" y="%d" width="%d" height="%d" class="frame"/>'
-           % (PAD_L, PAD_T, plot_w, plot_h)]
-    for k in range(5):
-        value = y_max * k / 4
-        y = PAD_T + plot_h - plot_h * k / 4
+           % (PAD_L, PAD_T, PLOT_W, PLOT_H)]
+    for value, label in y_axis.ticks():
+        y = _y(y_axis, value)
         out.append('<line x1="%d" x2="%d" y1="%.1f" y2="%.1f" class="grid"/>'
-                   % (PAD_L, PAD_L + plot_w, y, y))
+                   % (PAD_L, PAD_L + PLOT_W, y, y))
         out.append('<text x="%d" y="%.1f" class="tick" text-anchor="end">%s</text>'
-                   % (PAD_L - 6, y + 4, html.escape(y_fmt % value)))
-    for x, label in x_ticks:
-        out.append('<text x="%.1f" y="%d" class="tick" text-anchor="middle">%s</text>'
-                   % (x, PAD_T + plot_h + 16, html.escape(label)))
+                   % (PAD_L - 5, y + 4, html.escape(label)))
+    if x_ticks is None and x_axis is not None:
+        x_ticks = [(_x(x_axis, v), label) for v, label in x_axis.ticks()]
+    for i, (x, label) in enumerate(x_ticks or ()):
+        # The first and last labels are anchored inside the plot so none is clipped.
+        anchor = "middle"
+        if x_axis is not None and i == 0 and x <= PAD_L + 1:
+            anchor = "start"
+        elif x_axis is not None and x >= PAD_L + PLOT_W - 1:
+            anchor = "end"
+        out.append('<line x1="%.1f" x2="%.1f" y1="%d" y2="%d" class="axis"/>'
+                   % (x, x, PAD_T + PLOT_H, PAD_T + PLOT_H + 4))
+        out.append('<text x="%.1f" y="%d" class="tick" text-anchor="%s">%s</text>'
+                   % (x, PAD_T + PLOT_H + 17, anchor, html.escape(label)))
     out.append('<text x="%d" y="%d" class="label" text-anchor="middle">%s</text>'
-               % (PAD_L + plot_w // 2, CHART_H - 4, html.escape(x_label)))
-    out.append('<text x="12" y="%d" class="label" text-anchor="middle" '
-               'transform="rotate(-90 12 %d)">%s</text>'
-               % (PAD_T + plot_h // 2, PAD_T + plot_h // 2, html.escape(y_label)))
+               % (PAD_L + PLOT_W // 2, CHART_H - 6, html.escape(x_label)))
+    out.append('<text x="14" y="%d" class="label" text-anchor="middle" '
+               'transform="rotate(-90 14 %d)">%s</text>'
+               % (PAD_T + PLOT_H // 2, PAD_T + PLOT_H // 2, html.escape(y_label)))
     return out
 
 
-def _svg(chart_id: str, title: str, body: list[str]) -> str:
+def _svg(chart_id: str, title: str, body: list[str], height: float = CHART_H) -> str:
     return ('<svg id="%s" class="chart" viewBox="0 0 %d %d" role="img" '
             'preserveAspectRatio="xMidYMid meet"><title>%s</title>%s</svg>'
-            % (chart_id, CHART_W, CHART_H, html.escape(title), "".join(body)))
+            % (chart_id, CHART_W, math.ceil(height), html.escape(title), "".join(body)))
 
 
-def layer_chart(est: Estimate) -> str:
+def remaining_error(data: ReportData) -> tuple[float, float] | None:
+    """The slicer's remaining time minus Klipper's where it is furthest off: (at t, error s)."""
+    total = data.estimate.total_s
+    worst: tuple[float, float] | None = None
+    for t, shown in data.slicer_remaining:
+        error = shown - max(0.0, total - t)
+        if worst is None or abs(error) > abs(worst[1]):
+            worst = (t, error)
+    return worst
+
+
+def remaining_chart(data: ReportData) -> str:
+    """Lines: the remaining time Klipper's truth gives, and what the slicer's display shows."""
+    total = data.estimate.total_s or 1.0
+    x_axis = Axis(total, timed=True)
+    y_max = max([total] + [r for _, r in data.slicer_remaining])
+    y_axis = Axis(y_max, timed=True)
+    body = _axes(x_axis, y_axis, "print time (Klipper)", "time remaining")
+    body.append('<polyline class="series truth" fill="none" stroke="%s" stroke-width="3" '
+                'points="%.1f,%.1f %.1f,%.1f"><title>Klipper (true)</title></polyline>'
+                % (COLORS[2], _x(x_axis, 0), _y(y_axis, total), _x(x_axis, total),
+                   _y(y_axis, 0)))
+    if data.slicer_remaining:
+        # The display holds a value until the next update: draw steps.
+        points = []
+        previous: float | None = None
+        for t, shown in data.slicer_remaining:
+            if previous is not None:
+                points.append("%.1f,%.1f" % (_x(x_axis, t), _y(y_axis, previous)))
+            points.append("%.1f,%.1f" % (_x(x_axis, t), _y(y_axis, shown)))
+            previous = shown
+        body.append('<polyline class="series slicer" fill="none" stroke="%s" '
+                    'stroke-width="2" points="%s"><title>%s (%s)</title></polyline>'
+                    % (COLORS[1], " ".join(points), html.escape(data.slicer.name),
+                       html.escape(data.remaining_source)))
+    return _svg("chart-remaining", "Time remaining on the printer's display", body)
+
+
+def layer_chart(est: Estimate, layer_z: Sequence[float | None]) -> str:
     """Bars: seconds each layer takes (from one layer marker to the next, or the end)."""
     starts = [t for _, t in est.layers]
     if not starts:
         return '<p class="empty">The file has no layer markers.</p>'
     ends = starts[1:] + [est.total_s]
-    durations = [max(0.0, b - a) for a, b in zip(starts, ends, strict=True)]
-    y_max = _nice_max(max(durations))
-    plot_w, plot_h = CHART_W - PAD_L - PAD_R, CHART_H - PAD_T - PAD_B
+    durations = [max(0.0, b - a) for a, b in zip(starts, ends)]  # noqa: B905
+    y_axis = Axis(max(durations), timed=True)
     n = len(durations)
-    bar_w = plot_w / n
-    ticks = [(PAD_L + bar_w * (i + 0.5), str(i + 1))
-             for i in range(0, n, max(1, n // 8))]
-    body = _axes("layer", "seconds", y_max, x_ticks=ticks)
+    bar_w = PLOT_W / n
+    layer_axis = Axis(float(n), timed=False)
+    ticks = [(PAD_L + bar_w * (max(v, 1) - 0.5), "%d" % max(v, 1))
+             for v, _ in layer_axis.ticks() if v <= n]
+    body = _axes(None, y_axis, "layer", "time per layer", ticks)
     for i, d in enumerate(durations):
-        h = plot_h * d / y_max
+        h = PLOT_H * d / y_axis.max
+        z = layer_z[i] if i < len(layer_z) else None
         body.append('<rect class="bar" x="%.2f" y="%.2f" width="%.2f" height="%.2f" '
-                    'fill="%s"><title>layer %d: %.1f s</title></rect>'
-                    % (PAD_L + i * bar_w, PAD_T + plot_h - h, max(bar_w * 0.85, 0.5), h,
-                       COLORS[0], i + 1, d))
+                    'fill="%s"><title>layer %d%s: %s</title></rect>'
+                    % (PAD_L + i * bar_w, PAD_T + PLOT_H - h, max(bar_w * 0.85, 0.4), h,
+                       COLORS[0], i + 1, "" if z is None else " (Z %g mm)" % z,
+                       format_duration(d)))
     return _svg("chart-layers", "Time per layer", body)
 
 
-def progress_chart(data: ReportData) -> str:
-    """Lines: Klipper's true progress over time, and the slicer's M73 P at the same moments."""
-    total = data.estimate.total_s or 1.0
-    plot_w, plot_h = CHART_W - PAD_L - PAD_R, CHART_H - PAD_T - PAD_B
-
-    def xy(t: float, pct: float) -> str:
-        return "%.1f,%.1f" % (PAD_L + plot_w * t / total, PAD_T + plot_h - plot_h * pct / 100)
-
-    ticks = [(PAD_L + plot_w * k / 4, format_duration(total * k / 4)) for k in range(5)]
-    body = _axes("Klipper time", "% done", 100.0, "%g%%", ticks)
-    body.append('<polyline class="series" fill="none" stroke="%s" stroke-width="2.5" '
-                'points="%s %s"><title>Klipper (true)</title></polyline>'
-                % (COLORS[2], xy(0, 0), xy(total, 100)))
-    if data.slicer_progress:
-        points = " ".join(xy(t, p) for t, p in data.slicer_progress)
-        body.append('<polyline class="series" fill="none" stroke="%s" stroke-width="2" '
-                    'points="%s"><title>%s M73</title></polyline>'
-                    % (COLORS[1], points, html.escape(data.slicer.name)))
-    return _svg("chart-progress", "Progress over time", body)
+def _hbars(chart_id: str, title: str, items: Sequence[tuple[float, str]],
+           total: float) -> str:
+    """Horizontal bars with the name above each bar and time and share beside it."""
+    row_h = 38
+    height = 8 + row_h * len(items)
+    bar_max = CHART_W - 16 - 120
+    t_max = max(t for t, _ in items) or 1.0
+    body = []
+    for i, (t, name) in enumerate(items):
+        y = 8 + i * row_h
+        w = bar_max * t / t_max
+        short = name if len(name) <= 44 else name[:43] + "\u2026"
+        body.append('<text x="8" y="%d" class="tick name">%s</text>'
+                    % (y + 12, html.escape(short)))
+        body.append('<rect class="bar" x="8" y="%d" width="%.1f" height="14" fill="%s" '
+                    'data-seconds="%.6f"><title>%s: %s</title></rect>'
+                    % (y + 17, max(w, 0.5), COLORS[i % len(COLORS)], t, html.escape(name),
+                       format_duration(t)))
+        body.append('<text x="%.1f" y="%d" class="tick">%s \u00b7 %.0f %%</text>'
+                    % (8 + max(w, 0.5) + 5, y + 29, format_duration(t),
+                       100.0 * t / total if total else 0.0))
+    return _svg(chart_id, title, body, height)
 
 
 def feature_chart(est: Estimate) -> str:
-    """Horizontal bars: seconds per feature (;TYPE: / ; FEATURE:)."""
-    items = sorted(((t, name) for name, t in est.features.items() if t > 0), reverse=True)
+    """Horizontal bars: time per feature (;TYPE: / ; FEATURE:)."""
+    items = sorted(((t, name) for name, t in est.features.items() if t > 0.0005),
+                   reverse=True)
     if not items:
         return '<p class="empty">The file names no features.</p>'
-    row_h = 22
-    height = PAD_T + row_h * len(items) + 8
-    label_w = 190
-    bar_max = CHART_W - label_w - 90
-    t_max = items[0][0]
-    body = []
-    for i, (t, name) in enumerate(items):
-        y = PAD_T + i * row_h
-        w = bar_max * t / t_max
-        body.append('<text x="%d" y="%d" class="tick" text-anchor="end">%s</text>'
-                    % (label_w - 8, y + 15, html.escape(name[:28])))
-        body.append('<rect class="bar" x="%d" y="%d" width="%.1f" height="%d" fill="%s">'
-                    '<title>%s: %.1f s</title></rect>'
-                    % (label_w, y + 3, max(w, 0.5), row_h - 6, COLORS[i % len(COLORS)],
-                       html.escape(name), t))
-        body.append('<text x="%.1f" y="%d" class="tick">%s</text>'
-                    % (label_w + w + 6, y + 15, format_duration(t)))
-    return ('<svg id="chart-features" class="chart" viewBox="0 0 %d %d" role="img">'
-            '<title>Time per feature</title>%s</svg>' % (CHART_W, height, "".join(body)))
+    return _hbars("chart-features", "Time per feature", items, est.total_s)
+
+
+def object_chart(est: Estimate) -> str:
+    """Horizontal bars: time per object, in the order they first print."""
+    items = [(t, name) for name, t in est.objects.items() if t > 0.0005]
+    if not items:
+        return ('<p class="empty">The file labels no objects (no EXCLUDE_OBJECT, M486 or '
+                '<code>; printing object</code> lines).</p>')
+    return _hbars("chart-objects", "Time per object", items, est.total_s)
 
 
 def speed_chart(speed: SpeedStats) -> str:
-    """Per requested-speed bin: the mean peak speed reached (dots) against the diagonal."""
+    """Per allowed-speed bin: the mean peak speed reached (dots) against the diagonal."""
     if not speed.bins:
         return '<p class="empty">No kinematic moves.</p>'
     keys = sorted(speed.bins)
-    v_max = _nice_max((keys[-1] + 1) * SPEED_BIN_V)
-    plot_w, plot_h = CHART_W - PAD_L - PAD_R, CHART_H - PAD_T - PAD_B
-    ticks = [(PAD_L + plot_w * k / 4, "%g" % (v_max * k / 4)) for k in range(5)]
-    body = _axes("speed asked for (mm/s)", "speed reached (mm/s)", v_max, x_ticks=ticks)
+    axis = Axis((keys[-1] + 1) * SPEED_BIN_V, timed=False)
+    body = _axes(axis, axis, "speed allowed (mm/s)", "speed reached (mm/s)")
     body.append('<line x1="%d" y1="%d" x2="%d" y2="%d" class="diag"/>'
-                % (PAD_L, PAD_T + plot_h, PAD_L + plot_w, PAD_T))
+                % (PAD_L, PAD_T + PLOT_H, PAD_L + PLOT_W, PAD_T))
     t_max = max(b.time_s for b in speed.bins.values()) or 1.0
     for key in keys:
         b = speed.bins[key]
-        asked = (key + 0.5) * SPEED_BIN_V
-        cx = PAD_L + plot_w * asked / v_max
-        cy = PAD_T + plot_h - plot_h * b.mean_reached_v / v_max
-        r = 3 + 9 * math.sqrt(b.time_s / t_max)
+        allowed = (key + 0.5) * SPEED_BIN_V
         body.append('<circle class="dot" cx="%.1f" cy="%.1f" r="%.1f" fill="%s" '
-                    'fill-opacity="0.7"><title>asked %d-%d mm/s: reached %.0f mm/s on average,'
-                    ' %.0f s of which %.0f s below speed</title></circle>'
-                    % (cx, cy, r, COLORS[3], key * SPEED_BIN_V, (key + 1) * SPEED_BIN_V,
-                       b.mean_reached_v, b.time_s, b.time_s - b.ideal_s))
-    return _svg("chart-speed", "Speed reached against speed asked for", body)
+                    'fill-opacity="0.7"><title>allowed %d-%d mm/s: reached %.0f mm/s on '
+                    'average, %s of which %s below speed</title></circle>'
+                    % (_x(axis, allowed), _y(axis, b.mean_reached_v), dot_radius(b.time_s, t_max),
+                       COLORS[3], key * SPEED_BIN_V, (key + 1) * SPEED_BIN_V,
+                       b.mean_reached_v, format_duration(b.time_s),
+                       format_duration(b.time_s - b.ideal_s)))
+    return _svg("chart-speed", "Speed reached against speed allowed", body)
+
+
+def dot_radius(time_s: float, t_max: float) -> float:
+    """A dot's radius (SVG units): its area grows with the time its moves take."""
+    return 2.5 + 9.0 * math.sqrt(max(time_s, 0.0) / t_max)
+
+
+def speed_legend(speed: SpeedStats) -> str:
+    """What a dot's size means: three sample dots with their times."""
+    if not speed.bins:
+        return ""
+    t_max = max(b.time_s for b in speed.bins.values()) or 1.0
+    samples = []
+    for fraction in (1.0, 0.25, 0.04):
+        t = t_max * fraction
+        r = dot_radius(t, t_max)
+        samples.append('<span><svg class="swatch" width="%d" height="%d" aria-hidden="true">'
+                       '<circle cx="%.1f" cy="%.1f" r="%.1f" fill="%s" fill-opacity="0.7"/>'
+                       '</svg>%s</span>' % (2 * r + 2, 2 * r + 2, r + 1, r + 1, r, COLORS[3],
+                                            format_duration(t)))
+    return '<p class="legend">Dot size = time the moves take: %s</p>' % "".join(samples)
 
 
 _CSS = """
 body{font:15px/1.45 system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:0;
 background:#f6f7f9;color:#1d232b}
 main{max-width:760px;margin:0 auto;padding:12px}
-h1{font-size:1.3em;margin:.4em 0}h2{font-size:1.05em;margin:1.2em 0 .4em}
+h1{font-size:1.25em;margin:.4em 0;overflow-wrap:anywhere}h2{font-size:1.05em;margin:1.3em 0 .3em}
+p{margin:.3em 0 .6em}.note{color:#444;font-size:.9em}
+.banner{background:#fff4dc;border:1px solid #e8b04a;border-radius:8px;padding:8px 12px;
+margin:8px 0;font-size:.9em;overflow-wrap:anywhere}
+.banner.bad{background:#fde8e8;border-color:#d05050}.banner ul{margin:.3em 0;padding-left:1.2em}
 .cards{display:flex;flex-wrap:wrap;gap:8px}
 .card{background:#fff;border-radius:8px;padding:8px 12px;flex:1 1 140px;
-box-shadow:0 1px 2px #0001}
-.card b{display:block;font-size:1.25em}.card span{color:#5b6570;font-size:.85em}
-.chart{width:100%;height:auto;background:#fff;border-radius:8px;box-shadow:0 1px 2px #0001}
-.frame{fill:none;stroke:#c9ced6}.grid{stroke:#eceff3}.diag{stroke:#9aa3ad;stroke-dasharray:4 4}
-.tick{font-size:11px;fill:#5b6570}.label{font-size:12px;fill:#333}
-.legend span{display:inline-block;margin-right:14px}.legend i{display:inline-block;width:12px;
-height:3px;margin-right:5px;vertical-align:middle}
-p.empty{color:#5b6570}footer{color:#5b6570;font-size:.8em;margin:2em 0 1em}
-ul.warn{font-size:.85em;color:#7a4b00;word-break:break-word}
+box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
+.card b{display:block;font-size:1.2em}.card span{color:#4b5560;font-size:.85em}
+.chart{display:block;width:100%;max-width:520px;height:auto;background:#fff;border-radius:8px;
+box-shadow:0 1px 2px #0001;min-width:0;overflow-wrap:anywhere}
+.frame{fill:none;stroke:#c9ced6}.grid{stroke:#eceff3}.axis{stroke:#9aa3ad}
+.diag{stroke:#9aa3ad;stroke-dasharray:4 4}
+.tick{font-size:12.5px;fill:#4b5560}.tick.name{fill:#1d232b}.label{font-size:13px;fill:#333}
+.legend{font-size:.9em}.legend span{display:inline-block;margin-right:14px;white-space:nowrap}
+.legend i{display:inline-block;width:14px;height:3px;margin-right:5px;vertical-align:middle}
+.swatch{vertical-align:middle;margin:0 4px}
+table{border-collapse:collapse;font-size:.85em;background:#fff;width:100%}
+td,th{border-bottom:1px solid #e3e6ea;padding:3px 6px;text-align:left;vertical-align:top}
+td:last-child{overflow-wrap:anywhere}td:nth-child(2){white-space:nowrap}
+details{margin:.4em 0}summary{cursor:pointer;font-size:.9em}
+p.empty{color:#4b5560}footer{color:#4b5560;font-size:.8em;margin:2em 0 1em}
 """
+
+
+def minutes(seconds: float) -> str:
+    """A signed difference in minutes: `-4.2 min`, `+137 min`."""
+    value = seconds / 60.0
+    return ("%+.1f min" if abs(value) < 10 else "%+.0f min") % value
+
+
+def _remaining_text(data: ReportData) -> str:
+    name = html.escape(data.slicer.name)
+    if not data.slicer_remaining:
+        return ("<p>%s wrote no remaining time into the file (no <code>M73 R</code> and no "
+                "<code>;TIME_ELAPSED:</code>), so the printer's display can only guess; "
+                "<code>kestimator inject</code> writes Klipper's.</p>" % name)
+    worst = remaining_error(data)
+    assert worst is not None
+    at, error = worst
+    return ("<p>The printer's display shows what %s wrote (%s); Klipper's planner needs the "
+            "time on the green line. The display is off by up to <b>%s</b> "
+            "(%s into the print)%s.</p>"
+            % (name, html.escape(data.remaining_source), minutes(error),
+               html.escape(format_duration(at)),
+               ": it says the print ends sooner than it will" if error < 0 else
+               ": it says the print takes longer than it will" if error > 0 else ""))
+
+
+def _banner(data: ReportData) -> str:
+    est = data.estimate
+    parts = []
+    if data.guessed_limits:
+        parts.append('<div class="banner bad"><b>Guessed limits.</b> No printer.cfg or '
+                     'Moonraker was given, so the times below use stand-in limits and may '
+                     'be wrong: pass <code>--printer-cfg</code> or <code>--moonraker</code>.'
+                     '</div>')
+    notes = list(data.limit_warnings) + list(est.warnings)
+    if notes:
+        shown = "".join("<li>%s</li>" % html.escape(w) for w in notes[:20])
+        more = len(notes) - 20 + est.warnings_dropped
+        parts.append('<div class="banner"><b>%d warning%s</b> (what Klipper would do '
+                     'differently, or what the estimate cannot know)<ul>%s</ul>%s</div>'
+                     % (len(notes) + est.warnings_dropped, "" if len(notes) == 1 else "s",
+                        shown, "<p>... and %d more</p>" % more if more > 0 else ""))
+    return "".join(parts)
+
+
+def _filament_text(data: ReportData) -> str:
+    return ("<p>The moves push <b>%.2f m</b> of filament (net of retractions, after "
+            "M221).</p>" % (data.estimate.filament_mm / 1000.0))
+
+
+# The limits that decide most of a print's time, shown first; the rest fold away.
+MAIN_LIMITS = ("kinematics", "max_velocity", "max_accel", "minimum_cruise_ratio",
+               "square_corner_velocity", "max_z_velocity", "max_z_accel")
+
+
+def _limit_rows(rows: Sequence[tuple[str, str, str]]) -> str:
+    # Long names break at their underscores, never mid-word.
+    return "".join("<tr><td>%s</td><td>%s</td><td>%s</td></tr>"
+                   % (html.escape(n).replace("_", "_<wbr>"), html.escape(v), html.escape(s))
+                   for n, v, s in rows)
+
+
+def _limits_table(data: ReportData) -> str:
+    if not data.limit_rows:
+        return "<p>Limits: %s</p>" % html.escape(data.limits_source)
+    main = sorted((r for r in data.limit_rows if r[0] in MAIN_LIMITS),
+                  key=lambda r: MAIN_LIMITS.index(r[0]))
+    rest = [r for r in data.limit_rows if r[0] not in MAIN_LIMITS]
+    head = "<tr><th>limit</th><th>value</th><th>from</th></tr>"
+    out = "<p>%s</p><table>%s%s</table>" % (html.escape(data.limits_source), head,
+                                            _limit_rows(main))
+    if rest:
+        out += ("<details><summary>%d more limits</summary><table>%s%s</table></details>"
+                % (len(rest), head, _limit_rows(rest)))
+    return out
 
 
 def parts_cards(est: Estimate) -> list[tuple[str, str]]:
@@ -292,47 +564,57 @@ def render_html(data: ReportData) -> str:
     slicer = data.slicer
     cards = [("Klipper time", format_duration(est.total_s))] + parts_cards(est)
     if slicer.estimate_s is not None:
-        motion_s = est.parts.motion_s  # the slicer times the moves only
-        diff = 100.0 * (slicer.estimate_s - motion_s) / motion_s if motion_s else 0.0
-        said = "%s (%+.0f %%)" % (format_duration(slicer.estimate_s), diff)
-        cards.append(("%s said" % slicer.name, said))
+        diff = slicer.estimate_s - est.parts.motion_s  # the slicer times the moves only
+        cards.append(("%s said" % slicer.name, "%s (%s)" % (
+            format_duration(slicer.estimate_s), minutes(diff))))
     if est.first_layer_s is not None:
         cards.append(("First layer", format_duration(est.first_layer_s)))
     cards.append(("Layers", str(len(est.layers))))
+    cards.append(("Filament", "%.2f m" % (est.filament_mm / 1000.0)))
     lost = data.speed.lost_s
-    cards.append(("Below full speed", "%s (%.0f %%)" % (
-        format_duration(lost), 100.0 * lost / est.total_s if est.total_s else 0.0)))
+    share = 100.0 * lost / est.total_s if est.total_s else 0.0
+    cards.append(("Lost to acceleration", "%s (%.0f %%)" % (format_duration(lost), share)))
     card_html = "".join('<div class="card"><span>%s</span><b>%s</b></div>'
                         % (html.escape(k), html.escape(v)) for k, v in cards)
-    legend = ('<p class="legend"><span><i style="background:%s"></i>Klipper</span>%s</p>'
-              % (COLORS[2], '' if not data.slicer_progress else
-                 '<span><i style="background:%s"></i>%s M73</span>'
-                 % (COLORS[1], html.escape(slicer.name))))
-    warnings = "".join("<li>%s</li>" % html.escape(w) for w in est.warnings[:20])
+    legend = ('<p class="legend"><span><i style="background:%s"></i>Klipper (true)</span>%s'
+              '</p>' % (COLORS[2], '' if not data.slicer_remaining else
+                        '<span><i style="background:%s"></i>%s (%s)</span>'
+                        % (COLORS[1], html.escape(slicer.name),
+                           html.escape(data.remaining_source))))
     name = os.path.basename(est.path)
     return """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <meta name="viewport" content="width=device-width, initial-scale=1">
 <title>%(title)s</title><style>%(css)s</style></head>
-<body><main>
+<body><main data-total-s="%(total).6f">
 <h1>%(title)s</h1>
+%(banner)s
 <div class="cards">%(cards)s</div>
-<h2>Time per layer</h2>%(layers)s
-<h2>Progress over time</h2>%(legend)s%(progress)s
-<h2>Time per feature</h2>%(features)s
-<h2>Speed reached against speed asked for</h2>
-<p>Each dot is the moves whose allowed speed falls in one %(bin)g mm/s band; its size is
-the time they take. Dots below the dashed line lose time to acceleration.</p>%(speed)s
-%(warnings)s
-<footer>kestimator %(version)s &middot; Klipper's planner replayed on %(file)s &middot;
-limits: %(source)s</footer>
+<h2>What the printer's display says</h2>%(remaining_text)s%(legend)s%(remaining)s
+<h2>Time per layer</h2>
+<p class="note">Each bar is one layer, from its layer marker to the next; touch a bar for
+its Z height and time.</p>%(layers)s
+<h2>Time per object</h2>
+<p class="note">Time spent inside each labelled object; "(no object)" is start, end and
+travel between objects.</p>%(objects)s
+<h2>Time per feature</h2>
+<p class="note">Time per extrusion role the slicer named, largest first.</p>%(features)s
+<h2>Where time is lost to acceleration</h2>
+<p class="note">Each dot is the moves whose speed limit falls in one %(bin)g mm/s band: the
+further it sits below the dashed line, the more of their time goes to speeding up and
+slowing down (%(lost)s in all, %(share).0f %% of the print).</p>%(speed_legend)s%(speed)s
+<h2>Filament</h2>%(filament)s
+<h2>Limits and where they came from</h2>%(limits)s
+<footer>kestimator %(version)s &middot; Klipper's planner replayed on %(file)s</footer>
 </main></body></html>
 """ % {
         "title": html.escape("Klipper time for " + name), "css": _CSS, "cards": card_html,
-        "layers": layer_chart(est), "legend": legend, "progress": progress_chart(data),
+        "banner": _banner(data), "remaining_text": _remaining_text(data),
+        "legend": legend, "remaining": remaining_chart(data),
+        "layers": layer_chart(est, data.layer_z), "objects": object_chart(est),
         "features": feature_chart(est), "speed": speed_chart(data.speed),
-        "bin": SPEED_BIN_V,
-        "warnings": ('<h2>Warnings</h2><ul class="warn">%s</ul>' % warnings) if warnings else "",
-        "version": __version__, "file": html.escape(name),
-        "source": html.escape(data.limits_source),
+        "speed_legend": speed_legend(data.speed), "bin": SPEED_BIN_V,
+        "lost": html.escape(format_duration(lost)), "share": share,
+        "filament": _filament_text(data), "limits": _limits_table(data),
+        "version": __version__, "file": html.escape(name), "total": est.total_s,
     }

@@ -23,12 +23,21 @@ temporary file in the destination's directory, is fsynced, and replaces the dest
 atomically; on any error the destination is untouched and the temporary file is removed.
 Two in-place runs on one file take turns under an exclusive flock on it, and a file that
 changed under us (size, mtime or inode) is never replaced (see `_exclusive`).
+
+Also owns the marker's exact format and its parsing (`marker_line`, `parse_marker`): only a
+line in that format is ours. The output is resolved by `output_target`: a symlink is
+written through (its target replaced, the link kept), a character device or FIFO written
+straight through, anything else not a regular file refused, and so is a file the user may
+not write; the replaced file keeps its owner, group, mode and extended attributes
+(`keep_attributes`). A hard link's other names keep the old content (docs/CLI.md).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
+import math
 import os
 import re
 import stat
@@ -53,6 +62,7 @@ from kestimator.estimate import (
     iter_lines,
 )
 from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
+from kestimator.files import open_regular
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
@@ -65,11 +75,29 @@ _FOREIGN_LAYER_INFO_RE = re.compile(
     rb"^[ \t]*SET_PRINT_STATS_INFO\b(?![^\n]*; kestimator\r?$)", re.MULTILINE | re.IGNORECASE)
 PREP_PREFIX = "; time before first extrusion (kestimator) = "
 _PREP_PREFIX_B = PREP_PREFIX.encode()
-_MARKER_SLICER_RE = re.compile(rb"^; kestimator \S+ .*?\bslicer_s=(\S+)", re.MULTILINE)
+# The marker's exact format (`marker_line`): only a line matching it, after leading blanks and
+# before its line ending, is ours. `limits=` runs to the end of the line and may hold any
+# text (what it records is issue 17's), so it is matched loosely.
+_MARKER_BODY = (rb"; kestimator (?P<version>\d+(?:\.\d+)+[0-9A-Za-z.+-]*)"
+                rb" klipper_s=(?P<klipper_s>\d+\.\d{3})"
+                rb" slicer_s=(?P<slicer_s>none|-?\d+(?:\.\d+)?(?:[eE][-+]?\d+)?|-?nan|-?inf)"
+                rb" limits=(?P<limits>[^\r\n]*)")
+_MARKER_RE = re.compile(_MARKER_BODY + rb"\r?\n?\Z")
+_MARKER_IN_TEXT = re.compile(rb"^[ \t\x0b\x0c\r]*" + _MARKER_BODY + rb"\r?$", re.MULTILINE)
+# A slicer estimate read back from a marker is believed only in [0, this] seconds (a year).
+MAX_SLICER_ESTIMATE_S = 366 * 24 * 3600.0
 BGCODE_MAGIC = b"GCDE"
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
 _NO_LINE_LIMIT = 1 << 62
+# Temporary files are `.<name>.<random>.kestimator-tmp` beside the output, the name cut to fit
+# the directory's name limit (mkstemp's random part is 8 characters).
+TEMP_SUFFIX = ".kestimator-tmp"
+TEMP_RANDOM_CHARS = 8
+DEFAULT_NAME_MAX = 255
+# Extended attributes that must survive a rewrite (others, like security.selinux, are the
+# system's to set and are kept where the kernel lets us).
+KEPT_XATTR_NAMESPACES = ("user.", "system.posix_acl_")
 # Pass 2 reads the file in blocks of this size.
 COPY_BLOCK_BYTES = 1 << 20
 # An M73 command (already left-stripped): M73 alone or followed by a space, tab, ';' or EOL.
@@ -137,18 +165,52 @@ def prep_line(prep_s: float) -> str:
         PREP_PREFIX, format_duration(prep_s), prep_s)
 
 
+@dataclasses.dataclass(frozen=True)
+class Marker:
+    """Our marker line, read back: `slicer_s` is None when absent or not believable."""
+
+    version: str
+    klipper_s: float
+    slicer_s: float | None
+    limits: str
+
+
+def _plausible_seconds(value: float) -> float | None:
+    return value if math.isfinite(value) and 0.0 <= value <= MAX_SLICER_ESTIMATE_S else None
+
+
+def _marker_from_match(match: re.Match[bytes]) -> Marker:
+    slicer = match.group("slicer_s")
+    return Marker(version=match.group("version").decode("ascii"),
+                  klipper_s=float(match.group("klipper_s")),
+                  slicer_s=None if slicer == b"none" else _plausible_seconds(float(slicer)),
+                  limits=match.group("limits").decode("utf-8", "replace"))
+
+
+def parse_marker(line: str | bytes) -> Marker | None:
+    """The marker on `line` (leading blanks and its line ending allowed), or None if the
+    line is not exactly in our format: a user's `; kestimator ...` comment is not ours."""
+    raw = line.encode("utf-8", "surrogateescape") if isinstance(line, str) else line
+    match = _MARKER_RE.match(raw.lstrip())
+    return None if match is None else _marker_from_match(match)
+
+
+def find_marker(text: bytes) -> Marker | None:
+    """The first marker line in `text` (a file's head), or None."""
+    match = _MARKER_IN_TEXT.search(text)
+    return None if match is None else _marker_from_match(match)
+
+
 def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None:
-    """The slicer's own estimate: from our marker in `head` if a previous run rewrote it."""
-    match = _MARKER_SLICER_RE.search(head)
-    if match is None:
+    """The slicer's own estimate: from our marker in `head` if a previous run rewrote it.
+
+    A marker is believed only in its exact format, and its `slicer_s` only when it is a
+    plausible time (finite, 0 to a year); a forged one counts as no estimate.
+    """
+    marker = find_marker(head)
+    if marker is None:
         return detected.estimate_s
-    value = match.group(1)
-    if value == b"none":
-        return None
-    try:
-        return float(value)
-    except ValueError:
-        return detected.estimate_s
+    return marker.slicer_s
 
 
 def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
@@ -160,7 +222,7 @@ def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
     """
     head, tail = read_file_ends(path)
     detected = detect(head, tail)
-    if _MARKER_SLICER_RE.search(head) is None:
+    if find_marker(head) is None:
         return detected
     return dataclasses.replace(detected, estimate_s=slicer_estimate_from_head(head, detected),
                                first_layer_estimate_s=None)
@@ -454,7 +516,8 @@ class Rewriter:
         return before + [raw] + after
 
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
-        if code.startswith(_MARKER_PREFIX_B) or code.startswith(_PREP_PREFIX_B):
+        if code.startswith(_PREP_PREFIX_B) or (
+                code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
         if self.lineno in self.plan.layer_lines:
             return self._layer_marker(raw, eol)
@@ -490,7 +553,7 @@ def check_gcode_file(path: str) -> os.stat_result:
     if stat.S_ISDIR(st.st_mode):
         raise KestimatorError("is a directory, not a G-code file", path)
     try:
-        with open(path, "rb") as f:
+        with open_regular(path) as f:
             start = f.read(SNIFF_BYTES)
     except OSError as exc:
         raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
@@ -554,25 +617,89 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
                 heat_time: float = 0.0,
                 progress: ProgressCallback | None = None,
                 macros: MacroTimes | None = None,
-                layer_info: bool = True) -> InjectResult:
+                layer_info: bool = True,
+                finish: Callable[[str], object] | None = None) -> InjectResult:
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
 
     `progress` hears the bytes read so far over both passes: the file is read twice, so
     the count ends at twice its size. `layer_info`: add SET_PRINT_STATS_INFO TOTAL_LAYER /
-    CURRENT_LAYER lines where the file sets no layer numbers itself.
+    CURRENT_LAYER lines where the file sets no layer numbers itself. `finish` is called with
+    the temporary file's name once pass 2 has written it, before it is synced and replaced
+    (compat appends its line).
     """
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
+    if not dest:
+        raise KestimatorError("the output name is empty", src)
     check_gcode_file(src)
-    in_place = os.path.abspath(dest) == os.path.abspath(src)
+    target = output_target(dest)
+    in_place = target.exists and _same_file(src, target.path)
     with _exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
                                                 heat_time, progress, macros, layer_info)
         rewriter = Rewriter(plan)
-        _write_atomically(src, dest, rewriter, before, progress)
+        _write_output(src, target, rewriter, before, in_place, progress, finish)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,
                         slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputTarget:
+    """Where an output really goes: symlinks resolved, what is there now, and how to write.
+
+    `stream` is True for a character device or a FIFO: written straight through, never
+    replaced. Otherwise `path` is a regular file (or nothing yet) replaced atomically.
+    """
+
+    path: str
+    exists: bool
+    stream: bool
+    st: os.stat_result | None
+
+
+def output_target(dest: str) -> OutputTarget:
+    """Resolve `dest` for writing; refuse what may not or cannot be replaced (one line).
+
+    A symlink is followed (the link stays, its target gets the new content); a character
+    device or FIFO is written through; anything else that is not a regular file is refused,
+    and so is a regular file the user may not write (even in a directory they may write).
+    """
+    real = os.path.realpath(dest)
+    try:
+        st = os.stat(real)
+    except FileNotFoundError:
+        return OutputTarget(real, False, False, None)
+    except OSError as exc:
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISFIFO(st.st_mode):
+        return OutputTarget(real, True, True, st)
+    if not stat.S_ISREG(st.st_mode):
+        raise KestimatorError("is not a regular file: it is never replaced", dest)
+    if not may_write(real, st):
+        raise KestimatorError("you may not write this file (its permissions say so): it "
+                              "was left as it is", dest)
+    return OutputTarget(real, True, False, st)
+
+
+def may_write(path: str, st: os.stat_result) -> bool:
+    """Whether the user may change the file: its write permission, not the directory's.
+
+    Root may write anything, so for root a file with no write bit at all counts as one the
+    user meant to keep (as `rm -i`/editors warn); others ask the kernel (ACLs included).
+    """
+    if hasattr(os, "geteuid") and os.geteuid() == 0:
+        return bool(st.st_mode & 0o222)
+    effective = os.access in os.supports_effective_ids
+    return os.access(path, os.W_OK, effective_ids=effective)
+
+
+def _same_file(a: str, b: str) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
 
 
 @contextlib.contextmanager
@@ -612,34 +739,62 @@ def _exclusive(path: str) -> Iterator[None]:
             locked.close()
 
 
-def _write_atomically(src: str, dest: str, rewriter: Rewriter, before: os.stat_result,
-                      progress: ProgressCallback | None = None) -> None:
-    dest_dir = os.path.dirname(os.path.abspath(dest))
+def temp_name_prefix(dest: str) -> str:
+    """``.<name>.`` for a temporary file beside `dest`, cut so that the whole temporary
+    name (random part and suffix added) fits the directory's name limit."""
+    directory = os.path.dirname(os.path.abspath(dest))
     try:
-        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(dest) + ".",
-                                   suffix=".kestimator-tmp", dir=dest_dir)
+        name_max = os.pathconf(directory, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = DEFAULT_NAME_MAX
+    name = os.fsencode(os.path.basename(dest))
+    room = max(1, name_max - len(TEMP_SUFFIX) - TEMP_RANDOM_CHARS - 2)
+    return "." + os.fsdecode(name[:room]) + "."
+
+
+def _write_output(src: str, target: OutputTarget, rewriter: Rewriter,
+                  before: os.stat_result, in_place: bool,
+                  progress: ProgressCallback | None = None,
+                  finish: Callable[[str], object] | None = None) -> None:
+    copied = None
+    if progress is not None:
+        def copied(done: int) -> None:
+            progress(before.st_size + done)
+    if target.stream:
+        _write_stream(src, target.path, rewriter, copied)
+        return
+    dest = target.path
+    dest_dir = os.path.dirname(dest)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_name_prefix(dest), suffix=TEMP_SUFFIX,
+                                   dir=dest_dir)
     except OSError as exc:
         raise KestimatorError("cannot write next to the output: %s"
                               % (exc.strerror or exc), dest) from None
     try:
         with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
-            copied = None
-            if progress is not None:
-                def copied(done: int) -> None:
-                    progress(before.st_size + done)
             rewriter.copy_stream(inp, out.write, copied)
             out.flush()
+            if finish is not None:
+                finish(tmp)
             os.fsync(out.fileno())
-        if dest == src:
+        if in_place:
             now = os.stat(src)
             if (now.st_size, now.st_mtime_ns, now.st_ino) != (
                     before.st_size, before.st_mtime_ns, before.st_ino):
                 raise KestimatorError("the file changed while it was being processed; "
                                       "it was left as it is now", src)
-        if os.path.exists(dest):
-            os.chmod(tmp, stat.S_IMODE(os.stat(dest).st_mode))
+        try:
+            now_dest = os.stat(dest)
+        except FileNotFoundError:
+            now_dest = None
+        if now_dest is not None:
+            if not stat.S_ISREG(now_dest.st_mode):
+                raise KestimatorError("is not a regular file: it is never replaced", dest)
+            keep_attributes(dest, now_dest, tmp)
         else:
-            os.chmod(tmp, stat.S_IMODE(before.st_mode))
+            # A new file: the source's mode, and writable by its owner (who created it).
+            os.chmod(tmp, stat.S_IMODE(before.st_mode) | stat.S_IWUSR)
         os.replace(tmp, dest)
     except KestimatorError:
         _remove_quietly(tmp)
@@ -652,6 +807,114 @@ def _write_atomically(src: str, dest: str, rewriter: Rewriter, before: os.stat_r
         _remove_quietly(tmp)
         raise
     _fsync_dir(dest_dir)
+
+
+def write_bytes_atomically(dest: str, data: bytes) -> None:
+    """Write `data` to `dest` as `inject` writes its output (`output_target`'s rules, a
+    temporary file synced and renamed, attributes kept): never a partial file."""
+    if not dest:
+        raise KestimatorError("the output name is empty")
+    target = output_target(dest)
+    if target.stream:
+        try:
+            with open(target.path, "wb") as out:
+                out.write(data)
+        except OSError as exc:
+            raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                                  dest) from None
+        return
+    path = target.path
+    directory = os.path.dirname(path)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=temp_name_prefix(path), suffix=TEMP_SUFFIX,
+                                   dir=directory)
+    except OSError as exc:
+        raise KestimatorError("cannot write next to the output: %s"
+                              % (exc.strerror or exc), dest) from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            out.write(data)
+            out.flush()
+            os.fsync(out.fileno())
+        if target.st is not None:
+            keep_attributes(path, target.st, tmp)
+        else:
+            os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except KestimatorError:
+        _remove_quietly(tmp)
+        raise
+    except OSError as exc:
+        _remove_quietly(tmp)
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    _fsync_dir(directory)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _write_stream(src: str, dest: str, rewriter: Rewriter,
+                  copied: Callable[[int], None] | None) -> None:
+    """Write a character device or FIFO straight through; a FIFO without a reader is
+    refused at once instead of blocking."""
+    try:
+        fd = os.open(dest, os.O_WRONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:
+            raise KestimatorError("the FIFO has no reader: nothing was written", dest) from None
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
+            rewriter.copy_stream(inp, out.write, copied)
+    except OSError as exc:
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+
+
+def keep_attributes(dest: str, st: os.stat_result, tmp: str) -> None:
+    """Give `tmp` the owner, group, mode and extended attributes of `dest` (its `st`).
+
+    Refuses (one line) when the owner or group cannot be kept: replacing the file would
+    hand it to the user running us, and its owner could lose access to it.
+    """
+    tmp_st = os.stat(tmp)
+    if (tmp_st.st_uid, tmp_st.st_gid) != (st.st_uid, st.st_gid):
+        try:
+            os.chown(tmp, st.st_uid, st.st_gid)
+        except OSError:
+            raise KestimatorError(
+                "cannot keep the file's owner and group (uid %d, gid %d) in a new copy: it "
+                "was left as it is" % (st.st_uid, st.st_gid), dest) from None
+    # After chown, which clears set-id bits.
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    _copy_xattrs(dest, tmp)
+
+
+def _copy_xattrs(dest: str, tmp: str) -> None:
+    if not hasattr(os, "listxattr"):
+        return
+    try:
+        names = os.listxattr(dest)
+    except OSError:
+        return
+    for name in names:
+        try:
+            os.setxattr(tmp, name, os.getxattr(dest, name))
+        except OSError as exc:
+            if name.startswith(KEPT_XATTR_NAMESPACES):
+                raise KestimatorError("cannot keep the extended attribute %s: %s; the file "
+                                      "was left as it is" % (name, exc.strerror or exc),
+                                      dest) from None
 
 
 def _remove_quietly(path: str) -> None:

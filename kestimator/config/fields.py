@@ -13,7 +13,7 @@ import dataclasses
 import math
 from collections.abc import Mapping
 
-from kestimator.config.printer_cfg import FLOAT_OPTIONS
+from kestimator.config.printer_cfg import FLOAT_OPTIONS, arithmetic_violation
 from kestimator.kinematics.base import MachineConfig
 from kestimator.limits import KLIPPER_GENERATIONS, Limits
 
@@ -74,11 +74,15 @@ def check_limit_value(field: str, value: object) -> object:
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{field} must be a number, not {value!r}")
-    number = float(value)
+    try:
+        number = float(value)
+    except OverflowError:  # a 400-digit integer (TOML, JSON)
+        raise ValueError(f"{field} must be a finite number, not a {len(str(value))}-digit "
+                         "one") from None
     if not math.isfinite(number):
         raise ValueError(f"{field} must be a finite number, not {value!r}")
     spec = _BOUNDS.get(field)
-    problem = spec.violation(number) if spec is not None else None
+    problem = spec.violation(number) if spec is not None else arithmetic_violation(number)
     if problem is not None:
         raise ValueError(f"{field} {problem}, got {value!r}")
     return number

@@ -149,6 +149,9 @@ def read_config_document(path: str | os.PathLike[str]) -> dict[str, Any]:
     except ValueError as exc:
         raise KestimatorError("not a JSON/JSON5 klipper_estimator config: %s" % exc,
                               where) from None
+    except RecursionError:
+        raise KestimatorError("the klipper_estimator config is nested too deeply", where
+                              ) from None
     if not isinstance(document, dict):
         raise KestimatorError("a klipper_estimator config must be one JSON object", where)
     return document

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from kestimator.config.fields import SourcedValues
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
 from kestimator.errors import KestimatorError
+from kestimator.files import read_config_bytes
 from kestimator.kinematics.base import MachineConfig, is_machine_section
 
 if TYPE_CHECKING:
@@ -42,6 +43,11 @@ CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction")
 (``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); nothing else
 of the printer's config is cached."""
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
+# Server text shown to the user (error messages, reasons) is cut to this many characters;
+# an error body is read only this far.
+MAX_SERVER_TEXT = 200
+MAX_ERROR_BODY_BYTES = 64 * 1024
+READ_CHUNK_BYTES = 64 * 1024
 HTTP_NOT_FOUND = 404
 CACHE_FORMAT = 1
 _SECTION_FLAGS = (("gcode_arcs", "arcs_enabled"),
@@ -90,17 +96,55 @@ def cache_path(url: str, directory: Path) -> Path:
     return directory / f"moonraker-{digest}.json"
 
 
+def clean_api_key(api_key: str | None) -> str | None:
+    """The key with surrounding whitespace (a CR or LF from a file or a paste) removed.
+
+    Raises KestimatorError, without repeating the key, when control characters or spaces
+    remain inside it: such a key cannot be sent, and an error quoting it would leak it.
+    """
+    if api_key is None:
+        return None
+    key = api_key.strip()
+    if not key:
+        return None
+    if not all(33 <= ord(ch) < 127 for ch in key):
+        raise KestimatorError("the Moonraker API key holds spaces, control or non-ASCII "
+                              "characters (not shown): check --api-key, $MOONRAKER_API_KEY "
+                              "or the profile")
+    return key
+
+
+def server_text(text: object, secret: str | None = None) -> str:
+    """Text a server sent, safe to show: one line of printable characters, at most
+    MAX_SERVER_TEXT characters, with `secret` (the API key) blanked out."""
+    shown = str(text)
+    if secret:
+        shown = shown.replace(secret, "<API key>")
+    shown = "".join(ch if ch.isprintable() else " " for ch in shown[:MAX_SERVER_TEXT * 4])
+    shown = " ".join(shown.split())
+    if secret:
+        shown = shown.replace(secret, "<API key>")
+    if len(shown) > MAX_SERVER_TEXT:
+        shown = shown[:MAX_SERVER_TEXT] + "..."
+    return shown
+
+
 def fetch_settings(url: str, api_key: str | None = None,
                    timeout_s: float = DEFAULT_TIMEOUT_S) -> Settings:
     """Klipper's ``configfile.settings`` from the Moonraker at (normalised) ``url``.
 
-    Raises MoonrakerUnreachableError when Moonraker does not answer in ``timeout_s`` or answers
-    that Klipper is not ready (5xx), and KestimatorError when it refuses the request (a
-    missing or wrong API key) or answers something else than settings.
+    ``timeout_s`` bounds the whole request (connect, headers and body), not each socket
+    read: a server dripping one byte a second is cut off at the deadline. Raises
+    MoonrakerUnreachableError when Moonraker does not answer in time or answers that Klipper
+    is not ready (5xx), and KestimatorError when it refuses the request (a missing or wrong
+    API key) or answers something else than settings. Server text in errors is sanitised and
+    bounded (`server_text`) and never holds the key.
     """
     import http.client
     import urllib.error
     import urllib.request
+
+    key = clean_api_key(api_key)
 
     class NoRedirect(urllib.request.HTTPRedirectHandler):
         """Refuse redirects: a redirected request would carry the API key elsewhere."""
@@ -109,42 +153,138 @@ def fetch_settings(url: str, api_key: str | None = None,
                              msg: str, headers: Any, newurl: str) -> None:
             return None
 
+    deadline = _Deadline(timeout_s)
     request = urllib.request.Request(url + QUERY_PATH, headers={"Accept": "application/json"})
-    if api_key:
-        request.add_header(API_KEY_HEADER, api_key)
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect())
+    if key:
+        request.add_header(API_KEY_HEADER, key)
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect(),
+                                         *deadline.handlers())
     try:
-        with opener.open(request, timeout=timeout_s) as response:
-            body = response.read(MAX_ANSWER_BYTES + 1)
-    except urllib.error.HTTPError as exc:
         try:
-            status, reason = exc.code, _error_message(exc)
-        finally:
-            exc.close()
-        if status in (401, 403):
-            raise KestimatorError(f"Moonraker at {url} refused the request ({status} {reason}):"
-                                  " give its API key with --api-key or in the profile") from None
-        if status >= 500 or status == HTTP_NOT_FOUND:
-            # Moonraker registers Klipper's endpoints (this query among them) only once
-            # Klipper has connected: without a running Klipper it answers 404.
-            raise MoonrakerUnreachableError(
-                f"Moonraker at {url} answered {status} {reason}" + (
-                    " (no Klipper connected to it)" if status == HTTP_NOT_FOUND else "")
-            ) from None
-        raise KestimatorError(f"Moonraker at {url} answered {status} {reason}") from None
-    except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
-        why = getattr(exc, "reason", None) or exc
-        raise MoonrakerUnreachableError(f"Moonraker at {url} did not answer ({why})") from None
+            with opener.open(request, timeout=timeout_s) as response:
+                body = _read_bounded(response, deadline)
+        except urllib.error.HTTPError as exc:
+            try:
+                status, reason = exc.code, server_text(_error_message(exc), key)
+            finally:
+                exc.close()
+            if status in (401, 403):
+                raise KestimatorError(f"Moonraker at {url} refused the request ({status} "
+                                      f"{reason}): give its API key with --api-key or in the "
+                                      "profile") from None
+            if status >= 500 or status == HTTP_NOT_FOUND:
+                # Moonraker registers Klipper's endpoints (this query among them) only once
+                # Klipper has connected: without a running Klipper it answers 404.
+                raise MoonrakerUnreachableError(
+                    f"Moonraker at {url} answered {status} {reason}" + (
+                        " (no Klipper connected to it)" if status == HTTP_NOT_FOUND else "")
+                ) from None
+            raise KestimatorError(f"Moonraker at {url} answered {status} {reason}") from None
+        except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as exc:
+            if deadline.expired:
+                raise MoonrakerUnreachableError(
+                    f"Moonraker at {url} did not answer within {timeout_s:g} s") from None
+            why = server_text(getattr(exc, "reason", None) or exc, key)
+            raise MoonrakerUnreachableError(f"Moonraker at {url} did not answer ({why})"
+                                            ) from None
+    finally:
+        deadline.cancel()
+    if deadline.expired:
+        raise MoonrakerUnreachableError(
+            f"Moonraker at {url} did not answer within {timeout_s:g} s")
     if len(body) > MAX_ANSWER_BYTES:
         raise KestimatorError(f"Moonraker at {url} answered more than {MAX_ANSWER_BYTES} bytes")
     return _settings_from_answer(body, url)
 
 
-def _error_message(exc: urllib.error.HTTPError) -> str:
-    """Moonraker's ``{"error": {"message": ...}}``, else the HTTP reason."""
+def _read_bounded(response: Any, deadline: _Deadline) -> bytes:
+    """The body, at most MAX_ANSWER_BYTES + 1 bytes, read until the deadline."""
+    parts: list[bytes] = []
+    size = 0
+    while size <= MAX_ANSWER_BYTES and not deadline.expired:
+        chunk = response.read1(READ_CHUNK_BYTES) if hasattr(response, "read1") else \
+            response.read(READ_CHUNK_BYTES)
+        if not chunk:
+            break
+        parts.append(chunk)
+        size += len(chunk)
+    return b"".join(parts)
+
+
+class _Deadline:
+    """One deadline for a whole HTTP request: when it passes, the connection's socket is
+    shut down from a timer thread, so a blocked read returns at once (a per-read socket
+    timeout alone lets a server drip one byte per timeout for ever)."""
+
+    def __init__(self, seconds: float) -> None:
+        import threading
+
+        self.expired = False
+        self._sockets: list[Any] = []
+        self._lock = threading.Lock()
+        self._timer = threading.Timer(max(seconds, 0.0), self._expire)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _expire(self) -> None:
+        import socket
+
+        with self._lock:
+            self.expired = True
+            for sock in self._sockets:
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def cancel(self) -> None:
+        self._timer.cancel()
+
+    def watch(self, sock: Any) -> None:
+        with self._lock:
+            self._sockets.append(sock)
+            if self.expired:
+                import socket
+
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+
+    def handlers(self) -> list[Any]:
+        """urllib handlers whose connections register their socket with this deadline."""
+        import http.client
+        import urllib.request
+
+        deadline = self
+
+        class Connection(http.client.HTTPConnection):
+            def connect(self) -> None:
+                super().connect()
+                deadline.watch(self.sock)
+
+        class SecureConnection(http.client.HTTPSConnection):
+            def connect(self) -> None:
+                super().connect()
+                deadline.watch(self.sock)
+
+        class Handler(urllib.request.HTTPHandler):
+            def http_open(self, req: Any) -> Any:
+                return self.do_open(Connection, req)
+
+        class SecureHandler(urllib.request.HTTPSHandler):
+            def https_open(self, req: Any) -> Any:
+                return self.do_open(SecureConnection, req)
+
+        return [Handler(), SecureHandler()]
+
+
+def _error_message(exc: Any) -> str:
+    """Moonraker's ``{"error": {"message": ...}}``, else the HTTP reason (raw: the caller
+    sanitises it)."""
     try:
-        message = json.loads(exc.read(MAX_ANSWER_BYTES))["error"]["message"]
-    except (ValueError, KeyError, TypeError, OSError):
+        message = json.loads(exc.read(MAX_ERROR_BODY_BYTES))["error"]["message"]
+    except (ValueError, KeyError, TypeError, OSError, RecursionError):
         return str(exc.reason)
     return str(message)
 
@@ -152,7 +292,7 @@ def _error_message(exc: urllib.error.HTTPError) -> str:
 def _settings_from_answer(body: bytes, url: str) -> Settings:
     try:
         settings = json.loads(body)["result"]["status"]["configfile"]["settings"]
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, KeyError, TypeError, RecursionError):
         raise KestimatorError(f"Moonraker at {url} did not answer with Klipper's settings "
                               "(result.status.configfile.settings)") from None
     if not isinstance(settings, dict) or not all(
@@ -296,14 +436,25 @@ def _write_cache(path: Path, url: str, settings: Settings,
 
 
 def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | None:
-    """(settings, when fetched) from the cache file of ``url``, None if absent or unusable."""
+    """(settings, when fetched) from the cache file of ``url``, None if there is none.
+
+    Raises KestimatorError for a cache file that is there but damaged (not our JSON, another
+    URL's, sections that are not tables): reported as such, not as "nothing cached".
+    """
+    if not path.exists():
+        return None
     try:
-        document = json.loads(path.read_text(encoding="utf-8"))
+        document = json.loads(read_config_bytes(path, "cache").decode("utf-8"))
         fetched = datetime.datetime.strptime(document["fetched"], _TIME_STORED).replace(
             tzinfo=datetime.timezone.utc)
         settings = document["settings"]
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    if document.get("url") != url or not isinstance(settings, dict):
-        return None
+        usable = (document.get("url") == url and isinstance(settings, dict)
+                  and all(isinstance(options, dict) for options in settings.values()))
+    except KestimatorError as exc:
+        raise KestimatorError(f"the settings cache is unusable: {exc.message}", path) from None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        usable = False
+    if not usable:
+        raise KestimatorError("the settings cache is corrupt (delete it; the next run with "
+                              "the printer online writes it again)", path)
     return settings, fetched

@@ -217,12 +217,36 @@ class FloatOption:
 
     def violation(self, value: float) -> str | None:
         """A text such as "must be at least 1" if Klipper refuses ``value``, else None."""
+        problem = arithmetic_violation(value)
+        if problem is not None:
+            return problem
         for bound, allowed, text in ((self.minval, operator.ge, "at least"),
                                      (self.above, operator.gt, "above"),
                                      (self.below, operator.lt, "below")):
             if bound is not None and not allowed(value, bound):
                 return f"must be {text} {bound:g}"
         return None
+
+
+# Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
+# ToolHead squares square_corner_velocity (OverflowError above ~1.3e154, toolhead.py at
+# 84104bbbd), the planner squares speeds and multiplies accelerations by distances, and the
+# extruder divides by the filament's area (0 for 1e-200). Every settings source refuses a
+# magnitude outside [ARITHMETIC_MIN, ARITHMETIC_MAX] (0 itself stays allowed).
+ARITHMETIC_MAX = 1e100
+ARITHMETIC_MIN = 1e-100
+
+
+def arithmetic_violation(value: float) -> str | None:
+    """A text if ``value`` is one Klipper's arithmetic cannot run with, else None."""
+    if not math.isfinite(value):
+        return "must be a finite number"
+    if abs(value) > ARITHMETIC_MAX:
+        return f"must be at most {ARITHMETIC_MAX:g} (Klipper's arithmetic overflows beyond)"
+    if value and abs(value) < ARITHMETIC_MIN:
+        return (f"must be 0 or at least {ARITHMETIC_MIN:g} (Klipper's arithmetic "
+                "underflows below)")
+    return None
 
 
 # Bounds as in klippy/toolhead.py, kinematics/*.py, kinematics/extruder.py,
@@ -238,7 +262,7 @@ FLOAT_OPTIONS = (
     FloatOption("printer", "max_z_accel", "max_z_accel", above=0.0),
     FloatOption("printer", "max_accel_to_decel", "max_accel_to_decel", above=0.0),
     FloatOption("extruder", "nozzle_diameter", "nozzle_diameter", above=0.0),
-    FloatOption("extruder", "filament_diameter", "filament_diameter"),
+    FloatOption("extruder", "filament_diameter", "filament_diameter", above=0.0),
     FloatOption("extruder", "max_extrude_cross_section", "max_extrude_cross_section",
                  above=0.0),
     FloatOption("extruder", "max_extrude_only_velocity", "max_extrude_only_velocity",

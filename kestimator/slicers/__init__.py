@@ -16,6 +16,7 @@ import os
 from collections.abc import Mapping
 
 from kestimator.errors import KestimatorError
+from kestimator.files import open_regular
 from kestimator.slicers.base import (
     DETECT_WINDOW_BYTES,
     FileEnds,
@@ -87,9 +88,10 @@ def _whole_lines_to_end(data: bytes) -> bytes:
 
 def read_file_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
     """The first and last MiB of the file at ``path`` in whole lines (the same bytes twice if
-    it is small). Raises ``KestimatorError`` if the file cannot be read."""
-    try:
-        with open(path, "rb") as gcode:
+    it is small). Raises ``KestimatorError`` if the file cannot be read or is not a regular
+    file (`kestimator.files.open_regular`)."""
+    with open_regular(path) as gcode:
+        try:
             size = gcode.seek(0, os.SEEK_END)
             gcode.seek(0)
             if size <= DETECT_WINDOW_BYTES:
@@ -99,8 +101,8 @@ def read_file_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
             # One byte more than the window shows whether the window starts a line.
             gcode.seek(size - DETECT_WINDOW_BYTES - 1)
             tail = gcode.read()
-    except OSError as exc:
-        raise KestimatorError(f"cannot read G-code: {exc.strerror or exc}", path) from exc
+        except OSError as exc:
+            raise KestimatorError(f"cannot read G-code: {exc.strerror or exc}", path) from exc
     return head, _whole_lines_to_end(tail)
 
 

@@ -38,6 +38,10 @@ _GENERATED_BY_RE = re.compile(
     re.MULTILINE)
 
 
+# A slicer's estimate above this (a year) is not a time anyone slices for: treated as absent.
+MAX_PLAUSIBLE_ESTIMATE_S = 366 * 24 * 3600.0
+
+
 @dataclasses.dataclass(frozen=True)
 class SlicerInfo:
     """Which slicer wrote a file and what it estimated."""
@@ -52,6 +56,15 @@ class SlicerInfo:
     """The slicer's own total print time (normal mode), None when absent or a placeholder."""
     first_layer_estimate_s: float | None
     """The slicer's own first layer time (normal mode), None when absent."""
+
+    def __post_init__(self) -> None:
+        # A number read from a file is believed only if it is a plausible time: a
+        # 400-digit ;TIME: (inf), a negative or a NaN one counts as absent.
+        for name in ("estimate_s", "first_layer_estimate_s"):
+            value = getattr(self, name)
+            if value is not None and not (
+                    math.isfinite(value) and 0.0 <= value <= MAX_PLAUSIBLE_ESTIMATE_S):
+                object.__setattr__(self, name, None)
 
 
 HEAD = "head"

@@ -23,7 +23,7 @@ from collections.abc import Iterator, Sequence
 from kestimator.estimate import Estimate
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
-from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter, plan_lines
+from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter, parse_marker, plan_lines
 from kestimator.slicers import SlicerInfo, detect
 from kestimator.slicers.base import DETECT_WINDOW_BYTES
 
@@ -72,10 +72,15 @@ def same_chunks(a: Sequence[str], b: Sequence[str]) -> bool:
 
 
 def is_processed(chunks: Sequence[str]) -> bool:
-    """True if kestimator's marker line is in the chunks (they were rewritten already)."""
-    marker_line_start = "\n" + MARKER_PREFIX
-    return any(chunk.startswith(MARKER_PREFIX) or marker_line_start in chunk
-               for chunk in chunks)
+    """True if kestimator's marker line, in its exact format (`parse_marker`), is in the
+    chunks (they were rewritten already); a user's ``; kestimator ...`` comment is not."""
+    for chunk in chunks:
+        if MARKER_PREFIX not in chunk:
+            continue
+        for line in chunk.splitlines():
+            if MARKER_PREFIX in line and parse_marker(line) is not None:
+                return True
+    return False
 
 
 def _head_and_tail(chunks: Sequence[str]) -> tuple[bytes, bytes]:
