@@ -828,14 +828,14 @@ def cmd_report(args: argparse.Namespace) -> int:
     extension = os.path.splitext(args.output)[1].lower()
     if not args.output:
         raise KestimatorError("-o names no file (an empty name)")
-    if extension not in REPORT_EXTENSIONS:
-        raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
-                         "in a browser to save a picture)" % (extension or "a file without "
-                                                              "an extension"))
     check_gcode_file(args.file)
     if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
         raise KestimatorError("the report would overwrite the G-code it reports on: give "
                               "another -o", args.output)
+    if extension not in REPORT_EXTENSIONS:
+        raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
+                         "in a browser to save a picture)" % (extension or "a file without "
+                                                              "an extension"))
     resolved = _resolve(args, args.file)
     _check_time_options(args)
     with _progress(args, "timing") as progress:
@@ -1048,7 +1048,7 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
             traceback.print_exc()
         sys.stderr.write("kestimator: internal error: %s: %s (run with --debug for the "
                          "traceback and please report it)\n"
-                         % (type(exc).__name__, printable(str(exc))))
+                         % (type(exc).__name__, printable(str(exc).replace("\n", " "))))
         return EXIT_INTERNAL
     parser.error("unknown command %r" % args.command)
     return EXIT_USAGE

@@ -49,19 +49,19 @@ _UNSAFE_RE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u20
 
 def _escaped(match: re.Match[str]) -> str:
     code = ord(match.group())
-    if code in _SPACES:  # a message is one line: breaks and tabs become spaces
-        return " "
+    if code in _SPACES:  # a message stays one line: breaks and tabs shown as escapes
+        return _SPACES[code]
     if 0xDC80 <= code <= 0xDCFF:  # a byte surrogateescape could not decode
         return "\\x%02x" % (code - 0xDC00)
     return "\\x%02x" % code if code < 0x100 else "\\u%04x" % code
 
 
-_SPACES = frozenset((0x09, 0x0A, 0x0D))
+_SPACES = {0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r"}
 
 
 def printable(text: str) -> str:
-    """`text` safe for a terminal, on one line: tabs and line breaks become spaces, every
-    other control character is shown as an escape (`\\x1b`).
+    """`text` safe for a terminal, on one line: every control character is shown as an
+    escape (`\\n`, `\\x1b`).
 
     Everything kestimator prints that came from a file, a server or a path goes through
     this."""
