@@ -53,7 +53,14 @@ from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
 from kestimator.files import Terminated, cleanup_on_termination
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
+from kestimator.preflight import (
+    EXIT_KLIPPER_STOPS,
+    KIND_STOP,
+    SUMMARY_HEAD,
+    stderr_line,
+    summary_lines,
+)
 from kestimator.report import collect, render_html
 from kestimator.rewrite import (
     check_gcode_file,
@@ -62,13 +69,17 @@ from kestimator.rewrite import (
     write_bytes_atomically,
 )
 
-__all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_OK", "EXIT_USAGE", "JSON_SCHEMA_VERSION",
+__all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
+           "JSON_SCHEMA_VERSION",
            "estimate_to_json", "main"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
+# A list setting (extruders, macros, sections) shows this many names in the limits table.
+LIST_SHOWN = 4
+# EXIT_KLIPPER_STOPS (4, kestimator.preflight): inject/check when Klipper will stop the print.
 # PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
 SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
 # "1" draws with rich even when stdout is not a terminal, "0" never (docs/CLI.md).
@@ -192,6 +203,20 @@ def _build_parser() -> argparse.ArgumentParser:
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print nothing on success")
     _add_debug_option(inj)
+    chk = sub.add_parser(
+        "check", help="only the pre-flight check: where Klipper stops or skips commands",
+        description="Run the file through Klipper's rules for this printer and report what "
+                    "Klipper will do: the line where it stops the print (exit status 4) and "
+                    "the commands it will skip.",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    chk.add_argument("file", help="the G-code file")
+    _add_limit_options(chk)
+    output = chk.add_mutually_exclusive_group()
+    output.add_argument("--json", action="store_true",
+                        help="print one JSON object: file, limits_source, preflight, warnings")
+    output.add_argument("-q", "--quiet", action="store_true",
+                        help="print nothing; only the exit status tells")
+    _add_debug_option(chk)
     lim = sub.add_parser(
         "limits", help="show the printer limits a file would be timed with, and their sources",
         description="Print every printer limit kestimator would use for FILE and where each "
@@ -556,6 +581,13 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False,
             table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
                           Text(_bar(share, 100.0), style="cyan"))
         console.print(table)
+    preflight = summary_lines(doc["preflight"])
+    if preflight:
+        stops = any(f["kind"] == KIND_STOP for f in doc["preflight"])
+        console.print(Text(printable(preflight[0]),
+                           style="bold red" if stops else "bold yellow"))
+        for line in preflight[1:]:
+            console.print(Text(printable(line)))
     summary = untimed_summary(doc)
     if summary is not None:
         if verbose:
@@ -604,11 +636,55 @@ def cmd_inject(args: argparse.Namespace) -> int:
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
         approximate = " (approximate: the limits are guesses)" if resolved.guessed else ""
-        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines"
+        preflight = summary_lines(_findings(est))
+        # One line, as hooks expect: the pre-flight's counts, `kestimator check` the rest.
+        found = ("" if not preflight else
+                 "; pre-flight: %s (kestimator check FILE shows each)"
+                 % preflight[0][len(SUMMARY_HEAD):])
+        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
                                    % (result.output, format_duration(est.total_s),
                                       _parts_text(est), approximate, said,
-                                      result.m73_written)) + "\n")
+                                      result.m73_written, found)) + "\n")
     _say_guessed(resolved)
+    return _stop_status(result.estimate)
+
+
+def _findings(est: Estimate) -> list[dict[str, Any]]:
+    return [finding.to_json() for finding in est.preflight]
+
+
+def _stop_status(est: Estimate) -> int:
+    """EXIT_KLIPPER_STOPS, with one line on stderr (a slicer's dialog shows it), when
+    Klipper will stop this print; else EXIT_OK."""
+    line = stderr_line(_findings(est))
+    if line is None:
+        return EXIT_OK
+    sys.stderr.write(printable(line) + "\n")
+    return EXIT_KLIPPER_STOPS
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    """`kestimator check`: only the pre-flight check."""
+    check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
+    _check_time_options(args)
+    with _progress(args, "checking") as progress:
+        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
+                            heat_time=args.heat_time, progress=progress, macros=args.macros)
+    findings = _findings(est)
+    if args.json:
+        _write_json({"schema": JSON_SCHEMA_VERSION, "kestimator": __version__,
+                     "file": est.path, "limits_source": resolved.summary,
+                     "limits_guessed": resolved.guessed, "preflight": findings,
+                     "warnings": list(resolved.warnings)})
+    elif not args.quiet:
+        lines = summary_lines(findings) or [
+            "Pre-flight: Klipper runs every command of this file on this printer"]
+        sys.stdout.write(printable(est.path) + "\n"
+                         + "".join("  %s\n" % printable(line) for line in lines))
+    _say_guessed(resolved)
+    if est.stops_print:
+        return EXIT_KLIPPER_STOPS
     return EXIT_OK
 
 
@@ -646,9 +722,9 @@ def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]
         "profile": resolved.profile,
         "summary": resolved.summary,
         "limits": {
-            field: {"value": getattr(resolved.limits, field),
+            field: {"value": json_value(getattr(resolved.limits, field)),
                     "source": resolved.sources[field],
-                    "overridden": [{"value": c.value, "source": c.source}
+                    "overridden": [{"value": json_value(c.value), "source": c.source}
                                    for c in resolved.shadowed.get(field, ())]}
             for field in Limits.field_names()},
         "slicer_settings": {"origin": settings.origin or None,
@@ -756,6 +832,13 @@ def _shown(value: object) -> str:
         return "true" if value else "false"
     if isinstance(value, float):
         return "%g" % value
+    if isinstance(value, list):
+        names = [str(item.get("name")) if isinstance(item, dict)
+                 else str(item[0]) if isinstance(item, list) else str(item)
+                 for item in value]
+        if len(names) > LIST_SHOWN:
+            return "%s, ... (%d)" % (", ".join(names[:LIST_SHOWN]), len(names))
+        return ", ".join(names) or "none"
     return str(value)
 
 
@@ -1020,6 +1103,8 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
             return cmd_estimate(args)
         if args.command == "inject":
             return cmd_inject(args)
+        if args.command == "check":
+            return cmd_check(args)
         if args.command == "limits":
             return cmd_limits(args)
         if args.command == "report":

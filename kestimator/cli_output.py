@@ -17,7 +17,9 @@ from typing import Any, TextIO
 from kestimator import __version__
 from kestimator.config.resolve import GUESS_WARNING_START
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate
+from kestimator.estimate import KIND_UNKNOWN, Estimate
+from kestimator.interpreter import KIND_MACRO
+from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
 
 JSON_SCHEMA_VERSION = 1
@@ -184,8 +186,10 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
+        "commands": est.commands,
         "untimed_commands": untimed_by_kind(est, {source["name"]
                                                   for source in parts["sources"]}),
+        "preflight": [finding.to_json() for finding in est.preflight],
         "parts": parts,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
@@ -278,34 +282,36 @@ UNTIMED_KINDS = (("macro", "macro", "macros"),
                  ("unknown", "unknown command", "unknown commands"))
 # Warnings that repeat, one per command, what the grouped summary says (shown with -v).
 _PER_COMMAND_WARNING_RE = re.compile(r"'[^']*' is not a Klipper command: |: macros ran: |"
-                                     r"^macros ran: ")
+                                     r"^macros ran: |macros of the printer config ran: ")
 # The estimate's record of untimed commands (Estimate.commands) uses these kinds.
-_RECORD_MACRO = "macro"
-_RECORD_UNKNOWN = "unknown"
+_RECORD_MACRO = KIND_MACRO
+_RECORD_UNKNOWN = KIND_UNKNOWN
 
 
 def untimed_by_kind(est: Estimate, timed: set[str]) -> dict[str, dict[str, int]]:
     """The commands whose time is not counted, by kind (`UNTIMED_KINDS`): name -> runs.
 
-    From the estimate's record of macros where it has one; a command the printer does not
-    define is a module command when it belongs to one of Klipper's optional modules, an
-    unknown command when it looks like G-code (Marlin's M201, M900...), else a macro.
+    From the estimate's record (`Estimate.commands`): the printer config's template macros
+    are macros (the no-time commands of modules it configures are timed right: 0 s); of the
+    commands Klipper does not know, those of Klipper's optional modules are module commands,
+    those
+    that look like G-code (Marlin's M201, M900...) unknown commands, and the rest macros
+    (of a printer whose config was not given; the pre-flight says when Klipper skips one).
+    Commands the profile's [macros] or learned times give a time are left out.
     """
-    record: dict[str, dict[str, int]] = getattr(est, "commands", None) or {}
+    record = est.commands
     groups: dict[str, dict[str, int]] = {kind: {} for kind, _, _ in UNTIMED_KINDS}
     groups["macro"].update({name: runs for name, runs in record.get(_RECORD_MACRO, {}).items()
                             if name not in timed})
-    unknown = record.get(_RECORD_UNKNOWN, est.ignored_commands) if record \
-        else est.ignored_commands
-    for name, runs in unknown.items():
-        if name in timed:  # the profile's [macros] or learned times give it one
+    for name, runs in record.get(_RECORD_UNKNOWN, {}).items():
+        if name in timed:
             continue
         if name in MODULE_COMMANDS:
             kind = "module"
         elif len(name) >= 2 and name[0] in "GMTD" and name[1].isdigit():
             kind = "unknown"
         else:
-            kind = "unknown" if record else "macro"
+            kind = "macro"
         groups[kind][name] = groups[kind].get(name, 0) + runs
     return {kind: dict(sorted(names.items())) for kind, names in groups.items() if names}
 
@@ -428,7 +434,7 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
 
 def summary_tail_lines(doc: dict[str, Any], verbose: bool = False) -> list[str]:
     """The untimed commands (grouped, or per kind with --verbose) and the warnings."""
-    lines: list[str] = []
+    lines = ["  " + printable(line) for line in summary_lines(doc["preflight"])]
     summary = untimed_summary(doc)
     if summary is not None:
         if verbose:

@@ -34,7 +34,7 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
     "warnings_dropped": (int,), "limits_guessed": (bool,), "untimed_commands": (dict,),
-    "parts": (dict,),
+    "parts": (dict,), "commands": (dict,), "preflight": (list,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
@@ -163,6 +163,7 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     assert "  warning: %s:39: M204 without S needs both P and T" % NUT in out
     torus = estimate_text(capsys, TORUS)
     assert "Difference   : " in torus
+    assert "  Pre-flight: 2 commands skipped" in torus
     # Macros are one grouped line at the end, not a warning each.
     assert torus.endswith("\n  2 macros: their time is not counted (--verbose lists them)\n")
     assert "is not a Klipper command" not in torus
@@ -247,7 +248,8 @@ def test_inject_json_adds_output_and_m73_count_and_text_stays_one_line(
     assert again["slicer"]["difference_s"] == doc["slicer"]["difference_s"]
     assert cli.main(argv) == 0
     assert capsys.readouterr().out == (
-        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines\n"
+        "kestimator: %s: Klipper time 3m 42s, the slicer said 3m 20s; wrote %d M73 lines; "
+        "pre-flight: 2 commands skipped (kestimator check FILE shows each)\n"
         % (out, doc["m73_written"]))
 
 

@@ -90,7 +90,9 @@ def _cfg_choice() -> LimitsChoice:
 def _cli(*argv: str) -> subprocess.CompletedProcess[str]:
     proc = subprocess.run([sys.executable, "-m", "kestimator", *argv], capture_output=True,
                           text=True, cwd=PROJECT)
-    assert proc.returncode == 0, proc.stderr
+    # 4: Klipper will stop this print (a Cura placeholder left in the file); the times are
+    # written all the same.
+    assert proc.returncode in (0, 4), proc.stderr
     return proc
 
 

@@ -12,7 +12,7 @@ import pytest
 
 from kestimator import cli
 from kestimator.config.printer_cfg import limits_from_printer_cfg
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 
 from .conftest import CORPUS, CORPUS_CFG, corpus_files
 from .fake_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
@@ -50,7 +50,7 @@ def test_limits_json_names_a_source_for_every_value_of_every_corpus_file(
     with_cfg = run_json(capsys, str(path), "--printer-cfg", str(CORPUS_CFG))
     limits = limits_from_printer_cfg(CORPUS_CFG)[0]
     for field, entry in with_cfg["limits"].items():
-        assert entry["value"] == getattr(limits, field)
+        assert entry["value"] == json_value(getattr(limits, field))
         assert entry["source"].startswith((str(CORPUS_CFG) + ":", "klipper default",
                                            "derived from ", "kestimator default")), field
 

@@ -65,6 +65,7 @@ def test_pypy_inject_writes_the_same_bytes_as_cpython(tmp_path: Path) -> None:
             out = tmp_path / ("%s-%s.gcode" % (path.stem, Path(python).name))
             result = _run(python, "inject", str(path), "-o", str(out), "-q",
                           "--printer-cfg", str(CORPUS_CFG))
-            assert result.returncode == 0, result.stderr.decode()
+            # 4: Klipper will stop this print; the times are written all the same.
+            assert result.returncode in (0, 4), result.stderr.decode()
             outputs.append(out.read_bytes())
         assert outputs[0] == outputs[1], path.name

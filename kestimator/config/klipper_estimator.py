@@ -31,7 +31,7 @@ from typing import Any
 
 from kestimator.config.fields import SourcedValues, check_limit_value
 from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 
 KESTIMATOR_KEY = "kestimator_limits"
 """The table of a config that holds every ``Limits`` field (kestimator's own extension)."""
@@ -281,7 +281,7 @@ def dump_config(limits: Limits, sources: Mapping[str, str] | None = None) -> dic
             "lift_z": 0.0,
         }
     # max_accel_to_decel 0 means "not set" in Limits, a value no config may hold.
-    document[KESTIMATOR_KEY] = {field: getattr(limits, field)
+    document[KESTIMATOR_KEY] = {field: json_value(getattr(limits, field))
                                 for field in Limits.field_names()
                                 if not (field == "max_accel_to_decel"
                                         and not limits.max_accel_to_decel)}
