@@ -747,11 +747,18 @@ LIMIT_UNITS = {
 SLICER_SOURCE_PREFIX = "slicer:"
 
 
+# What the printer config holds besides limits (its section names and macro texts): in
+# `limits --json`, not in the table, where a list of names would widen every row.
+TABLE_HIDDEN_LIMITS = frozenset(("configured_sections", "gcode_macros"))
+
+
 def limit_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
     """(setting, value, unit, source, what the slicer assumed) for every limit; the last is
     empty unless the file's slicer settings proposed another value that lost."""
     rows = []
     for field, entry in doc["limits"].items():
+        if field in TABLE_HIDDEN_LIMITS:
+            continue
         assumed = [c["value"] for c in entry["overridden"]
                    if str(c["source"]).startswith(SLICER_SOURCE_PREFIX)]
         rows.append((field, _shown(entry["value"]), LIMIT_UNITS.get(field, ""),
