@@ -47,7 +47,7 @@ def test_the_zipapp_holds_the_package_sources_and_its_entry_only(zipapp: Path) -
         assert files == set(sources) | {"__main__.py"}
         for name, path in sources.items():
             assert archive.read(name) == path.read_bytes(), name
-        assert "kestimator.cli" in archive.read("__main__.py").decode()
+        assert "kestimator.entry" in archive.read("__main__.py").decode()
 
 
 def test_the_zipapp_needs_no_installed_package(zipapp: Path) -> None:

@@ -31,6 +31,7 @@ from typing import Any
 
 from kestimator.config.fields import SourcedValues, check_limit_value
 from kestimator.errors import KestimatorError
+from kestimator.files import open_regular
 from kestimator.limits import Limits, json_value
 
 KESTIMATOR_KEY = "kestimator_limits"
@@ -130,11 +131,17 @@ def read_config_document(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     where = os.fspath(path)
     try:
-        with open(where, "rb") as f:
+        # open_regular: a FIFO or device given as --config_file is refused, never read.
+        with open_regular(where, "klipper_estimator config") as f:
             data = f.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise KestimatorError("cannot read the klipper_estimator config: %s"
                               % (exc.strerror or exc), where) from None
+    except KestimatorError as exc:
+        if exc.message.startswith("cannot read file: "):
+            raise KestimatorError("cannot read the klipper_estimator config: "
+                                  + exc.message[len("cannot read file: "):], where) from None
+        raise
     if len(data) > MAX_CONFIG_BYTES:
         raise KestimatorError("a klipper_estimator config is at most %d bytes"
                               % MAX_CONFIG_BYTES, where)

@@ -32,6 +32,7 @@ from kestimator.config.klipper_options import (
     SECTION_OPTIONS,
 )
 from kestimator.errors import KestimatorError
+from kestimator.files import read_config_bytes
 from kestimator.kinematics.base import MachineConfig
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
@@ -493,17 +494,25 @@ def _read_config(path: str) -> _Config:
     return config
 
 
+_CANNOT_READ = "cannot read file: "
+
+
 def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
     """The file's lines (universal newlines); errors name the include line if any."""
     try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        reason = exc.strerror or str(exc)
+        # Bounded, and refusing devices and FIFOs: /dev/zero as an [include] must not
+        # read forever or block.
+        data = read_config_bytes(path, "config")
+    except KestimatorError as exc:
+        reason = exc.message
+        if reason.startswith(_CANNOT_READ):
+            reason = reason[len(_CANNOT_READ):]
         if included_from is not None:
             raise KestimatorError(f"cannot read included file {path}: {reason}",
                                   *included_from) from None
-        raise KestimatorError(f"cannot read config file: {reason}", path) from None
+        if exc.message.startswith(_CANNOT_READ):
+            raise KestimatorError(f"cannot read config file: {reason}", path) from None
+        raise
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -589,7 +598,10 @@ def _include(path: str, line: int, spec: str, config: _Config,
     pattern = os.path.join(os.path.dirname(path), spec)
     names = sorted(glob.glob(pattern))
     if not names and not any(c in pattern for c in "*?["):
-        raise KestimatorError(f"include file {pattern} does not exist", path, line)
+        raise KestimatorError(f"include file {pattern} does not exist: copy the whole config "
+                              "folder (printer.cfg and the files it includes, e.g. "
+                              "mainsail.cfg), or read the live settings with --moonraker URL",
+                              path, line)
     for name in names:
         if any(os.path.realpath(name) == real for real, _ in stack):
             chain = " -> ".join([shown for _, shown in stack] + [name])
