@@ -2,6 +2,6 @@
 
 import sys
 
-from kestimator.cli import main
+from kestimator.entry import kestimator
 
-sys.exit(main())
+sys.exit(kestimator())

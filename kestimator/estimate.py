@@ -17,10 +17,18 @@ import re
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from typing import Final
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import Command, extended_params, parse_line, parse_plain_move
-from kestimator.interpreter import CommandError, Interpreter
+from kestimator.gcode import (
+    SCAN_PLAIN_MOVES,
+    Command,
+    extended_params,
+    parse_line,
+    parse_plain_move_regex,
+    parse_plain_move_scan,
+)
+from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter, ParamError
 from kestimator.limits import Limits
 from kestimator.macros import (
     ADD_TIME_SOURCE,
@@ -32,6 +40,7 @@ from kestimator.macros import (
     TimedPart,
 )
 from kestimator.planner import Move
+from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.toolhead import MoveError, ToolHead
 
 # Commands that say which object the following moves belong to.
@@ -40,32 +49,34 @@ OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
 # M486's A parameter: the current object's name, to the end of the code.
 _M486_LABEL_RE = re.compile(r"^\s*M486\b.*?\sA(\S.*)$", re.IGNORECASE)
 # Comment markers that start a layer.
-LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
+LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
-FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
-ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
+FEATURE_MARKERS: Final = (";TYPE:", "; FEATURE:")
+ADD_TIME_MARKER: Final = "ESTIMATOR_ADD_TIME"
+# Estimate.commands kind of commands Klipper does not know.
+KIND_UNKNOWN: Final = "unknown"
 # Feature name for moves before the first feature marker.
-NO_FEATURE = "(none)"
+NO_FEATURE: Final = "(none)"
 # Object name for moves outside every labelled object (start, travel between objects, end).
-NO_OBJECT = "(no object)"
+NO_OBJECT: Final = "(no object)"
 # `; printing object NAME` / `; stop printing object NAME` (PrusaSlicer, SuperSlicer, Orca).
-OBJECT_COMMENT = ";printing object"
-OBJECT_STOP_COMMENT = ";stop printing object"
+OBJECT_COMMENT: Final = ";printing object"
+OBJECT_STOP_COMMENT: Final = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
-MAX_WARNINGS = 100
-READ_BUFFER_BYTES = 1 << 20
+MAX_WARNINGS: Final = 100
+READ_BUFFER_BYTES: Final = 1 << 20
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
-MAX_SAMPLES = 65536
-FIRST_SAMPLE_SPACING_S = 0.01
+MAX_SAMPLES: Final = 65536
+FIRST_SAMPLE_SPACING_S: Final = 0.01
 # Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
 # kept, and the cache is emptied when full).
-MAX_CACHED_COMMANDS = 4096
-MAX_CACHED_COMMAND_CHARS = 200
+MAX_CACHED_COMMANDS: Final = 4096
+MAX_CACHED_COMMAND_CHARS: Final = 200
 # An ESTIMATOR_ADD_TIME label is kept to this many characters.
-MAX_LABEL_CHARS = 60
+MAX_LABEL_CHARS: Final = 60
 # A progress callback hears about once per this many bytes read.
-PROGRESS_EVERY_BYTES = 1 << 20
+PROGRESS_EVERY_BYTES: Final = 1 << 20
 
 
 @dataclasses.dataclass
@@ -94,6 +105,20 @@ class Estimate:
     # Object name -> seconds; NO_OBJECT is time outside every labelled object. Empty when
     # the file labels no objects. Sums to total_s (as features do).
     objects: dict[str, float] = dataclasses.field(default_factory=dict)
+    # Commands that are not Klipper's own motion commands, by kind, each name -> times run:
+    # "macro" (a printer.cfg [gcode_macro] with a template: not run, counted as 0 s),
+    # "expanded_macro" (a literal [gcode_macro]: its commands ran, their time is included),
+    # "module" (a no-time command of a module the printer's config has),
+    # "unknown" (Klipper does not know it: skipped; the same as ignored_commands).
+    commands: dict[str, dict[str, int]] = dataclasses.field(default_factory=dict)
+    # What Klipper will do with the file on this printer (kestimator.preflight): where it
+    # stops the print, which commands it skips.
+    preflight: list[Finding] = dataclasses.field(default_factory=list)
+
+    @property
+    def stops_print(self) -> bool:
+        """Klipper will stop this print at a command error."""
+        return any(f.kind == KIND_STOP for f in self.preflight)
     # Time added where the file runs macros, waits or says ESTIMATOR_ADD_TIME, by kind.
     timed_parts: list[TimedPart] = dataclasses.field(default_factory=list)
     # Commands that are no Klipper command and have no time (macros whose time is unknown).
@@ -180,6 +205,8 @@ class Timeline:
         # Where the last added time ended (0: none yet).
         self._rest_until = 0.0
         self.first_extrusion_t: float | None = None
+        self.preflight = Preflight()
+        self.interp.preflight = self.preflight
         self.feature_names: list[str] = [NO_FEATURE]
         self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
         # Objects by key (EXCLUDE_OBJECT NAME, M486 id or comment label) and their names.
@@ -373,7 +400,7 @@ class Timeline:
 
     def _final_warnings(self) -> list[str]:
         return [w if not n else "%s (%d more like it)" % (w, n)
-                for w, n in zip(self.warnings, self._warning_repeats, strict=True)]
+                for w, n in zip(self.warnings, self._warning_repeats)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
         if self._rest_until and self.toolhead.lookahead.is_empty():
@@ -390,27 +417,29 @@ class Timeline:
     # Per line
     def feed(self, raw: bytes) -> None:
         """Process one line (bytes, with or without its line ending)."""
-        self.lineno += 1
-        values = parse_plain_move(raw)
-        if values is None:
-            self._feed_other(raw)
-            return
-        # A plain G0/G1 line: the same effect as `_feed_other`, without building a Command.
-        if self.first_command_line is None:
-            self.first_command_line = self.lineno
-        interp = self.interp
-        interp.tag = self.lineno
-        try:
-            interp.plain_move(*values)
-        except MoveError as exc:
-            interp.reset_last_position()
-            self._reject(raw.decode("utf-8", "replace").strip(), exc)
+        self.feed_lines((raw,))
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
-        """Process every line of `lines` (the same as `feed` on each)."""
-        feed = self.feed
+        """Process every line of `lines`, in order."""
+        interp = self.interp
         for raw in lines:
-            feed(raw)
+            self.lineno += 1
+            if SCAN_PLAIN_MOVES:
+                plain, x, y, z, e, f = parse_plain_move_scan(raw)
+            else:
+                plain, x, y, z, e, f = parse_plain_move_regex(raw)
+            if not plain:
+                self._feed_other(raw)
+                continue
+            # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
+            if self.first_command_line is None:
+                self.first_command_line = self.lineno
+            interp.tag = self.lineno
+            try:
+                interp.plain_move(x, y, z, e, f)
+            except MoveError as exc:
+                interp.reset_last_position()
+                self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""
@@ -446,13 +475,22 @@ class Timeline:
         try:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
-            self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
-                      "reject:" + cmd.name)
+            self._command_error(stripped, exc, "reject:" + cmd.name)
 
     def _reject(self, stripped: str, exc: Exception) -> None:
-        """Warn that Klipper rejects this plain move line (as `execute` would report it)."""
-        self.warn("Klipper rejects '%s': %s" % (stripped, exc), self.lineno,
-                  "reject:" + stripped[:2])
+        """Klipper rejects this plain move line (as `execute` would report it)."""
+        self._command_error(stripped, exc, "reject:" + stripped[:2])
+
+    def _command_error(self, stripped: str, exc: Exception, key: str) -> None:
+        """Klipper answers this line with an error: a warning, and the pre-flight's stop."""
+        message = klipper_error_text(stripped, exc)
+        self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
+                  self.lineno, key)
+        stop = self.preflight.command_error(self.lineno, message.replace("\n", " "))
+        if stop is not None:
+            def at_stop(t: float, stop: Finding = stop) -> None:
+                stop.t = t
+            self.toolhead.register_lookahead_callback(at_stop)
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
@@ -583,16 +621,35 @@ class Timeline:
             self._counted_until = total
         total = self._correct_motion(total)
         interp = self.interp
+        for name in interp.extra_steppers:
+            self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
+                      "step-generation flush delay (times after full stops may be short by "
+                      "up to its pressure_advance_smooth_time)" % name)
         if interp.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")
-        untimed = {name: count for name, count in sorted(interp.ignored.items())
+        # Unknown commands may be macros of the printer (the pre-flight says when the
+        # config given lacks them); template macros of the config are macros (0 s unless
+        # the profile times them).
+        unknown = dict(interp.ignored)
+        for name, count in interp.command_kinds.get(KIND_MACRO, {}).items():
+            unknown[name] = unknown.get(name, 0) + count
+        untimed = {name: count for name, count in sorted(unknown.items())
                    if self.macros.time_of(name) is None and not _looks_like_gcode(name)}
+        config_macros = interp.command_kinds.get(KIND_MACRO, {})
         for name in untimed:
-            if name not in self._warned_macros:
+            if name not in self._warned_macros and name not in config_macros:
                 self._warned_macros.add(name)
                 self.warn("'%s' is not a Klipper command: if it is a macro on your printer, "
                           "its effect on time is unknown and counted as 0 s" % name)
+        ran = [(name, count) for name, count in untimed.items() if name in config_macros]
+        if ran:
+            self.warn("macros of the printer config ran: %s; their time is not included "
+                      "(counted as 0 s)" % ", ".join("%s x%d" % kv for kv in ran))
+        commands = {kind: dict(sorted(names.items()))
+                    for kind, names in sorted(interp.command_kinds.items())}
+        if interp.ignored:
+            commands[KIND_UNKNOWN] = dict(sorted(interp.ignored.items()))
         feature_time = [0.0] * len(self.feature_names)
         object_time = [0.0] * len(self.object_keys)
         for i, (fid, oid) in enumerate(self.segments):
@@ -618,7 +675,14 @@ class Timeline:
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
-            objects=objects)
+            objects=objects, commands=commands, preflight=self.preflight.findings())
+
+
+def klipper_error_text(command_line: str, exc: Exception) -> str:
+    """The error as Klipper words it (a parameter error names the command line)."""
+    if isinstance(exc, ParamError):
+        return "Error on '%s': %s" % (command_line, exc)
+    return str(exc)
 
 
 def _looks_like_gcode(name: str) -> bool:

@@ -14,38 +14,65 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import overload
+from typing import Final, overload
 
-from kestimator.gcode import Command, extended_params
-from kestimator.limits import Limits
+from kestimator.gcode import ABSENT, Command, extended_params, parse_line
+from kestimator.klipper_modules import (
+    COMMAND_MODULE,
+    HEATER_BED_WAIT,
+    loaded_modules,
+    silently_ignored,
+)
+from kestimator.limits import ExtruderLimits, Limits
 from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
+from kestimator.preflight import Preflight
+from kestimator.stepgen import (
+    MAX_SMOOTH_TIME_T,
+    SHAPER_MAX_DAMPING,
+    ShaperError,
+    kin_flush_delay,
+    pressure_advance_window,
+    shaper_name,
+    shaper_pulses,
+    shaper_window,
+)
 from kestimator.toolhead import MoveError, ToolHead
 
 # Klipper's default G-code speed: 25 mm/s.
-DEFAULT_SPEED_V = 25.0
-MM_PER_MIN_TO_MM_PER_S = 1.0 / 60.0
-MS_TO_S = 1.0 / 1000.0
-PERCENT = 100.0
+DEFAULT_SPEED_V: Final = 25.0
+MM_PER_MIN_TO_MM_PER_S: Final = 1.0 / 60.0
+MS_TO_S: Final = 1.0 / 1000.0
+PERCENT: Final = 100.0
 
 # Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
 # we model. Everything else is an unknown command to Klipper: ignored, and counted.
-NO_TIME_COMMANDS = frozenset((
+NO_TIME_COMMANDS: Final = frozenset((
     "M73", "M104", "M140", "M105", "M106", "M107", "M110", "M112", "M114", "M115", "M117",
     "M118", "M119", "M21", "G21", "ECHO", "STATUS", "HELP", "GET_POSITION", "QUERY_ENDSTOPS",
-    "SET_HEATER_TEMPERATURE", "TURN_OFF_HEATERS", "SET_PRESSURE_ADVANCE",
-    "SET_EXTRUDER_ROTATION_DISTANCE", "SYNC_EXTRUDER_MOTION", "SET_IDLE_TIMEOUT",
+    "SET_HEATER_TEMPERATURE", "TURN_OFF_HEATERS", "SET_IDLE_TIMEOUT",
     "GET_RETRACTION", "TUNING_TOWER", "SET_FAN_SPEED", "RESPOND", "SET_DISPLAY_TEXT",
     "M300",
 ))
+# Kinds of commands recorded in `Interpreter.command_kinds` (and `Estimate.commands`):
+# a [gcode_macro] with a Jinja template (not run: 0 s), a literal [gcode_macro] whose
+# commands were run one by one (their time is included).
+KIND_MACRO = "macro"
+KIND_EXPANDED_MACRO = "expanded_macro"
+# A no-time command of a module the printer's config has (EXCLUDE_OBJECT_START, M117, ...).
+KIND_MODULE = "module"
+# With the printer's config known: what Klipper knows whatever its sections (gcode.py,
+# the default modules toolhead.py loads, extruder.py); module commands come from
+# kestimator.klipper_modules.
+ALWAYS_KNOWN_COMMANDS = NO_TIME_COMMANDS - frozenset(COMMAND_MODULE) - frozenset(("M300",))
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
-TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
+TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 # An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
-MAX_ARC_SEGMENTS = 100_000
-_AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
+MAX_ARC_SEGMENTS: Final = 100_000
+_AXES: Final = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
-_MOVE_PARAMS = frozenset("XYZEFG")
+_MOVE_PARAMS: Final = frozenset("XYZEFG")
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
@@ -55,6 +82,11 @@ AddTimeFn = Callable[[float, str, str], None]
 
 class CommandError(Exception):
     """Klipper would answer this command with an error and not run it."""
+
+
+class ParamError(CommandError):
+    """A parameter error of Klipper's `gcmd.get*`: Klipper words it
+    "Error on '<command line>': <this text>"."""
 
 
 @overload
@@ -79,15 +111,15 @@ def _float(params: dict[str, str], name: str, default: float | None = None, *,
     try:
         value = float(raw)
     except ValueError:
-        raise CommandError("unable to parse %s=%r" % (name, raw)) from None
+        raise ParamError("unable to parse %s" % raw) from None
     if not math.isfinite(value):
-        raise CommandError("%s must be a finite number, not %r" % (name, raw))
+        raise ParamError("%s must be a finite number, not %r" % (name, raw))
     if minval is not None and value < minval:
-        raise CommandError("%s must have minimum of %s" % (name, minval))
+        raise ParamError("%s must have minimum of %s" % (name, minval))
     if above is not None and value <= above:
-        raise CommandError("%s must be above %s" % (name, above))
+        raise ParamError("%s must be above %s" % (name, above))
     if below is not None and value >= below:
-        raise CommandError("%s must be below %s" % (name, below))
+        raise ParamError("%s must be below %s" % (name, below))
     return value
 
 
@@ -129,10 +161,48 @@ class Interpreter:
         self.extrude_mode_set = False
         self.moved_e_before_mode = False
         self.ignored: dict[str, int] = {}
+        # Commands that are not Klipper's own, by kind (KIND_*): name -> times run.
+        self.command_kinds: dict[str, dict[str, int]] = {}
+        self.macros = dict(limits.gcode_macros)
+        # The modules the printer's config loads; None when no config is known.
+        self.modules = (loaded_modules(limits.configured_sections)
+                        if limits.configured_sections else None)
+        # Where commands Klipper skips are recorded (kestimator.preflight), if anywhere.
+        self.preflight: Preflight | None = None
+        self._running_macros: set[str] = set()
         # The source line of the command being run (moves carry it).
         self.tag = 0
         if limits.klipper_generation == "absolute":
             self._apply_absolute_accel_to_decel()
+        # Extruders (kinematics/extruder.py): by section name; the active one; each
+        # one's E position while inactive; pressure advance (advance, smooth time) and
+        # whether its stepper is synced to a motion queue, for extruders with a stepper.
+        self.extruders: dict[str, ExtruderLimits] = {"extruder": limits.primary_extruder}
+        for extruder in limits.extruders:
+            self.extruders[extruder.name] = extruder
+        self.active_extruder = "extruder"
+        self.extruder_e: dict[str, float] = {name: 0.0 for name in self.extruders}
+        self.pressure_advance: dict[str, tuple[float, float]] = {
+            name: (e.pressure_advance, e.pressure_advance_smooth_time)
+            for name, e in self.extruders.items() if e.has_stepper}
+        self.extruder_synced: dict[str, bool] = {name: True for name in self.pressure_advance}
+        # [extruder_stepper NAME]: its commands are valid (EXTRUDER=NAME), but its own
+        # pressure advance is not read; it counts as off in the flush delay (warned once).
+        self.extra_steppers = [section.split(None, 1)[1].strip()
+                               for section in limits.configured_sections
+                               if section.startswith("extruder_stepper ")
+                               and len(section.split(None, 1)) == 2]
+        for name in self.extra_steppers:
+            self.pressure_advance[name] = (0.0, 0.040)
+            self.extruder_synced[name] = True
+        # [input_shaper] (extras/input_shaper.py): axis -> (shaper_type, freq, damping).
+        self.shapers: dict[str, tuple[str, float, float]] = {}
+        if limits.input_shaper_enabled:
+            for axis in "xyz":
+                self.shapers[axis] = (getattr(limits, "shaper_type_" + axis),
+                                      getattr(limits, "shaper_freq_" + axis),
+                                      getattr(limits, "damping_ratio_" + axis))
+        self._update_kin_flush_delay()
         self._handlers: dict[str, Callable[[Command], None]] = {
             "G0": self.cmd_G1, "G1": self.cmd_G1, "G4": self.cmd_G4, "G20": self.cmd_G20,
             "G28": self.cmd_G28, "G90": self.cmd_G90, "G91": self.cmd_G91,
@@ -146,7 +216,15 @@ class Interpreter:
             "SAVE_GCODE_STATE": self.cmd_SAVE_GCODE_STATE,
             "RESTORE_GCODE_STATE": self.cmd_RESTORE_GCODE_STATE,
             "SET_KINEMATIC_POSITION": self.cmd_SET_KINEMATIC_POSITION,
+            "ACTIVATE_EXTRUDER": self.cmd_ACTIVATE_EXTRUDER,
+            "SET_PRESSURE_ADVANCE": self.cmd_SET_PRESSURE_ADVANCE,
+            "SET_EXTRUDER_ROTATION_DISTANCE": self.cmd_SET_EXTRUDER_ROTATION_DISTANCE,
+            "SYNC_EXTRUDER_MOTION": self.cmd_SYNC_EXTRUDER_MOTION,
         }
+        if limits.input_shaper_enabled:
+            self._handlers["SET_INPUT_SHAPER"] = self.cmd_SET_INPUT_SHAPER
+        if self.modules is not None and "heater_bed" not in self.modules:
+            del self._handlers[HEATER_BED_WAIT]
         if limits.arcs_enabled:
             self._handlers.update({
                 "G2": self.cmd_G2, "G3": self.cmd_G3, "G17": self.cmd_G17,
@@ -164,9 +242,17 @@ class Interpreter:
             # "M117 12%" reaches Klipper as the command "M117 12%": only M117, M118 and
             # M23 are looked up again by their first word.
             name = cmd.name.split()[0] if " " in cmd.name else cmd.name
-            known = name in NO_TIME_COMMANDS and (name == cmd.name or name in TEXT_COMMANDS)
+            template = self.macros.get(name) if name == cmd.name else None
+            if template is not None:
+                self._run_macro(name, template)
+                return
+            known = self._is_known(name, cmd) and (name == cmd.name or name in TEXT_COMMANDS)
+            if name and not known and self._silent(name, cmd):
+                return
             if name and not known:
                 self.ignored[name] = self.ignored.get(name, 0) + 1
+                if self.preflight is not None and self.modules is not None:
+                    self.preflight.unknown_command(name, self.tag)
                 if self.on_unknown is not None:
                     self.on_unknown(name)
             return
@@ -175,6 +261,49 @@ class Interpreter:
         except (CommandError, MoveError):
             self.reset_last_position()
             raise
+
+    def _is_known(self, name: str, cmd: Command) -> bool:
+        """Klipper knows this no-time command (on this printer, when its config is known)."""
+        if self.modules is None:
+            return name in NO_TIME_COMMANDS
+        module = COMMAND_MODULE.get(name)
+        if module is not None:
+            if module in self.modules:
+                self._count(KIND_MODULE, name)
+                return True
+            return False
+        return name in ALWAYS_KNOWN_COMMANDS
+
+    def _silent(self, name: str, cmd: Command) -> bool:
+        """cmd_default skips it without a word (only decidable with the printer's config)."""
+        return self.modules is not None and silently_ignored(name, cmd.params)
+
+    def _run_macro(self, name: str, template: str) -> None:
+        """A [gcode_macro]: a literal one (no Jinja) runs its commands; others take 0 s
+        unless the profile's [macros] table times them (`on_unknown`).
+
+        An empty template is a macro whose text is not known (Moonraker's cache).
+        """
+        if not template.strip() or "{" in template or "%" in template:
+            self._count(KIND_MACRO, name)
+            if self.on_unknown is not None:
+                self.on_unknown(name)
+            return
+        if name in self._running_macros:
+            raise CommandError("Macro %s called recursively" % name)
+        self._count(KIND_EXPANDED_MACRO, name)
+        self._running_macros.add(name)
+        try:
+            for line in template.split("\n"):
+                sub = parse_line(line.strip())
+                if sub.name:
+                    self.execute(sub)
+        finally:
+            self._running_macros.discard(name)
+
+    def _count(self, kind: str, name: str) -> None:
+        counts = self.command_kinds.setdefault(kind, {})
+        counts[name] = counts.get(name, 0) + 1
 
     def reset_last_position(self) -> None:
         """After an error or a jump, the G-code position is the toolhead's again."""
@@ -229,29 +358,29 @@ class Interpreter:
                           "move-param:" + key)
         self._move(self.speed)
 
-    def plain_move(self, x: float | None, y: float | None, z: float | None,
-                   e: float | None, f: float | None) -> None:
-        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move`).
+    def plain_move(self, x: float, y: float, z: float, e: float, f: float) -> None:
+        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move_scan` or `_regex`).
 
-        The same arithmetic as `cmd_G1`, in the same order, without the text handling.
+        The same arithmetic as `cmd_G1`, in the same order, without the text handling. A
+        parameter the line does not give is `gcode.ABSENT` (NaN, so `v == v` is "given").
         """
         lp = self.last_position
         base = self.base_position
         if self.absolute_coord:
-            if x is not None:
+            if x == x:
                 lp[0] = x + base[0]
-            if y is not None:
+            if y == y:
                 lp[1] = y + base[1]
-            if z is not None:
+            if z == z:
                 lp[2] = z + base[2]
         else:
-            if x is not None:
+            if x == x:
                 lp[0] += x
-            if y is not None:
+            if y == y:
                 lp[1] += y
-            if z is not None:
+            if z == z:
                 lp[2] += z
-        if e is not None:
+        if e == e:
             e *= self.extrude_factor
             if self.absolute_coord and self.absolute_extrude:
                 lp[3] = e + base[3]
@@ -259,7 +388,7 @@ class Interpreter:
                 lp[3] += e
             if not self.extrude_mode_set:
                 self.moved_e_before_mode = True
-        if f is not None:
+        if f == f:
             self.speed = f * self.speed_factor
         self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
 
@@ -343,7 +472,7 @@ class Interpreter:
         try:
             return int(raw)
         except ValueError:
-            raise CommandError("unable to parse %s=%r" % (name, raw)) from None
+            raise ParamError("unable to parse %s" % raw) from None
 
     def _save_state(self) -> dict[str, object]:
         return {
@@ -483,7 +612,7 @@ class Interpreter:
         """Wait until a sensor is in range."""
         params = self._params(cmd)
         if "SENSOR" not in params:
-            raise CommandError("TEMPERATURE_WAIT: missing SENSOR")
+            raise ParamError("missing SENSOR")
         low = _float(params, "MINIMUM")
         high = _float(params, "MAXIMUM")
         if low is None and high is None:
@@ -495,6 +624,120 @@ class Interpreter:
     def cmd_M84(self, cmd: Command) -> None:
         """Motors off: Klipper dwells 0.1 s before and after when a motor was on."""
         self.toolhead.motor_off()
+
+    # Extruders and step generation (kinematics/extruder.py, extras/input_shaper.py)
+    def _update_kin_flush_delay(self) -> None:
+        """motion_queuing.check_step_generation_scan_windows."""
+        windows = [pressure_advance_window(*self.pressure_advance[name])
+                   for name, synced in self.extruder_synced.items() if synced]
+        for shaper_type, freq, damping in self.shapers.values():
+            try:
+                windows.append(shaper_window(*shaper_pulses(shaper_type, freq, damping)))
+            except ShaperError:
+                continue
+        self.toolhead.kin_flush_delay = kin_flush_delay(windows)
+
+    def _mux(self, cmd: Command, params: dict[str, str], choices: list[str],
+             default: str | None) -> str:
+        """The EXTRUDER= a mux command names (gcode.py _cmd_mux), checked."""
+        key = params.get("EXTRUDER")
+        if key is None:
+            if default is not None:
+                return default
+            raise ParamError("missing EXTRUDER")
+        if key not in choices:
+            guess = next((". Did you mean '%s'?" % c for c in choices if key and key in c),
+                         ". Options: %s" % ", ".join("'%s'" % c for c in choices))
+            raise CommandError("The value '%s' is not valid for EXTRUDER%s" % (key, guess))
+        return key
+
+    def cmd_ACTIVATE_EXTRUDER(self, cmd: Command) -> None:
+        """Full stop of step generation, then that extruder's limits and E position."""
+        params = self._params(cmd)
+        name = self._mux(cmd, params, list(self.extruders), None)
+        if name == self.active_extruder:
+            return
+        toolhead = self.toolhead
+        toolhead.flush_step_generation()
+        self.extruder_e[self.active_extruder] = toolhead.commanded_pos[3]
+        self.active_extruder = name
+        toolhead.set_extruder(self.extruders[name], self.extruder_e[name])
+        # gcode_move._handle_activate_extruder
+        self.reset_last_position()
+        self.extrude_factor = 1.0
+        self.base_position[3] = self.last_position[3]
+
+    def cmd_SET_PRESSURE_ADVANCE(self, cmd: Command) -> None:
+        """Change pressure advance; a changed smoothing window stops step generation."""
+        params = self._params(cmd)
+        default = None
+        if "extruder" in self.pressure_advance:
+            default = self.active_extruder
+        name = self._mux(cmd, params, list(self.pressure_advance), default)
+        if name not in self.pressure_advance:
+            raise CommandError("Active extruder does not have a stepper")
+        if "EXTRUDER" not in params and not self.extruder_synced.get(name):
+            raise CommandError("Unable to infer active extruder stepper")
+        old_advance, old_smooth = self.pressure_advance[name]
+        advance = _float(params, "ADVANCE", old_advance, minval=0.0)
+        smooth_time = _float(params, "SMOOTH_TIME", old_smooth, minval=0.0)
+        if smooth_time > MAX_SMOOTH_TIME_T:
+            raise ParamError("SMOOTH_TIME must have maximum of %s" % MAX_SMOOTH_TIME_T)
+        self.pressure_advance[name] = (advance, smooth_time)
+        if (pressure_advance_window(advance, smooth_time)
+                != pressure_advance_window(old_advance, old_smooth)):
+            self.pressure_advance[name] = (old_advance, old_smooth)
+            self.toolhead.flush_step_generation()
+            self.pressure_advance[name] = (advance, smooth_time)
+            self._update_kin_flush_delay()
+
+    def cmd_SET_EXTRUDER_ROTATION_DISTANCE(self, cmd: Command) -> None:
+        """A new rotation distance stops step generation first."""
+        params = self._params(cmd)
+        self._mux(cmd, params, list(self.pressure_advance), None)
+        distance = _float(params, "DISTANCE")
+        if distance is not None:
+            if not distance:
+                raise CommandError("Rotation distance can not be zero")
+            self.toolhead.flush_step_generation()
+
+    def cmd_SYNC_EXTRUDER_MOTION(self, cmd: Command) -> None:
+        """Stop step generation, then move an extruder stepper to another motion queue."""
+        params = self._params(cmd)
+        name = self._mux(cmd, params, list(self.pressure_advance), None)
+        queue = params.get("MOTION_QUEUE")
+        if queue is None:
+            raise ParamError("missing MOTION_QUEUE")
+        self.toolhead.flush_step_generation()
+        if queue and queue not in self.extruders:
+            raise CommandError("'%s' is not a valid extruder." % queue)
+        self.extruder_synced[name] = bool(queue)
+        self._update_kin_flush_delay()
+
+    def cmd_SET_INPUT_SHAPER(self, cmd: Command) -> None:
+        """New shaper parameters: a full stop of step generation, then the new window."""
+        params = self._params(cmd)
+        if not params:
+            return
+        for axis in "xyz":
+            shaper_type, freq, damping = self.shapers[axis]
+            up = axis.upper()
+            new_type = params.get("SHAPER_TYPE", params.get("SHAPER_TYPE_" + up, shaper_type))
+            name = shaper_name(new_type.lower())
+            if name not in SHAPER_MAX_DAMPING:
+                raise CommandError("Unsupported shaper type: %s" % new_type)
+            new_damping = _float(params, "DAMPING_RATIO_" + up, damping, minval=0.0)
+            if new_damping > SHAPER_MAX_DAMPING[name]:
+                raise CommandError("Too high value of damping_ratio=%.3f for shaper %s on "
+                                   "axis %s" % (new_damping, new_type, up))
+            new_freq = _float(params, "SHAPER_FREQ_" + up, freq, minval=0.0)
+            try:
+                shaper_pulses(new_type.lower(), new_freq, new_damping)
+            except ShaperError as exc:
+                raise CommandError(str(exc)) from None
+            self.shapers[axis] = (new_type.lower(), new_freq, new_damping)
+        self.toolhead.flush_step_generation()
+        self._update_kin_flush_delay()
 
     # Arcs (gcode_arcs.py)
     def cmd_G17(self, cmd: Command) -> None:
@@ -521,7 +764,7 @@ class Interpreter:
         if not self.absolute_coord:
             raise CommandError("G2/G3 does not support relative move mode")
         params = cmd.params
-        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position, strict=True)]
+        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
         current[3] /= self.extrude_factor
         target = [_float(params, "X", current[0]), _float(params, "Y", current[1]),
                   _float(params, "Z", current[2])]
@@ -609,7 +852,7 @@ class Interpreter:
         """cmd_G1 with numeric parameters (what gcode_arcs sends)."""
         if f is not None and not f > 0.0:
             raise CommandError("Invalid speed in arc (F%s)" % f)
-        self.plain_move(x, y, z, e, f)
+        self.plain_move(x, y, z, ABSENT if e is None else e, ABSENT if f is None else f)
 
     # Firmware retraction (firmware_retraction.py)
     def cmd_G10(self, cmd: Command) -> None:

@@ -22,6 +22,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from kestimator.kinematics.base import MachineConfig
+from kestimator.stepgen import DEFAULT_DAMPING_RATIO
 
 # What `SET_VELOCITY_LIMIT ACCEL_TO_DECEL` (and [printer] max_accel_to_decel) means depends
 # on the Klipper generation the printer runs.
@@ -38,6 +39,99 @@ def find_generation_directive(text: str) -> str | None:
     names (not checked against ``KLIPPER_GENERATIONS``), or None."""
     match = GENERATION_DIRECTIVE_RE.search(text)
     return None if match is None else match.group(1)
+
+
+# Options of an [extruderN] section that change motion time (kinematics/extruder.py).
+EXTRUDER_FIELDS = ("nozzle_diameter", "filament_diameter", "max_extrude_cross_section",
+                   "max_extrude_only_velocity", "max_extrude_only_accel",
+                   "max_extrude_only_distance", "instantaneous_corner_velocity",
+                   "pressure_advance", "pressure_advance_smooth_time")
+
+
+@dataclasses.dataclass(frozen=True)
+class ExtruderLimits:
+    """One extruder's limits (Klipper's PrinterExtruder and its ExtruderStepper)."""
+
+    name: str = "extruder"
+    nozzle_diameter: float = 0.4
+    filament_diameter: float = 1.75
+    max_extrude_cross_section: float = 4.0 * 0.4**2
+    max_extrude_only_velocity: float = 0.0
+    max_extrude_only_accel: float = 0.0
+    max_extrude_only_distance: float = 50.0
+    instantaneous_corner_velocity: float = 1.0
+    pressure_advance: float = 0.0
+    pressure_advance_smooth_time: float = 0.040
+    # False for an [extruderN] without step_pin/dir_pin/rotation_distance (a shared one).
+    has_stepper: bool = True
+
+    @property
+    def filament_area(self) -> float:
+        """Cross-section of the filament in mm^2."""
+        return math.pi * (self.filament_diameter * 0.5) ** 2
+
+    @property
+    def max_extrude_ratio(self) -> float:
+        """Largest allowed E mm per XY mm (max_extrude_cross_section / filament area)."""
+        return self.max_extrude_cross_section / self.filament_area
+
+    @classmethod
+    def from_values(cls, name: str, values: Mapping[str, Any], max_velocity: float,
+                    max_accel: float) -> "ExtruderLimits":
+        """An extruder from its explicit options, the rest derived as Klipper does."""
+        v = {key: values[key] for key in EXTRUDER_FIELDS if key in values}
+        nozzle_d = float(v.get("nozzle_diameter", cls.nozzle_diameter))
+        filament_d = float(v.get("filament_diameter", cls.filament_diameter))
+        def_cross_section = 4.0 * nozzle_d**2
+        def_extrude_ratio = def_cross_section / (math.pi * (filament_d * 0.5) ** 2)
+        v.setdefault("max_extrude_cross_section", def_cross_section)
+        if not v.get("max_extrude_only_velocity"):
+            v["max_extrude_only_velocity"] = max_velocity * def_extrude_ratio
+        if not v.get("max_extrude_only_accel"):
+            v["max_extrude_only_accel"] = max_accel * def_extrude_ratio
+        return cls(name=name, has_stepper=bool(values.get("has_stepper", True)), **v)
+
+
+def json_value(value: object) -> object:
+    """A Limits field's value as JSON holds it (extruders as objects, pairs as lists)."""
+    if isinstance(value, tuple):
+        return [dataclasses.asdict(item) if isinstance(item, ExtruderLimits)
+                else json_value(item) for item in value]
+    return value
+
+
+def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
+    """``extruders`` or ``gcode_macros`` back from their JSON form (``json_value``).
+
+    Raises ValueError for anything else.
+    """
+    if isinstance(value, tuple):
+        value = json_value(value)
+    if not isinstance(value, list):
+        raise ValueError(f"{field} must be a list, not {value!r}")
+    if field == "configured_sections":
+        if not all(isinstance(x, str) for x in value):
+            raise ValueError("configured_sections must be a list of section names")
+        return tuple(str(x) for x in value)
+    if field == "gcode_macros":
+        if not all(isinstance(m, list) and len(m) == 2 and all(isinstance(x, str) for x in m)
+                   for m in value):
+            raise ValueError("gcode_macros must be a list of [name, template] pairs")
+        return tuple((str(m[0]), str(m[1])) for m in value)
+    if field == "extruders":
+        names = {f.name: type(f.default) for f in dataclasses.fields(ExtruderLimits)}
+        result = []
+        for item in value:
+            if not isinstance(item, dict) or set(item) - set(names) or not all(
+                    isinstance(v, names[k]) or (names[k] is float and isinstance(v, int)
+                                                and not isinstance(v, bool))
+                    for k, v in item.items()):
+                raise ValueError(f"extruders: not an extruder: {item!r}")
+            fields: dict[str, Any] = {k: float(v) if names[k] is float else v
+                                      for k, v in item.items()}
+            result.append(ExtruderLimits(**fields))
+        return tuple(result)
+    raise ValueError(f"{field} is not a list setting")
 
 
 # Values [printer] requires in Klipper but that a user without a printer.cfg may not give;
@@ -65,6 +159,26 @@ class Limits:
     max_extrude_only_accel: float = 0.0
     max_extrude_only_distance: float = 50.0
     instantaneous_corner_velocity: float = 1.0
+    pressure_advance: float = 0.0
+    pressure_advance_smooth_time: float = 0.040
+    # [extruder1] ... [extruderN], in order (ACTIVATE_EXTRUDER switches to them).
+    extruders: tuple[ExtruderLimits, ...] = ()
+    # [input_shaper] (shaper_type_<axis> defaults to shaper_type; a frequency of 0 is off)
+    input_shaper_enabled: bool = False
+    shaper_type_x: str = "mzv"
+    shaper_freq_x: float = 0.0
+    damping_ratio_x: float = DEFAULT_DAMPING_RATIO
+    shaper_type_y: str = "mzv"
+    shaper_freq_y: float = 0.0
+    damping_ratio_y: float = DEFAULT_DAMPING_RATIO
+    shaper_type_z: str = "mzv"
+    shaper_freq_z: float = 0.0
+    damping_ratio_z: float = DEFAULT_DAMPING_RATIO
+    # Every section of the printer's config (lower-case names); empty when no printer
+    # config is known. Decides which module commands Klipper knows (klipper_modules).
+    configured_sections: tuple[str, ...] = ()
+    # [gcode_macro NAME] sections: (NAME upper-case, its gcode template), in file order.
+    gcode_macros: tuple[tuple[str, str], ...] = ()
     # [gcode_arcs]
     arcs_enabled: bool = False
     arc_resolution: float = 1.0
@@ -127,7 +241,33 @@ class Limits:
         if v.get("klipper_generation", "mainline") not in KLIPPER_GENERATIONS:
             raise ValueError(
                 "klipper_generation must be one of " + ", ".join(KLIPPER_GENERATIONS))
+        sections = v.get("configured_sections", ())
+        if not isinstance(sections, tuple) or not all(isinstance(x, str) for x in sections):
+            raise ValueError("configured_sections must be a tuple of section names")
+        macros = v.get("gcode_macros", ())
+        if not isinstance(macros, tuple) or not all(
+                isinstance(m, tuple) and len(m) == 2 for m in macros):
+            raise ValueError("gcode_macros must be a tuple of (name, template) pairs")
+        extruders = v.get("extruders", ())
+        if not isinstance(extruders, tuple) or not all(
+                isinstance(e, ExtruderLimits) for e in extruders):
+            raise ValueError("extruders must be a tuple of ExtruderLimits")
         return cls(**v)
+
+    @property
+    def primary_extruder(self) -> ExtruderLimits:
+        """[extruder] as an ExtruderLimits."""
+        return ExtruderLimits(name="extruder", **{key: getattr(self, key)
+                                                  for key in EXTRUDER_FIELDS})
+
+    def extruder(self, name: str) -> ExtruderLimits | None:
+        """The extruder section called ``name`` ('extruder', 'extruder1', ...), or None."""
+        if name == "extruder":
+            return self.primary_extruder
+        for extruder in self.extruders:
+            if extruder.name == name:
+                return extruder
+        return None
 
     def replace(self, **changes: Any) -> "Limits":
         """A copy with some values changed (no re-derivation of defaults)."""

@@ -20,22 +20,24 @@ homes is not in the file).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Final
 
 from kestimator.kinematics import MoveError, load_kinematics
-from kestimator.limits import Limits
+from kestimator.limits import ExtruderLimits, Limits
 from kestimator.planner import LookAheadQueue, Move
+from kestimator.stepgen import SDS_CHECK_TIME_T
 
 __all__ = ["MoveError", "ToolHead"]
 
 # Seconds of moves queued before the first flush after the toolhead was at rest.
-BUFFER_TIME_HIGH = 1.0
+BUFFER_TIME_HIGH: Final = 1.0
 # motion_queuing's step-generation scan window (SDS_CHECK_TIME) with no input shaper or
 # pressure-advance smoothing: restarting after a full step flush waits this twice.
-KIN_FLUSH_DELAY_T = 0.001
+KIN_FLUSH_DELAY_T: Final = SDS_CHECK_TIME_T
 # stepper_enable's dwell before and after turning motors off.
-DISABLE_STALL_T = 0.100
+DISABLE_STALL_T: Final = 0.100
 # Junction deviation scale: sqrt(2) - 1.
-_JD_FACTOR = 2.0**0.5 - 1.0
+_JD_FACTOR: Final = 2.0**0.5 - 1.0
 
 TimingCallback = Callable[[float], None]
 
@@ -67,17 +69,31 @@ class ToolHead:
         self.last_step_gen_t = float("-inf")
         self.need_step_gen_t = float("-inf")
         self.motors_enabled = False
+        # motion_queuing.kin_flush_delay: the widest step-generation scan window (set by
+        # the interpreter from pressure advance and the input shaper, kestimator.stepgen).
+        self.kin_flush_delay = KIN_FLUSH_DELAY_T
         self.on_moves = on_moves
         # The printer's kinematics, homed at X=Y=Z=0 before the file's first line.
         self.kin = load_kinematics(limits)
         self.kin.set_position(self.commanded_pos, "xyz")
         # Extruder limits, looked up once.
-        self._max_e_velocity = limits.max_extrude_only_velocity
-        self._max_e_accel = limits.max_extrude_only_accel
-        self._max_e_dist = limits.max_extrude_only_distance
-        self._max_extrude_ratio = limits.max_extrude_ratio
-        self._nozzle_diameter = limits.nozzle_diameter
-        self._instant_corner_v = limits.instantaneous_corner_velocity
+        self.extruder = limits.primary_extruder
+        self._set_extruder_limits(self.extruder)
+
+    def _set_extruder_limits(self, extruder: ExtruderLimits) -> None:
+        self._max_e_velocity = extruder.max_extrude_only_velocity
+        self._max_e_accel = extruder.max_extrude_only_accel
+        self._max_e_dist = extruder.max_extrude_only_distance
+        self._max_extrude_ratio = extruder.max_extrude_ratio
+        self._nozzle_diameter = extruder.nozzle_diameter
+        self._filament_area = extruder.filament_area
+        self._instant_corner_v = extruder.instantaneous_corner_velocity
+
+    def set_extruder(self, extruder: ExtruderLimits, extrude_pos: float) -> None:
+        """ACTIVATE_EXTRUDER (after a full stop): that extruder's limits and E position."""
+        self.extruder = extruder
+        self._set_extruder_limits(extruder)
+        self.commanded_e = extrude_pos
 
     # Velocity and acceleration control
     def _calc_junction_deviation(self) -> None:
@@ -101,7 +117,7 @@ class ToolHead:
 
     # Print time tracking
     def _calc_print_time(self) -> None:
-        kin_time = self.last_step_gen_t + KIN_FLUSH_DELAY_T
+        kin_time = self.last_step_gen_t + self.kin_flush_delay
         if kin_time > self.print_time:
             self.print_time = kin_time
 
@@ -125,7 +141,7 @@ class ToolHead:
         self.last_move_end_t = next_move_time
         if next_move_time > self.print_time:
             self.print_time = next_move_time
-        need = next_move_time + KIN_FLUSH_DELAY_T
+        need = next_move_time + self.kin_flush_delay
         if need > self.need_step_gen_t:
             self.need_step_gen_t = need
 
@@ -196,8 +212,9 @@ class ToolHead:
             # Extrude only move (or retraction move) - limit accel and velocity
             if abs(axis_d) > self._max_e_dist:
                 raise MoveError(
-                    "Extrude only move too long (%.3fmm vs %.3fmm): Klipper rejects it "
-                    "(max_extrude_only_distance)" % (axis_d, self._max_e_dist))
+                    "Extrude only move too long (%.3fmm vs %.3fmm)\nSee the "
+                    "'max_extrude_only_distance' config option for details"
+                    % (axis_d, self._max_e_dist))
             inv_extrude_r = 1.0 / abs(axis_r)
             move.limit_speed(self._max_e_velocity * inv_extrude_r,
                              self._max_e_accel * inv_extrude_r)
@@ -205,11 +222,11 @@ class ToolHead:
             if axis_d <= self._nozzle_diameter * self._max_extrude_ratio:
                 # Permit extrusion if amount extruded is tiny
                 return
-            area = axis_r * self.limits.filament_area
+            area = axis_r * self._filament_area
             raise MoveError(
-                "Move exceeds maximum extrusion (%.3fmm^2 vs %.3fmm^2): Klipper rejects it "
-                "(max_extrude_cross_section)"
-                % (area, self._max_extrude_ratio * self.limits.filament_area))
+                "Move exceeds maximum extrusion (%.3fmm^2 vs %.3fmm^2)\nSee the "
+                "'max_extrude_cross_section' config option for details"
+                % (area, self._max_extrude_ratio * self._filament_area))
 
     def dwell(self, delay: float) -> None:
         """G4: stop, then wait delay seconds."""

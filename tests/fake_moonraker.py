@@ -37,6 +37,11 @@ CORPUS_SETTINGS: dict[str, dict[str, Any]] = {
                             "unretract_extra_length": 0.0, "unretract_speed": 35.0},
     "display_status": {},
     "gcode_macro secret": {"gcode": "M118 the-wifi-password"},
+    "extruder1": {"step_pin": "gpio20", "rotation_distance": 33.5, "nozzle_diameter": 0.4,
+                  "filament_diameter": 1.75, "max_extrude_only_velocity": 120.0,
+                  "max_extrude_only_accel": 1500.0, "max_extrude_only_distance": 10000.0,
+                  "max_extrude_cross_section": 1000.0, "instantaneous_corner_velocity": 1.0,
+                  "pressure_advance": 0.0, "min_extrude_temp": 0.0},
 }
 
 

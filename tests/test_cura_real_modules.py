@@ -94,7 +94,9 @@ def _cli_inject(text: str, path: Path) -> bytes:
     proc = subprocess.run([sys.executable, "-m", "kestimator", "inject", "--no-profile",
                            "--printer-cfg", str(CORPUS_CFG), "-q", str(path)],
                           capture_output=True, text=True, cwd=PROJECT)
-    assert proc.returncode == 0, proc.stderr
+    # 4: Klipper will stop this print (a Cura placeholder left in the file); the times are
+    # written all the same.
+    assert proc.returncode in (0, 4), proc.stderr
     return path.read_bytes()
 
 

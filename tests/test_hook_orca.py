@@ -103,7 +103,11 @@ def test_the_hook_writes_klipper_times_into_orca_and_bambu_files(
 
     proc = run_like_the_slicer(paste_line(entry, zipapp, CORPUS_CFG), gcode, env)
 
-    assert proc.returncode == 0, proc.stderr
+    # 4: Klipper will stop this print (one line on stderr for the slicer's dialog); the
+    # times are written all the same.
+    assert proc.returncode in (0, 4), proc.stderr
+    assert proc.returncode == 0 or proc.stderr.startswith(
+        "kestimator: Klipper will stop this print at line ")
     assert sorted(p.name for p in gcode.parent.iterdir()) == [temp_name]
     assert hook_problems(gcode, CORPUS_CFG, tmp_path) == []
     assert untouched_lines(gcode.read_bytes()) == untouched_lines(source.read_bytes())
@@ -157,7 +161,7 @@ def test_without_a_printer_cfg_the_hook_reads_the_slicer_settings_from_its_envir
 
     proc = run_like_the_slicer(paste_line("command", zipapp, None), gcode, env)
 
-    assert proc.returncode == 0, proc.stderr
+    assert proc.returncode in (0, 4), proc.stderr  # 4: Klipper will stop this print
     assert hook_problems(gcode, None, tmp_path, env) == []
 
 

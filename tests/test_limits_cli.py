@@ -12,7 +12,7 @@ import pytest
 
 from kestimator import cli
 from kestimator.config.printer_cfg import limits_from_printer_cfg
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 
 from .conftest import CORPUS, CORPUS_CFG, corpus_files
 from .fake_moonraker import API_KEY, CORPUS_SETTINGS, FakeMoonraker
@@ -50,7 +50,7 @@ def test_limits_json_names_a_source_for_every_value_of_every_corpus_file(
     with_cfg = run_json(capsys, str(path), "--printer-cfg", str(CORPUS_CFG))
     limits = limits_from_printer_cfg(CORPUS_CFG)[0]
     for field, entry in with_cfg["limits"].items():
-        assert entry["value"] == getattr(limits, field)
+        assert entry["value"] == json_value(getattr(limits, field))
         assert entry["source"].startswith((str(CORPUS_CFG) + ":", "klipper default",
                                            "derived from ", "kestimator default")), field
 
@@ -59,14 +59,15 @@ def test_limits_text_lists_every_setting_with_its_source(
         capsys: pytest.CaptureFixture[str], corpus_root: Path) -> None:
     gcode = CORPUS / "gcode/prusaslicer/cancelobj_ps2.3.3_issue1.gcode"
     assert cli.main(["limits", str(gcode), "--set", "max_z_accel=50"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "  slicer  : PrusaSlicer 2.3.3+x64" in out
     assert "  machine : none (no printer.cfg or Moonraker)" in out
     lines = {line.split()[0]: line for line in out.splitlines()[4:] if line.startswith("  ")}
-    assert lines["max_accel"].split()[1:3] == ["1500", "slicer:"]
-    assert lines["max_z_accel"].split()[1:] == ["50", "--set"]
+    assert lines["max_accel"].split()[1:4] == ["1500", "mm/s²", "slicer:"]
+    assert lines["max_z_accel"].split()[1:] == ["50", "mm/s²", "--set", "|", "slicer:", "500"]
     assert lines["arcs_enabled"].split()[1:4] == ["true", "kestimator", "assumption:"]
-    assert "warning: no printer.cfg or Moonraker given" in out
+    assert err.startswith("kestimator: warning: no printer.cfg or Moonraker given")
+    assert "no printer.cfg or Moonraker given" not in out
 
 
 def test_limits_json_reports_the_slicers_accelerations_and_notes(

@@ -52,7 +52,15 @@ def everything_in(folder: Path) -> str:
 def test_moonraker_settings_give_the_limits_of_the_printer_cfg_they_come_from(
         moonraker: FakeMoonraker, tmp_path: Path) -> None:
     found = moonraker_values(moonraker.url, API_KEY, TIMEOUT_S, tmp_path)
-    assert Limits.from_values(found.values) == limits_from_printer_cfg(CORPUS_CFG)[0]
+    from_moonraker = Limits.from_values(found.values)
+    # Moonraker also reports the macro the fake adds to the corpus printer.cfg.
+    assert from_moonraker.gcode_macros == (("SECRET", ""),)
+    from_cfg = limits_from_printer_cfg(CORPUS_CFG)[0]
+    # The fake reports a few sections of its own (no steppers, a macro).
+    assert {"printer", "extruder", "extruder1", "display_status"} <= set(
+        from_moonraker.configured_sections)
+    assert from_moonraker.replace(gcode_macros=(), configured_sections=()) == from_cfg.replace(
+        configured_sections=())
     assert found.sources["max_accel"] == f"moonraker {moonraker.url}: [printer] max_accel"
     assert found.sources["arcs_enabled"] == f"moonraker {moonraker.url}: [gcode_arcs]"
     assert found.warnings == ()
@@ -91,8 +99,11 @@ def test_the_cache_holds_the_sections_read_and_never_the_key(
         moonraker: FakeMoonraker, tmp_path: Path) -> None:
     moonraker_values(moonraker.url, API_KEY, TIMEOUT_S, tmp_path)
     document = json.loads(cache_path(moonraker.url, tmp_path).read_text(encoding="utf-8"))
-    assert sorted(document["settings"]) == [
-        "extruder", "firmware_retraction", "gcode_arcs", "printer"]
+    # The sections read are kept whole; of the others only the names (which commands
+    # the printer knows), never a macro's text.
+    assert {name for name, options in document["settings"].items() if options} == {
+        "extruder", "extruder1", "firmware_retraction", "gcode_arcs", "printer"}
+    assert "gcode_macro secret" in document["settings"]
     assert document["url"] == moonraker.url
     written = everything_in(tmp_path)
     assert API_KEY not in written and "wifi-password" not in written
@@ -180,7 +191,8 @@ def test_resolver_and_cli_take_the_machine_from_moonraker_without_showing_the_ke
                "HOME": str(tmp_path)}
     resolved = resolve_limits(LimitRequest(moonraker_url=moonraker.url, api_key=API_KEY,
                                            environ=environ))
-    assert resolved.limits == limits_from_printer_cfg(CORPUS_CFG)[0]
+    assert resolved.limits.replace(gcode_macros=(), configured_sections=()) == (
+        limits_from_printer_cfg(CORPUS_CFG)[0].replace(configured_sections=()))
     assert resolved.machine == f"moonraker {moonraker.url}"
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "none"))

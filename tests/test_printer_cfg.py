@@ -292,7 +292,8 @@ def test_save_config_block_is_read_only_from_the_main_file(tmp_path: Path) -> No
 def test_absent_options_get_klippers_defaults_and_say_so(tmp_path: Path) -> None:
     cfg = write(tmp_path, "printer.cfg", "[printer]\nmax_velocity: 200\nmax_accel: 2000\n")
     limits, provenance = limits_from_printer_cfg(cfg)
-    assert limits == Limits.from_values({"max_velocity": 200.0, "max_accel": 2000.0})
+    assert limits == Limits.from_values({"max_velocity": 200.0, "max_accel": 2000.0,
+                                         "configured_sections": limits.configured_sections})
     assert set(provenance) == set(Limits.field_names())
     assert provenance["max_velocity"] == f"{cfg}:2"
     assert provenance["square_corner_velocity"] == KLIPPER_DEFAULT
@@ -330,7 +331,8 @@ def test_extruder_options_map_to_limits(tmp_path: Path) -> None:
     limits, provenance = limits_from_printer_cfg(cfg)
     assert limits == Limits.from_values({
         "kinematics": "corexy", "max_velocity": 500.0, "max_accel": 10000.0,
-        "max_accel_to_decel": 5000.0, "nozzle_diameter": 0.6, "filament_diameter": 2.85})
+        "max_accel_to_decel": 5000.0, "nozzle_diameter": 0.6, "filament_diameter": 2.85,
+        "configured_sections": ("printer", "extruder")})
     assert limits.max_extrude_cross_section == pytest.approx(4 * 0.6**2)
     assert provenance["filament_diameter"] == f"{cfg}:8"
     assert provenance["max_extrude_cross_section"] == "derived from nozzle_diameter"
@@ -417,7 +419,12 @@ def test_corpus_printer_cfg_gives_the_reference_limits() -> None:
         "unretract_extra_length": 0.0, "unretract_speed": 35.0,
     }
     assert {name: getattr(limits, name) for name in expected} == expected
-    assert limits == dataclasses.replace(Limits.from_values({}), **expected)
+    # The corpus config also has an [extruder1], the same as [extruder] but for its name.
+    assert limits.extruders == (dataclasses.replace(limits.primary_extruder,
+                                                    name="extruder1"),)
+    assert limits == dataclasses.replace(Limits.from_values({}), extruders=limits.extruders,
+                                         configured_sections=limits.configured_sections,
+                                         **expected)
     for name in expected:
         assert provenance[name].startswith(str(CORPUS_CFG) + ":"), name
     assert provenance["max_velocity"] == f"{CORPUS_CFG}:7"

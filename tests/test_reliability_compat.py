@@ -151,3 +151,41 @@ def test_sigterm_and_sighup_leave_no_temp_file(
         assert not _leftovers(tmp_path), (run_index, err)
         data = work.read_bytes()
         assert data == original or proc.returncode == 0
+
+
+_INTERRUPT_ON_IMPORT = """
+import sys
+class _CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == "kestimator.estimate":
+            raise KeyboardInterrupt
+        return None
+sys.meta_path.insert(0, _CtrlC())
+"""
+
+
+def _console_scripts() -> dict[str, str]:
+    try:
+        import tomllib
+    except ImportError:  # Python < 3.11
+        import tomli as tomllib  # type: ignore[no-redef]
+    with open(PROJECT / "pyproject.toml", "rb") as f:
+        return dict(tomllib.load(f)["project"]["scripts"])
+
+
+@pytest.mark.parametrize("script", ["kestimator", "kestimator-compat", "-m"])
+def test_ctrl_c_while_modules_load_is_one_line_not_a_traceback(script: str) -> None:
+    """Ctrl-C while the console script imports its modules (pressed early in a slow start):
+    the program pip generates from [project.scripts] (and `python -m kestimator`) prints one
+    line, never a KeyboardInterrupt traceback."""
+    if script == "-m":
+        run_code = "import runpy; runpy.run_module('kestimator', run_name='__main__')"
+    else:
+        module, attr = _console_scripts()[script].split(":")
+        # What pip's console-script wrapper does.
+        run_code = "import sys\nfrom %s import %s\nsys.exit(%s())" % (module, attr, attr)
+    run = subprocess.run([sys.executable, "-c", _INTERRUPT_ON_IMPORT + run_code, "--version"],
+                         env=_env(), capture_output=True, timeout=60)
+    assert b"Traceback" not in run.stderr, run.stderr
+    assert len(run.stderr.splitlines()) == 1 and b"interrupted" in run.stderr, run.stderr
+    assert run.returncode == 1  # as main() exits on Ctrl-C

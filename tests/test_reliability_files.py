@@ -315,3 +315,81 @@ def test_a_newline_in_the_file_name_keeps_the_success_message_on_one_line(
     run = _run("inject", "--printer-cfg", str(CORPUS_CFG), str(work))
     assert run.returncode == 0, run.stderr
     assert len(run.stdout.splitlines()) == 1 and b"two\\nlines" in run.stdout
+
+
+def _bounded_memory() -> None:
+    """Child: a 1 GiB address-space cap, so reading a device to its end fails fast."""
+    import resource
+
+    resource.setrlimit(resource.RLIMIT_AS, (1 << 30, 1 << 30))
+
+
+def _refused_settings_file(*args: str, source: Path) -> None:
+    run = _run("estimate", *args, str(source), stdin=subprocess.DEVNULL, timeout=30,
+               preexec_fn=_bounded_memory)
+    assert run.returncode == 1, run.stderr
+    assert b"not a regular file" in run.stderr, run.stderr
+    assert len(run.stderr.splitlines()) == 1, run.stderr
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/urandom", "fifo"])
+def test_a_device_or_fifo_as_printer_cfg_is_refused_without_reading_it(
+        device: str, tmp_path: Path) -> None:
+    source = tmp_path / "print.gcode"
+    source.write_bytes(BODY)
+    if device == "fifo":
+        device = str(tmp_path / "printer.cfg")
+        os.mkfifo(device)
+    _refused_settings_file("--printer-cfg", device, source=source)
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/urandom", "fifo"])
+def test_a_device_or_fifo_in_an_include_is_refused_without_reading_it(
+        device: str, tmp_path: Path) -> None:
+    source = tmp_path / "print.gcode"
+    source.write_bytes(BODY)
+    if device == "fifo":
+        device = str(tmp_path / "extra.cfg")
+        os.mkfifo(device)
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(CORPUS_CFG.read_text() + "\n[include %s]\n" % device)
+    _refused_settings_file("--printer-cfg", str(cfg), source=source)
+
+
+@pytest.mark.parametrize("device", ["/dev/zero", "/dev/urandom", "fifo"])
+def test_a_device_or_fifo_as_the_profile_is_refused_without_reading_it(
+        device: str, tmp_path: Path) -> None:
+    source = tmp_path / "print.gcode"
+    source.write_bytes(BODY)
+    if device == "fifo":
+        device = str(tmp_path / "profile.toml")
+        os.mkfifo(device)
+    _refused_settings_file("--printer-cfg", str(CORPUS_CFG), "--profile", device,
+                           source=source)
+
+
+def test_a_huge_printer_cfg_is_refused_by_its_size(tmp_path: Path) -> None:
+    source = tmp_path / "print.gcode"
+    source.write_bytes(BODY)
+    cfg = tmp_path / "printer.cfg"
+    with open(cfg, "wb") as f:
+        f.truncate(64 << 20)  # sparse: 64 MiB of NULs, over the config cap
+    run = _run("estimate", "--printer-cfg", str(cfg), str(source), timeout=30)
+    assert run.returncode == 1, run.stderr
+    assert b"MiB" in run.stderr and len(run.stderr.splitlines()) == 1, run.stderr
+
+
+@pytest.mark.parametrize("content, expected", [
+    (b'[printers."a"]\nnote = "caf\xe9"\n', b"not UTF-8 text"),
+    (b"x = " + b"[" * 10000 + b"]" * 10000 + b"\n", b"not valid TOML"),
+])
+def test_a_profile_with_a_bad_byte_or_deep_nesting_is_one_line_exit_1(
+        content: bytes, expected: bytes, tmp_path: Path) -> None:
+    source = tmp_path / "print.gcode"
+    source.write_bytes(BODY)
+    profile = tmp_path / "profile.toml"
+    profile.write_bytes(content)
+    run = _run("estimate", "--printer-cfg", str(CORPUS_CFG), "--profile", str(profile),
+               str(source))
+    assert run.returncode == 1, run.stderr
+    assert expected in run.stderr and len(run.stderr.splitlines()) == 1, run.stderr

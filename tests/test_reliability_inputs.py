@@ -113,7 +113,8 @@ def test_nothing_in_a_gcode_file_is_executed(line: bytes, tmp_path: Path,
     path.write_bytes(b"M83\nG1 X5 E1 F600\n" + line.replace(b"SENTINEL", str(sentinel).encode())
                      + b"\nG1 X10 E1\n")
     assert cli.main(["estimate", str(path)]) == 0
-    assert cli.main(["inject", str(path)]) == 0
+    # 4: Klipper will stop the print at a line it cannot parse; nothing runs either way.
+    assert cli.main(["inject", str(path)]) in (0, 4)
     capsys.readouterr()
     assert not sentinel.exists()
 

@@ -15,7 +15,7 @@ from collections.abc import Mapping
 
 from kestimator.config.printer_cfg import FLOAT_OPTIONS, arithmetic_violation
 from kestimator.kinematics.base import MachineConfig
-from kestimator.limits import KLIPPER_GENERATIONS, Limits
+from kestimator.limits import KLIPPER_GENERATIONS, Limits, tuple_field_value
 
 _BOUNDS = {option.field: option for option in FLOAT_OPTIONS}
 _TRUE_WORDS = frozenset(("1", "true", "yes", "on"))
@@ -56,8 +56,13 @@ def check_limit_value(field: str, value: object) -> object:
     try:
         kind = field_kind(field)
     except KeyError:
-        raise ValueError(f"unknown setting {field!r} (known: "
+        import difflib
+        close = difflib.get_close_matches(field, Limits.field_names(), n=1, cutoff=0.6)
+        hint = f": did you mean {close[0]}?" if close else ""
+        raise ValueError(f"unknown setting {field!r}{hint} (known: "
                          + ", ".join(Limits.field_names()) + ")") from None
+    if kind is tuple:
+        return tuple_field_value(field, value)
     if kind is bool:
         if not isinstance(value, bool):
             raise ValueError(f"{field} must be true or false, not {value!r}")

@@ -31,7 +31,8 @@ from typing import Any
 
 from kestimator.config.fields import SourcedValues, check_limit_value
 from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
+from kestimator.files import open_regular
+from kestimator.limits import Limits, json_value
 
 KESTIMATOR_KEY = "kestimator_limits"
 """The table of a config that holds every ``Limits`` field (kestimator's own extension)."""
@@ -130,11 +131,17 @@ def read_config_document(path: str | os.PathLike[str]) -> dict[str, Any]:
     """
     where = os.fspath(path)
     try:
-        with open(where, "rb") as f:
+        # open_regular: a FIFO or device given as --config_file is refused, never read.
+        with open_regular(where, "klipper_estimator config") as f:
             data = f.read(MAX_CONFIG_BYTES + 1)
     except OSError as exc:
         raise KestimatorError("cannot read the klipper_estimator config: %s"
                               % (exc.strerror or exc), where) from None
+    except KestimatorError as exc:
+        if exc.message.startswith("cannot read file: "):
+            raise KestimatorError("cannot read the klipper_estimator config: "
+                                  + exc.message[len("cannot read file: "):], where) from None
+        raise
     if len(data) > MAX_CONFIG_BYTES:
         raise KestimatorError("a klipper_estimator config is at most %d bytes"
                               % MAX_CONFIG_BYTES, where)
@@ -281,7 +288,7 @@ def dump_config(limits: Limits, sources: Mapping[str, str] | None = None) -> dic
             "lift_z": 0.0,
         }
     # max_accel_to_decel 0 means "not set" in Limits, a value no config may hold.
-    document[KESTIMATOR_KEY] = {field: getattr(limits, field)
+    document[KESTIMATOR_KEY] = {field: json_value(getattr(limits, field))
                                 for field in Limits.field_names()
                                 if not (field == "max_accel_to_decel"
                                         and not limits.max_accel_to_decel)}

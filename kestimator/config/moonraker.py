@@ -17,6 +17,7 @@ import datetime
 import json
 import math
 import os
+import re
 import tempfile
 import urllib.parse
 from collections.abc import Callable, Mapping
@@ -24,10 +25,16 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kestimator.config.fields import SourcedValues
-from kestimator.config.printer_cfg import FLOAT_OPTIONS
+from kestimator.config.printer_cfg import (
+    FLOAT_OPTIONS,
+    MACRO_PREFIX,
+    MAX_EXTRUDERS,
+    STEPPER_OPTIONS,
+)
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes
 from kestimator.kinematics.base import MachineConfig, is_machine_section
+from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
 
 if TYPE_CHECKING:
     import urllib.error
@@ -38,10 +45,12 @@ if TYPE_CHECKING:
 DEFAULT_TIMEOUT_S = 3.0
 QUERY_PATH = "/printer/objects/query?configfile=settings"
 API_KEY_HEADER = "X-Api-Key"
-CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction")
-"""The Klipper sections kestimator reads, besides the kinematics' ones
-(``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); nothing else
-of the printer's config is cached."""
+CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction",
+                   "input_shaper")
+"""The Klipper sections kestimator reads (and [extruderN]), besides the kinematics' ones
+(``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); of the others
+(macros included: their templates may hold anything) only the names are cached."""
+_EXTRUDER_RE = re.compile(r"extruder[1-9][0-9]?$")
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
 # Server text shown to the user (error messages, reasons) is cut to this many characters;
 # an error body is read only this far.
@@ -51,7 +60,8 @@ READ_CHUNK_BYTES = 64 * 1024
 HTTP_NOT_FOUND = 404
 CACHE_FORMAT = 1
 _SECTION_FLAGS = (("gcode_arcs", "arcs_enabled"),
-                  ("firmware_retraction", "firmware_retraction_enabled"))
+                  ("firmware_retraction", "firmware_retraction_enabled"),
+                  ("input_shaper", "input_shaper_enabled"))
 _TIME_SHOWN = "%Y-%m-%dT%H:%MZ"
 _TIME_STORED = "%Y-%m-%dT%H:%M:%SZ"
 
@@ -324,6 +334,22 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             raise KestimatorError(f"{where} = {raw!r} {problem}")
         values[spec.field] = value
         sources[spec.field] = where
+    shaper = settings.get("input_shaper", {})
+    for axis in "xyz":
+        raw = shaper.get("shaper_type_" + axis, shaper.get("shaper_type"))
+        if isinstance(raw, str) and raw:
+            values["shaper_type_" + axis] = raw
+            sources["shaper_type_" + axis] = f"{description}: [input_shaper] shaper_type_{axis}"
+    _extra_extruders(settings, description, values, sources)
+    values["configured_sections"] = tuple(sorted(str(name).lower() for name in settings))
+    sources["configured_sections"] = f"{description}: its sections"
+    # Macros by name only (""): known commands, not run. Their text may hold anything and
+    # is never cached, so the live answer keeps it out too (live and cached agree).
+    macros = tuple((name[len(MACRO_PREFIX):].strip().upper(), "")
+                   for name in settings if name.startswith(MACRO_PREFIX))
+    if macros:
+        values["gcode_macros"] = macros
+        sources["gcode_macros"] = f"{description}: [gcode_macro ...]"
     printer = settings.get("printer", {})
     kinematics = printer.get("kinematics")
     if isinstance(kinematics, str) and kinematics:
@@ -360,6 +386,38 @@ def _as_text(value: object) -> str:
         return ", ".join(":".join(_as_text(v) for v in item) if isinstance(item, (list, tuple))
                          else _as_text(item) for item in value)
     return str(value)
+
+
+def _extra_extruders(settings: Mapping[str, Mapping[str, Any]], description: str,
+                     values: dict[str, object], sources: dict[str, str]) -> None:
+    """[extruder1] ... as Klipper loads them (in order, until one is missing)."""
+    extruders = []
+    max_velocity = _number(settings.get("printer", {}).get("max_velocity"))
+    max_accel = _number(settings.get("printer", {}).get("max_accel"))
+    for index in range(1, MAX_EXTRUDERS):
+        name = f"extruder{index}"
+        section = settings.get(name)
+        if not isinstance(section, Mapping):
+            break
+        found: dict[str, object] = {}
+        for spec in FLOAT_OPTIONS:
+            raw = section.get(spec.option)
+            if spec.section != "extruder" or raw is None:
+                continue
+            value = _number(raw)
+            problem = "is not a number" if value is None else spec.violation(value)
+            if problem is not None:
+                raise KestimatorError(f"{description}: [{name}] {spec.option} = {raw!r} "
+                                      f"{problem}")
+            found[spec.option] = value
+        found["has_stepper"] = any(option in section for option in STEPPER_OPTIONS)
+        extruders.append(ExtruderLimits.from_values(
+            name, found, max_velocity or FALLBACK_MAX_VELOCITY_V,
+            max_accel or FALLBACK_MAX_ACCEL))
+    if extruders:
+        values["extruders"] = tuple(extruders)
+        sources["extruders"] = f"{description}: " + ", ".join(
+            f"[{e.name}]" for e in extruders)
 
 
 def _number(raw: object) -> float | None:
@@ -417,8 +475,8 @@ def _write_cache(path: Path, url: str, settings: Settings,
         "format": CACHE_FORMAT,
         "url": url,
         "fetched": fetched.astimezone(datetime.timezone.utc).strftime(_TIME_STORED),
-        "settings": {name: options for name, options in settings.items()
-                     if name in CACHED_SECTIONS or is_machine_section(name)},
+        "settings": {name: _cached_options(name, options)
+                     for name, options in settings.items()},
     }
     try:
         path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
@@ -433,6 +491,13 @@ def _write_cache(path: Path, url: str, settings: Settings,
     except OSError as exc:
         return f"could not cache Moonraker's settings in {path}: {exc.strerror or exc}"
     return None
+
+
+def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
+    """What the cache keeps of one section's settings."""
+    if name in CACHED_SECTIONS or _EXTRUDER_RE.match(name) or is_machine_section(name):
+        return dict(options)
+    return {}
 
 
 def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | None:

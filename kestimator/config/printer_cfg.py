@@ -17,14 +17,37 @@ comments), re-implemented here so that every value keeps its file and line.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import glob
 import math
 import operator
 import os
+import re
 
+from kestimator.config.klipper_options import (
+    ANY_KLIPPY_OPTION,
+    BUILT_OPTION_NAMES,
+    KINEMATICS_OPTIONS,
+    PRINTER_OPTIONS,
+    SECTION_OPTIONS,
+)
 from kestimator.errors import KestimatorError
+from kestimator.files import read_config_bytes
 from kestimator.kinematics.base import MachineConfig
-from kestimator.limits import KLIPPER_GENERATIONS, Limits, find_generation_directive
+from kestimator.limits import (
+    KLIPPER_GENERATIONS,
+    ExtruderLimits,
+    Limits,
+    find_generation_directive,
+)
+from kestimator.stepgen import (
+    DEFAULT_DAMPING_RATIO,
+    MAX_SMOOTH_TIME_T,
+    SHAPER_MAX_DAMPING,
+    ShaperError,
+    shaper_name,
+    shaper_pulses,
+)
 
 # Klipper recognises the SAVE_CONFIG block only by these three whole lines, preceded by a
 # line break and followed by one.
@@ -139,6 +162,7 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     provenance: dict[str, str] = {}
     read_from: dict[str, ConfigValue] = {}
     directive = _generation_directive(os.fspath(path))
+    check_options(config.sections)
     if directive is not None:
         values["klipper_generation"] = directive.value
         read_from["klipper_generation"] = directive
@@ -155,11 +179,28 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
         values["kinematics"] = kinematics.value
         read_from["kinematics"] = kinematics
     for section, field in (("gcode_arcs", "arcs_enabled"),
-                           ("firmware_retraction", "firmware_retraction_enabled")):
+                           ("firmware_retraction", "firmware_retraction_enabled"),
+                           ("input_shaper", "input_shaper_enabled")):
         if section in config.sections:
             values[field] = True
             provenance[field] = config.headers[section]
+    if "input_shaper" in config.sections:
+        _read_input_shaper(config.sections["input_shaper"], values, read_from)
+    values["configured_sections"] = tuple(config.sections)
+    if config.headers:
+        provenance["configured_sections"] = next(iter(config.headers.values()))
+    macros = _read_macros(config)
+    if macros:
+        values["gcode_macros"] = macros
+        provenance["gcode_macros"] = ", ".join(
+            config.headers["gcode_macro " + name.lower()] for name, _ in macros)
     limits = Limits.from_values(values)
+    extruders = _read_extra_extruders(config, limits)
+    if extruders:
+        values["extruders"] = extruders
+        provenance["extruders"] = ", ".join(
+            config.headers[e.name] for e in extruders)
+        limits = limits.replace(extruders=extruders)
     for field, bound, allowed, text in RELATIVE_BOUNDS:
         raw = read_from.get(field)
         if raw is not None and not allowed(getattr(limits, field), getattr(limits, bound)):
@@ -169,6 +210,127 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     for field, raw in read_from.items():
         provenance[field] = raw.location
     return values, provenance
+
+
+def check_options(sections: Sections) -> None:
+    """Raise KestimatorError (file, line, a suggestion) for the first option Klipper would
+    refuse to start with in a section kestimator reads; other sections are left alone.
+
+    The accepted names come from Klipper's own config reads (`klipper_options`).
+    ``max_accel_to_decel`` in [printer] is left to the resolver: older Klipper generations
+    read it, and the generation may still be set on the command line (mainline's refusal is
+    a warning there).
+    """
+    printer = sections.get("printer", {})
+    kinematics = printer.get("kinematics")
+    for name, options in sections.items():
+        accepted = _accepted_options(name, kinematics.value if kinematics else None)
+        if accepted is None:
+            continue
+        for option, raw in options.items():
+            if option in accepted or (_EXTRUDER_SECTION.match(name)
+                                      and _NUMBERED_OPTION.match(option)):
+                continue
+            close = difflib.get_close_matches(option, sorted(accepted), n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise KestimatorError(f"[{name}] has no option '{option}'{hint}: Klipper "
+                                  "refuses to start with it", raw.path, raw.line)
+
+
+def _accepted_options(section: str, kinematics: str | None) -> frozenset[str] | None:
+    """The options Klipper accepts in ``section``; None for a section not checked."""
+    if section == "printer":
+        if kinematics is None or kinematics not in KINEMATICS_OPTIONS:
+            return None  # the kinematics' own error comes first
+        return PRINTER_OPTIONS | KINEMATICS_OPTIONS[kinematics] | {"max_accel_to_decel"}
+    if _EXTRUDER_SECTION.match(section):
+        return ANY_KLIPPY_OPTION | BUILT_OPTION_NAMES
+    return SECTION_OPTIONS.get(section)
+
+
+_EXTRUDER_SECTION = re.compile(r"extruder[0-9]*$")
+# Sensor tables ([extruder] sensor_type of adc_temperature / thermistor): temperature1, ...
+_NUMBERED_OPTION = re.compile(r"(temperature|voltage|resistance)[0-9]+$")
+
+
+def _read_input_shaper(section: dict[str, ConfigValue], values: dict[str, object],
+                       read_from: dict[str, ConfigValue]) -> None:
+    """shaper_type(_<axis>) of [input_shaper], each shaper checked as Klipper checks it."""
+    common = section.get("shaper_type")
+    for axis in "xyz":
+        raw = section.get("shaper_type_" + axis, common)
+        shaper_type = raw.value if raw is not None else "mzv"
+        field = "shaper_type_" + axis
+        if raw is not None:
+            values[field] = shaper_type
+            read_from[field] = raw
+        where = raw or section.get("shaper_freq_" + axis)
+        name = shaper_name(shaper_type)
+        if name not in SHAPER_MAX_DAMPING:
+            at = where or next(iter(section.values()), None)
+            raise KestimatorError(f"[input_shaper] Unsupported shaper type: {shaper_type}",
+                                  at.path if at else None, at.line if at else None)
+        damping = float(values.get("damping_ratio_" + axis, DEFAULT_DAMPING_RATIO))  # type: ignore[arg-type]
+        damping_raw = section.get("damping_ratio_" + axis)
+        if damping > SHAPER_MAX_DAMPING[name] and damping_raw is not None:
+            raise KestimatorError(
+                f"[input_shaper] damping_ratio_{axis} must be at most "
+                f"{SHAPER_MAX_DAMPING[name]:g} for shaper {name}, got {damping_raw.value}",
+                damping_raw.path, damping_raw.line)
+        try:
+            shaper_pulses(shaper_type, float(values.get("shaper_freq_" + axis, 0.0)),  # type: ignore[arg-type]
+                          damping)
+        except ShaperError as exc:
+            at = where or damping_raw
+            raise KestimatorError(f"[input_shaper] {exc}", at.path if at else None,
+                                  at.line if at else None) from None
+
+
+def _read_macros(config: _Config) -> tuple[tuple[str, str], ...]:
+    """(NAME, gcode template) of every [gcode_macro NAME] (extras/gcode_macro.py)."""
+    macros = []
+    for section, options in config.sections.items():
+        if not section.startswith(MACRO_PREFIX):
+            continue
+        name = section[len(MACRO_PREFIX):].strip().upper()
+        template = options.get("gcode")
+        if name and template is not None:
+            macros.append((name, template.value.strip()))
+    return tuple(macros)
+
+
+MACRO_PREFIX = "gcode_macro "
+
+
+def _read_extra_extruders(config: _Config, limits: Limits) -> tuple[ExtruderLimits, ...]:
+    """[extruder1] ... in order, as kinematics/extruder.py add_printer_objects finds them."""
+    extruders = []
+    for index in range(1, MAX_EXTRUDERS):
+        name = f"extruder{index}"
+        section = config.sections.get(name)
+        if section is None:
+            break
+        values: dict[str, object] = {}
+        for spec in FLOAT_OPTIONS:
+            raw = section.get(spec.option)
+            if spec.section == "extruder" and raw is not None:
+                values[spec.option] = dataclasses.replace(spec, section=name).parse(raw)
+        values["has_stepper"] = any(option in section for option in STEPPER_OPTIONS)
+        extruder = ExtruderLimits.from_values(name, values, limits.max_velocity,
+                                              limits.max_accel)
+        if extruder.filament_diameter < extruder.nozzle_diameter:
+            raw = section["filament_diameter"]
+            raise KestimatorError(f"[{name}] filament_diameter must be at least "
+                                  f"nozzle_diameter ({extruder.nozzle_diameter:g}), "
+                                  f"got {raw.value}", raw.path, raw.line)
+        extruders.append(extruder)
+    return tuple(extruders)
+
+
+# Klipper loads [extruder] ... [extruder98] while the sections follow on without a gap.
+MAX_EXTRUDERS = 99
+# An [extruderN] with one of these has its own stepper (PrinterExtruder.__init__).
+STEPPER_OPTIONS = ("step_pin", "dir_pin", "rotation_distance")
 
 
 def _generation_directive(path: str) -> ConfigValue | None:
@@ -198,6 +360,7 @@ class FloatOption:
     minval: float | None = None
     above: float | None = None
     below: float | None = None
+    maxval: float | None = None
 
     def parse(self, raw: ConfigValue) -> float:
         """The option's value as a number, or a KestimatorError naming file and line."""
@@ -222,7 +385,8 @@ class FloatOption:
             return problem
         for bound, allowed, text in ((self.minval, operator.ge, "at least"),
                                      (self.above, operator.gt, "above"),
-                                     (self.below, operator.lt, "below")):
+                                     (self.below, operator.lt, "below"),
+                                     (self.maxval, operator.le, "at most")):
             if bound is not None and not allowed(value, bound):
                 return f"must be {text} {bound:g}"
         return None
@@ -272,6 +436,15 @@ FLOAT_OPTIONS = (
                  minval=0.0),
     FloatOption("extruder", "instantaneous_corner_velocity",
                  "instantaneous_corner_velocity", minval=0.0),
+    FloatOption("extruder", "pressure_advance", "pressure_advance", minval=0.0),
+    FloatOption("extruder", "pressure_advance_smooth_time", "pressure_advance_smooth_time",
+                above=0.0, maxval=MAX_SMOOTH_TIME_T),
+    FloatOption("input_shaper", "shaper_freq_x", "shaper_freq_x", minval=0.0),
+    FloatOption("input_shaper", "shaper_freq_y", "shaper_freq_y", minval=0.0),
+    FloatOption("input_shaper", "shaper_freq_z", "shaper_freq_z", minval=0.0),
+    FloatOption("input_shaper", "damping_ratio_x", "damping_ratio_x", minval=0.0),
+    FloatOption("input_shaper", "damping_ratio_y", "damping_ratio_y", minval=0.0),
+    FloatOption("input_shaper", "damping_ratio_z", "damping_ratio_z", minval=0.0),
     FloatOption("gcode_arcs", "resolution", "arc_resolution", above=0.0),
     FloatOption("firmware_retraction", "retract_length", "retract_length", minval=0.0),
     FloatOption("firmware_retraction", "retract_speed", "retract_speed", minval=1.0),
@@ -321,17 +494,25 @@ def _read_config(path: str) -> _Config:
     return config
 
 
+_CANNOT_READ = "cannot read file: "
+
+
 def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
     """The file's lines (universal newlines); errors name the include line if any."""
     try:
-        with open(path, "rb") as f:
-            data = f.read()
-    except OSError as exc:
-        reason = exc.strerror or str(exc)
+        # Bounded, and refusing devices and FIFOs: /dev/zero as an [include] must not
+        # read forever or block.
+        data = read_config_bytes(path, "config")
+    except KestimatorError as exc:
+        reason = exc.message
+        if reason.startswith(_CANNOT_READ):
+            reason = reason[len(_CANNOT_READ):]
         if included_from is not None:
             raise KestimatorError(f"cannot read included file {path}: {reason}",
                                   *included_from) from None
-        raise KestimatorError(f"cannot read config file: {reason}", path) from None
+        if exc.message.startswith(_CANNOT_READ):
+            raise KestimatorError(f"cannot read config file: {reason}", path) from None
+        raise
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -417,7 +598,10 @@ def _include(path: str, line: int, spec: str, config: _Config,
     pattern = os.path.join(os.path.dirname(path), spec)
     names = sorted(glob.glob(pattern))
     if not names and not any(c in pattern for c in "*?["):
-        raise KestimatorError(f"include file {pattern} does not exist", path, line)
+        raise KestimatorError(f"include file {pattern} does not exist: copy the whole config "
+                              "folder (printer.cfg and the files it includes, e.g. "
+                              "mainsail.cfg), or read the live settings with --moonraker URL",
+                              path, line)
     for name in names:
         if any(os.path.realpath(name) == real for real, _ in stack):
             chain = " -> ".join([shown for _, shown in stack] + [name])

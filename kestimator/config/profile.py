@@ -40,6 +40,7 @@ from typing import Any
 
 from kestimator.config.fields import check_limit_value
 from kestimator.errors import KestimatorError
+from kestimator.files import read_config_bytes
 from kestimator.macros import check_seconds
 
 PROFILE_RELATIVE_PATH = Path("kestimator") / "config.toml"
@@ -101,10 +102,20 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
     name = os.fspath(path)
     toml = _toml_reader(name)
     try:
-        with open(name, "rb") as handle:
-            document = toml.load(handle)
-    except OSError as exc:
-        raise KestimatorError(f"cannot read profile: {exc.strerror or exc}", name) from None
+        # Bounded, and refusing devices and FIFOs (/dev/zero as --profile).
+        data = read_config_bytes(name, "profile")
+    except KestimatorError as exc:
+        if exc.message.startswith("cannot read file: "):
+            raise KestimatorError("cannot read profile: " + exc.message[len("cannot read file: "):],
+                                  name) from None
+        raise
+    try:
+        document = toml.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        line = data[:exc.start].count(b"\n") + 1
+        raise KestimatorError(f"not UTF-8 text ({exc.reason})", name, line) from None
+    except RecursionError:
+        raise KestimatorError("not valid TOML: nested too deeply", name) from None
     except toml.TOMLDecodeError as exc:
         raise KestimatorError(f"not valid TOML: {exc}", name) from None
     _check_keys(document, _TOP_KEYS, "", name)

@@ -1,0 +1,149 @@
+"""The pre-flight check: what Klipper will do with this file on this printer.
+
+Owns the findings the one streaming pass collects (`Preflight`) and their wording:
+
+- ``stop`` (severity ``error``): the first command Klipper answers with an error. Klipper
+  (84104bbbd, `klippy/gcode.py` `_process_commands` / `extras/virtual_sdcard.py`) stops a
+  print at the first command error: a move out of range, a parameter it cannot parse, an
+  extrusion over `max_extrude_cross_section`, relative G2/G3, ... Nothing after that line
+  prints. The message is Klipper's own text. Later errors are counted in the same finding.
+- ``skipped`` (severity ``warning``): commands Klipper answers with ``Unknown command`` and
+  skips while the print goes on: G2/G3 without ``[gcode_arcs]``, G10/G11 without
+  ``[firmware_retraction]``, M-codes of modules the printer does not have, macros the
+  printer does not define. The time is right, the part is not what the slicer meant.
+
+Each finding is one kind (a command name for skipped commands) with its first line, its
+message and how often it occurred: memory stays bounded whatever the file.
+
+The time reported when Klipper stops the print: `total_s` stays the time of the whole file
+(what the print takes once the problem is fixed, as the slicer meant it), and the stop
+finding carries ``t``, the time at which every move before the stopping line has finished:
+where a real print would end.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from kestimator.durations import format_duration
+
+SEVERITY_ERROR = "error"
+SEVERITY_WARNING = "warning"
+KIND_STOP = "stop"
+KIND_SKIPPED = "skipped"
+# Commands that need a section, and the section (extras/gcode_arcs.py,
+# extras/firmware_retraction.py).
+SECTION_OF_COMMAND = {
+    "G2": "gcode_arcs", "G3": "gcode_arcs", "G17": "gcode_arcs", "G18": "gcode_arcs",
+    "G19": "gcode_arcs", "G10": "firmware_retraction", "G11": "firmware_retraction",
+    "SET_RETRACTION": "firmware_retraction", "GET_RETRACTION": "firmware_retraction",
+}
+# What a missing section means for the print.
+_MISSING_SECTION_EFFECT = {
+    "gcode_arcs": "the file's arcs are not printed",
+    "firmware_retraction": "the file's retractions are not done",
+}
+STOP_PREFIX = "Klipper stops the print here: "
+SUMMARY_HEAD = "Pre-flight: "
+# Exit status of `inject` and `check` when Klipper will stop the print (docs/CLI.md).
+EXIT_KLIPPER_STOPS = 4
+
+
+@dataclasses.dataclass
+class Finding:
+    """One kind of thing Klipper will do: its first line, its message, how often."""
+
+    severity: str
+    kind: str
+    line: int | None
+    message: str
+    count: int = 1
+    # Only for the stop: seconds at which every move before `line` has finished.
+    t: float | None = None
+
+    def to_json(self) -> dict[str, object]:
+        """``{severity, line, message, kind, count}`` (and ``t`` for the stop)."""
+        doc: dict[str, object] = {"severity": self.severity, "line": self.line,
+                                  "message": self.message, "kind": self.kind,
+                                  "count": self.count}
+        if self.t is not None:
+            doc["t"] = round(self.t, 6)
+        return doc
+
+
+class Preflight:
+    """Collects findings during the estimate's pass."""
+
+    def __init__(self) -> None:
+        self.stop: Finding | None = None
+        self.skipped: dict[str, Finding] = {}
+
+    def command_error(self, line: int, message: str) -> Finding | None:
+        """Klipper answers this line with an error; the new stop finding, if it is the first."""
+        if self.stop is not None:
+            self.stop.count += 1
+            return None
+        self.stop = Finding(SEVERITY_ERROR, KIND_STOP, line, STOP_PREFIX + message)
+        return self.stop
+
+    def unknown_command(self, name: str, line: int) -> None:
+        """Klipper answers `Unknown command` to ``name`` and goes on."""
+        found = self.skipped.get(name)
+        if found is not None:
+            found.count += 1
+            return
+        section = SECTION_OF_COMMAND.get(name)
+        if section is not None:
+            message = ('Unknown command:"%s": the printer config has no [%s], so Klipper '
+                       "skips it: %s" % (name, section, _MISSING_SECTION_EFFECT[section]))
+        else:
+            message = 'Unknown command:"%s": Klipper skips it' % name
+        self.skipped[name] = Finding(SEVERITY_WARNING, KIND_SKIPPED, line, message)
+
+    def findings(self) -> list[Finding]:
+        """The stop first, then skipped commands in the order first seen."""
+        found = [self.stop] if self.stop is not None else []
+        return found + sorted(self.skipped.values(), key=lambda f: f.line or 0)
+
+
+def summary_lines(findings: list[dict[str, object]]) -> list[str]:
+    """The pre-flight block as plain lines: counts, then the first line of each kind."""
+    if not findings:
+        return []
+    stops = [f for f in findings if f["kind"] == KIND_STOP]
+    skipped = [f for f in findings if f["kind"] == KIND_SKIPPED]
+    head = []
+    if stops:
+        when = stops[0].get("t")
+        head.append("Klipper will stop the print at line %s%s" % (
+            stops[0]["line"], "" if when is None
+            else ", %s in" % format_duration(float(str(when)))))
+    if skipped:
+        head.append("%d command%s skipped" % (
+            sum(int(str(f["count"])) for f in skipped), "" if len(skipped) == 1 and
+            skipped[0]["count"] == 1 else "s"))
+    lines = [SUMMARY_HEAD + "; ".join(head)]
+    for finding in findings:
+        more = int(str(finding["count"])) - 1
+        suffix = ""
+        if more:
+            suffix = (" (%d more line%s)" % (more, "" if more == 1 else "s")
+                      if finding["kind"] == KIND_SKIPPED else
+                      " (%d more error%s after it)" % (more, "" if more == 1 else "s"))
+        lines.append("  line %s: %s%s" % (finding["line"], _printable(str(finding["message"])),
+                                          suffix))
+    return lines
+
+
+def _printable(text: str) -> str:
+    """Text from the file with control characters shown as '?' (for a terminal)."""
+    return "".join(c if c.isprintable() else "?" for c in text)
+
+
+def stderr_line(findings: list[dict[str, object]]) -> str | None:
+    """One line for a slicer's dialog when Klipper will stop the print, else None."""
+    for finding in findings:
+        if finding["kind"] == KIND_STOP:
+            return "kestimator: Klipper will stop this print at line %s: %s" % (
+                finding["line"], _printable(str(finding["message"])[len(STOP_PREFIX):]))
+    return None
