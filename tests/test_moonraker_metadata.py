@@ -8,6 +8,7 @@ pinned version the end-to-end test installs) on injected corpus files.
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -57,14 +58,24 @@ def test_moonraker_reads_klippers_time_from_every_injected_family(
         result = inject_file(GCODE / name, limits, output=str(out))
         outputs.append(out)
         totals.append(result.estimate.total_s)
-    before = _metadata(moonraker_python, [GCODE / name for name, _, _ in FAMILIES])
+    # Moonraker's parser writes thumbnails beside the file it reads: read copies, never the
+    # shared corpus itself.
+    originals = tmp_path / "originals"
+    originals.mkdir()
+    copies = []
+    for name, _, _ in FAMILIES:
+        copy = originals / Path(name).name
+        shutil.copyfile(GCODE / name, copy)
+        copies.append(copy)
+    before = _metadata(moonraker_python, copies)
     after = _metadata(moonraker_python, outputs)
-    for (name, slicer, had_line), out, total in zip(FAMILIES, outputs, totals, strict=True):
+    for (name, slicer, had_line), out, total, copy in zip(FAMILIES, outputs, totals, copies,
+                                                          strict=True):
         meta = after[str(out)]
         assert meta["slicer"] == slicer, name
         # Every parser rounds to the second at most (KISSlicer: minutes with 2 decimals).
         assert meta["estimated_time"] == pytest.approx(total, abs=0.6), name
-        original = before[str(GCODE / name)].get("estimated_time")
+        original = before[str(copy)].get("estimated_time")
         assert (original is not None) == had_line, name
 
 
