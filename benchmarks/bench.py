@@ -4,10 +4,16 @@ Each measurement runs in a fresh child process, so its peak RSS is that child's 
 (`ru_maxrss` of RUSAGE_CHILDREN, read right after the one child has exited). Case 1 is
 the large PrusaSlicer file; case 2 is that file concatenated with itself 4 times (written
 to a temporary directory and deleted afterwards), to show memory does not grow with size.
-A dated row per case is appended to benchmarks/RESULTS.md.
+A dated row per case and build is appended to benchmarks/RESULTS.md.
 
-    python benchmarks/bench.py [--python PYTHON] [--env KEY=VALUE ...] [--no-concat]
-                               [--no-record] [--note TEXT]
+Under CPython both builds are measured side by side (`--build both`, the default): the
+pure package of this checkout, and the mypyc-compiled one, which this script builds first
+(`pip install` of a copy of the sources into a temporary venv, KESTIMATOR_BUILD=compiled,
+the build's time printed). Runs of the copy and of both builds alternate, so load on a
+shared host falls on all of them alike; each ratio is to the copy of the same run.
+
+    python benchmarks/bench.py [--python PYTHON] [--build pure|compiled|both] [--repeat N]
+                               [--env KEY=VALUE ...] [--no-concat] [--no-record] [--note TEXT]
 
 `--env` sets a variable for every measured run (the copy too), e.g. PyPy's nursery:
 `--python pypy3 --env PYPY_GC_NURSERY=16M`. PyPy sizes its nursery to half the last-level
@@ -26,6 +32,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
@@ -54,72 +61,131 @@ print(wall, ru.ru_maxrss, rc, ru.ru_utime + ru.ru_stime)
 
 
 def measure(python: str, argv: list[str], stdout_path: str,
-            extra_env: dict[str, str] | None = None) -> tuple[float, float, float]:
+            extra_env: dict[str, str] | None = None,
+            checkout: bool = True) -> tuple[float, float, float]:
     """Wall seconds, peak RSS (MiB) and CPU seconds of `python argv...` in a fresh process.
 
     A wrapper process starts exactly one child, so RUSAGE_CHILDREN's ru_maxrss (kB on
-    Linux) is that child's own peak.
+    Linux) is that child's own peak. With `checkout`, this checkout's package is imported
+    (the pure build); without, the one installed beside `python` (the compiled venv).
     """
-    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if checkout:
+        env["PYTHONPATH"] = ROOT + os.pathsep + os.environ.get("PYTHONPATH", "")
     env.update(extra_env or {})
     proc = subprocess.run([sys.executable, "-c", WRAP_SRC, stdout_path, python] + argv,
-                          stdout=subprocess.PIPE, env=env, check=True)
+                          stdout=subprocess.PIPE, env=env, check=True, cwd=HERE)
     wall_s, rss_kb, rc, cpu_s = proc.stdout.split()
     if rc != b"0":
         sys.exit("benchmark run failed (rc %s): %s %s" % (rc.decode(), python, " ".join(argv)))
     return float(wall_s), int(rss_kb) / 1024.0, float(cpu_s)
 
 
+def build_compiled(python: str, tmpdir: str) -> tuple[str, float]:
+    """Build and install the compiled package into a venv; its python and the build's time."""
+    src = os.path.join(tmpdir, "src")
+    os.mkdir(src)
+    for name in ("kestimator", "setup.py", "pyproject.toml", "README.md"):
+        source = os.path.join(ROOT, name)
+        if os.path.isdir(source):
+            shutil.copytree(source, os.path.join(src, name),
+                            ignore=shutil.ignore_patterns("__pycache__", "*.so"))
+        else:
+            shutil.copyfile(source, os.path.join(src, name))
+    env_dir = os.path.join(tmpdir, "venv-compiled")
+    subprocess.run([python, "-m", "venv", env_dir], check=True)
+    venv_python = os.path.join(env_dir, "bin", "python")
+    t0 = time.perf_counter()
+    proc = subprocess.run([venv_python, "-m", "pip", "install", "-v", "--no-deps", src],
+                          env=dict(os.environ, KESTIMATOR_BUILD="compiled"),
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    build_s = time.perf_counter() - t0
+    if proc.returncode != 0:
+        sys.exit("building the compiled package failed:\n" + proc.stdout[-3000:])
+    for line in proc.stdout.splitlines():
+        if "kestimator build:" in line:
+            print(line.strip())
+    return venv_python, build_s
+
+
 def bench_case(python: str, path: str, tmpdir: str, repeat: int,
-               extra_env: dict[str, str] | None = None) -> dict[str, object]:
+               extra_env: dict[str, str] | None = None,
+               compiled_python: str | None = None) -> dict[str, object]:
     size_mb = os.path.getsize(path) / 1e6
     out = os.path.join(tmpdir, "out.gcode")
     stdout_path = os.path.join(tmpdir, "stdout")
-    runs = {
-        "copy": [python, "-c", COPY_SRC, path, out],
-        "estimate": [python, "-m", "kestimator", "estimate", path, "--json"],
-        "inject": [python, "-m", "kestimator", "inject", path, "-o", out, "-q"],
+    runs: dict[str, tuple[str, list[str], bool]] = {
+        "copy": (python, ["-c", COPY_SRC, path, out], True),
+        "estimate": (python, ["-m", "kestimator", "estimate", path, "--json"], True),
+        "inject": (python, ["-m", "kestimator", "inject", path, "-o", out, "-q"], True),
     }
+    if compiled_python is not None:
+        runs["estimate compiled"] = (compiled_python, ["-m", "kestimator", "estimate", path,
+                                                       "--json"], False)
+        runs["inject compiled"] = (compiled_python, ["-m", "kestimator", "inject", path, "-o",
+                                                     out, "-q"], False)
     res: dict[str, object] = {"size_mb": size_mb}
-    for name, argv in runs.items():
-        best = None
-        for _ in range(repeat):
-            wall, rss, cpu = measure(python, argv[1:], stdout_path, extra_env)
-            if best is None or wall < best[0]:
-                best = (wall, max(rss, best[1]) if best else rss, cpu)
-        res[name] = best
-        if name == "estimate":
-            with open(stdout_path, encoding="utf-8") as f:
-                doc = json.load(f)
-            res["n_moves"] = doc["n_moves"]
-            res["total_s"] = doc["total_s"]
-        if os.path.exists(out):
-            os.unlink(out)
+    best: dict[str, tuple[float, float, float]] = {}
+    for _ in range(repeat):
+        for name, (run_python, argv, checkout) in runs.items():
+            wall, rss, cpu = measure(run_python, argv, stdout_path, extra_env, checkout)
+            prev = best.get(name)
+            peak = rss if prev is None else max(rss, prev[1])
+            if prev is None or wall < prev[0]:
+                best[name] = (wall, peak, cpu)
+            else:
+                best[name] = (prev[0], peak, prev[2])
+            if name.startswith("estimate"):
+                with open(stdout_path, encoding="utf-8") as f:
+                    doc = json.load(f)
+                if "n_moves" in res and (res["n_moves"], res["total_s"]) != (
+                        doc["n_moves"], doc["total_s"]):
+                    sys.exit("the builds disagree: %r" % name)
+                res["n_moves"] = doc["n_moves"]
+                res["total_s"] = doc["total_s"]
+            if os.path.exists(out):
+                os.unlink(out)
+    res.update(best)
     return res
+
+
+def for_build(res: dict[str, object], build: str) -> dict[str, object]:
+    """`res` with the given build's estimate and inject under the plain names."""
+    if build == "pure":
+        return res
+    picked = dict(res)
+    picked["estimate"] = res["estimate " + build]
+    picked["inject"] = res["inject " + build]
+    return picked
 
 
 def report(label: str, res: dict[str, object]) -> list[str]:
     copy_t = res["copy"][0]  # type: ignore[index]
     rows = []
-    for name in ("copy", "estimate", "inject"):
+    for name in ("copy", "estimate", "inject", "estimate compiled", "inject compiled"):
+        if name not in res:
+            continue
         wall, rss, cpu = res[name]  # type: ignore[misc]
         rows.append((name, wall, res["n_moves"] / wall, res["size_mb"] / wall,  # type: ignore[operator]
                      wall / copy_t, rss, cpu))
     lines = ["%s: %.1f MB, %d moves, total_s %r" % (label, res["size_mb"], res["n_moves"],
                                                    res["total_s"])]
     for name, wall, mps, mbs, ratio, rss, cpu in rows:
-        lines.append("  %-8s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
+        lines.append("  %-17s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
                      "  (CPU %.2f s)" % (name, wall, mps, mbs, ratio, rss, cpu))
     return lines
 
 
-def md_row(label: str, python: str, res: dict[str, object], note: str) -> str:
+def md_row(label: str, python: str, res: dict[str, object], note: str,
+           build: str = "pure") -> str:
     copy_t = res["copy"][0]  # type: ignore[index]
     est_t, est_rss, _cpu = res["estimate"]  # type: ignore[misc]
     inj_t, inj_rss, _cpu = res["inject"]  # type: ignore[misc]
     return ("| %s | %s | %s | %.1f | %.2f | %.2f (%.1fx) | %.2f (%.1fx) | %.0f / %.0f | "
             "%.0f | %s |" % (
-                datetime.date.today().isoformat(), python_name(python), label,
+                datetime.date.today().isoformat(),
+                python_name(python) + (" compiled" if build == "compiled" else ""), label,
                 res["size_mb"], copy_t, est_t, est_t / copy_t, inj_t, inj_t / copy_t,
                 est_rss, inj_rss, res["n_moves"] / est_t, note))  # type: ignore[operator]
 
@@ -164,6 +230,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--file", default=DEFAULT_FILE)
     parser.add_argument("--python", default=sys.executable)
+    parser.add_argument("--build", choices=("pure", "compiled", "both"), default=None,
+                        help="which build(s) to measure (default: both under CPython, "
+                        "pure under PyPy)")
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--no-concat", action="store_true")
     parser.add_argument("--no-record", action="store_true")
@@ -174,24 +243,34 @@ def main() -> int:
     path = os.path.abspath(args.file)
     extra_env = dict(item.split("=", 1) for item in args.env)
     note = "; ".join(filter(None, [" ".join(args.env), args.note]))
+    build = args.build or ("pure" if python_name(args.python).startswith("PyPy") else "both")
+    builds = ["pure", "compiled"] if build == "both" else [build]
+    load = os.getloadavg()[0]
     rows = []
     with tempfile.TemporaryDirectory(prefix="kestimator-bench-") as tmpdir:
-        res = bench_case(args.python, path, tmpdir, args.repeat, extra_env)
-        print("\n".join(report("1x", res)), flush=True)
-        rows.append(md_row("1x", args.python, res, note))
+        compiled_python = None
+        if "compiled" in builds:
+            compiled_python, build_s = build_compiled(args.python, tmpdir)
+            print("compiled build (pip install, mypyc + C compiler): %.1f s" % build_s)
+        cases = [("1x", path)]
         if not args.no_concat:
             big = os.path.join(tmpdir, "concat4.gcode")
             with open(big, "wb") as out:
                 for _ in range(CONCAT_COPIES):
                     with open(path, "rb") as inp:
                         shutil.copyfileobj(inp, out, 1 << 20)
-            res4 = bench_case(args.python, big, tmpdir, args.repeat, extra_env)
-            os.unlink(big)
-            print("\n".join(report("%dx" % CONCAT_COPIES, res4)), flush=True)
-            rows.append(md_row("%dx" % CONCAT_COPIES, args.python, res4, note))
+            cases.append(("%dx" % CONCAT_COPIES, big))
+        for label, case_path in cases:
+            res = bench_case(args.python, case_path, tmpdir, args.repeat, extra_env,
+                             compiled_python)
+            print("\n".join(report(label, res)), flush=True)
+            for one in builds:
+                rows.append(md_row(label, args.python, for_build(res, one), note, one))
+    load = max(load, os.getloadavg()[0])
+    print("host:", platform.node(), platform.processor() or platform.machine(),
+          "load average (1 min) up to %.1f" % load)
     if not args.no_record:
-        append_rows(rows)
-    print("host:", platform.node(), platform.processor() or platform.machine())
+        append_rows([row.replace(" |\n", " |") for row in rows])
     return 0
 
 

@@ -6,3 +6,11 @@ contributors); see kestimator/planner.py.
 """
 
 __version__ = "0.1.0"
+
+
+def build() -> str:
+    """"compiled" when the core's per-line modules are the mypyc-compiled extensions that
+    `pip install .` builds with a C compiler (setup.py), else "pure Python"."""
+    from kestimator import gcode
+
+    return "compiled" if gcode.COMPILED else "pure Python"

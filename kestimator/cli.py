@@ -23,22 +23,32 @@ import traceback
 from collections.abc import Sequence
 from typing import Any
 
-from kestimator import __version__, learn
+from kestimator import __version__, build, learn
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
+    approximate_text,
     difference_text,
     estimate_to_json,
     feature_rows,
     filament_text,
     parts_rows,
     print_text,
+    printable,
+    printable_doc,
     set_slicer_estimate,
+    shown_warnings,
     slicer_label,
-    untimed_commands,
+    untimed_detail,
+    untimed_summary,
 )
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
-from kestimator.config.resolve import API_KEY_ENVIRONMENT, LimitRequest, ResolvedLimits
+from kestimator.config.resolve import (
+    API_KEY_ENVIRONMENT,
+    GUESS_WARNING_START,
+    LimitRequest,
+    ResolvedLimits,
+)
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
@@ -52,8 +62,12 @@ from kestimator.preflight import (
     summary_lines,
 )
 from kestimator.report import collect, render_html
-from kestimator.rewrite import check_gcode_file, inject_file, write_bytes_atomically
-from kestimator.slicers import detect_file
+from kestimator.rewrite import (
+    check_gcode_file,
+    inject_file,
+    slicer_of_file,
+    write_bytes_atomically,
+)
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
            "JSON_SCHEMA_VERSION",
@@ -107,13 +121,46 @@ used, 2 a wrong command line, 3 a bug in kestimator.
 """
 
 
+# A help line this short ending in ':' is a heading ("examples:"), kept on its own.
+HEADING_MAX_CHARS = 30
+
+
+class _HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions and epilogs wrapped at the terminal's width: lines that start at the
+    margin are joined into paragraphs and filled; indented lines (examples) are kept."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        import textwrap
+        out: list[str] = []
+        paragraph: list[str] = []
+
+        def flush() -> None:
+            if paragraph:
+                out.extend(textwrap.wrap(" ".join(paragraph), width,
+                                         initial_indent=indent, subsequent_indent=indent,
+                                         break_on_hyphens=False))
+                paragraph.clear()
+        for line in text.splitlines():
+            if not line.strip():
+                flush()
+                out.append("")
+            elif line[:1] in (" ", "\t") or (line.rstrip().endswith(":")
+                                             and len(line) <= HEADING_MAX_CHARS):
+                flush()
+                out.append(indent + line)
+            else:
+                paragraph.append(line.strip())
+        flush()
+        return "\n".join(out)
+
+
 def _build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="kestimator",
         description=DESCRIPTION, epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter)
+        formatter_class=_HelpFormatter)
     parser.add_argument("-V", "--version", action="version",
-                        version="kestimator " + __version__)
+                        version="kestimator %s (%s)" % (__version__, build()))
     parser.add_argument("--debug", action="store_true",
                         help="show a traceback when something fails")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -123,7 +170,7 @@ def _build_parser() -> argparse.ArgumentParser:
                     "slicer's own estimate and the difference, first-layer time, layers, "
                     "filament, where the limits came from, warnings and the time per "
                     "feature.",
-        epilog=ESTIMATE_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=ESTIMATE_EPILOG, formatter_class=_HelpFormatter)
     est.add_argument("file", help="the G-code file")
     _add_limit_options(est)
     output = est.add_mutually_exclusive_group()
@@ -131,17 +178,24 @@ def _build_parser() -> argparse.ArgumentParser:
                         help="print one JSON object (fields in docs/CLI.md)")
     output.add_argument("-q", "--quiet", action="store_true",
                         help="print only Klipper's total time in seconds")
-    est.add_argument("--layers", action="store_true", help="also show the time of every layer")
+    est.add_argument("--layers", action="store_true",
+                     help="also show the time of every layer (before the summary)")
+    est.add_argument("-v", "--verbose", action="store_true",
+                     help="name every command whose time is not counted, with its warnings")
     _add_debug_option(est)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
         description="Rewrite a G-code file so M73 progress lines and the slicer's time "
                     "comments show Klipper's time. In place (atomically) unless -o is given; "
                     "every other line is kept byte for byte.",
-        epilog=INJECT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=INJECT_EPILOG, formatter_class=_HelpFormatter)
     inj.add_argument("file", help="the G-code file (the slicer appends it last)")
     inj.add_argument("-o", "--output", metavar="OUT",
                      help="write the result here and leave FILE untouched")
+    inj.add_argument("--no-layer-info", dest="layer_info", action="store_false",
+                     help="do not add SET_PRINT_STATS_INFO TOTAL_LAYER/CURRENT_LAYER lines "
+                          "(added where the file sets no layer numbers, so Mainsail, Fluidd "
+                          "and KlipperScreen show the layer)")
     _add_limit_options(inj)
     output = inj.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true",
@@ -168,7 +222,7 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Print every printer limit kestimator would use for FILE and where each "
                     "came from: --set, the printer.cfg line or Moonraker, the profile, the "
                     "slicer setting in the file (a guess), or a default.",
-        epilog=LIMITS_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=LIMITS_EPILOG, formatter_class=_HelpFormatter)
     lim.add_argument("file", nargs="?",
                      help="the G-code file (its slicer settings stand in when no printer "
                           "config is known)")
@@ -180,7 +234,7 @@ def _build_parser() -> argparse.ArgumentParser:
         description="Write one self-contained HTML page (no network, no scripts) with "
                     "Klipper's time per layer, progress against the slicer's own M73, time "
                     "per feature and the speed moves reach against the speed they ask for.",
-        epilog=REPORT_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+        epilog=REPORT_EPILOG, formatter_class=_HelpFormatter)
     rep.add_argument("file", help="the G-code file")
     rep.add_argument("-o", "--output", metavar="HTML", required=True,
                      help="where to write the page")
@@ -220,7 +274,10 @@ INJECT_EPILOG = """examples:
   kestimator inject print.gcode --printer-cfg ~/printer_data/config/printer.cfg
   kestimator inject print.gcode -o print-klipper.gcode
 As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line is:
-  kestimator inject --printer-cfg /path/to/printer.cfg
+  kestimator inject --moonraker http://voron.local:7125
+(Moonraker's answer is cached, so the hook works with the printer off; or --printer-cfg
+with a path, quoted if it has a space; with a profile that names the printer, just
+`kestimator inject`.)
 """
 
 
@@ -265,9 +322,8 @@ def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True)
                                  "(default: the profile's heat_time_s, else 0)")
 
 
-def resolve_limits(args: argparse.Namespace,
-                   gcode_path: str | None) -> tuple[Limits, str, list[str]]:
-    """Limits for a run, a one-line description of their source, and warnings."""
+def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits:
+    """The limits for a run (`_say_guessed` tells, once the run succeeded, if guessed)."""
     resolved = resolve.resolve_limits(_limit_request(args, gcode_path))
     # Durations the file cannot tell: the command line, else the profile, else 0 s.
     for name, from_profile in (("homing_time", resolved.homing_time_s),
@@ -276,7 +332,21 @@ def resolve_limits(args: argparse.Namespace,
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
     args.resolved = resolved
-    return resolved.limits, resolved.summary, list(resolved.warnings)
+    return resolved
+
+
+def _say_guessed(resolved: ResolvedLimits) -> None:
+    """One line on stderr when the limits are guesses, with how to give the real ones.
+
+    Said after the work succeeded (last, so it stays on screen); a failure is one line."""
+    if resolved.guess_warning is not None:
+        sys.stdout.flush()
+        _warn_stderr(resolved.guess_warning)
+
+
+def _warn_stderr(text: str) -> None:
+    sys.stderr.write("kestimator: warning: %s\n" % printable(text))
+    sys.stderr.flush()
 
 
 def _learned(args: argparse.Namespace,
@@ -327,7 +397,8 @@ def _is_terminal(stream: Any) -> bool:
 
 
 class _ProgressBar:
-    """Bytes read, drawn on stderr: with rich when installed, else one rewritten line.
+    """Bytes read, drawn on stderr with the time spent and the time left: with rich when
+    installed, else one rewritten line.
 
     Shown only for files of at least PROGRESS_MIN_BYTES when stderr is a terminal; calling
     it is then `progress(bytes_done)`. Used as a context manager, it clears itself.
@@ -338,14 +409,27 @@ class _ProgressBar:
         self.total = max(total_bytes, 1)
         self._rich: Any = None
         self._task: Any = None
-        self._last_pct = -1
+        self._last_shown = ""
+        self._started = 0.0
+        self._width = 0
 
     def __enter__(self) -> _ProgressBar:
+        import time
+        self._started = time.monotonic()
         console = _rich_console(stderr=True)
         if console is not None:
-            from rich.progress import BarColumn, Progress, TaskProgressColumn, TextColumn
+            from rich.progress import (
+                BarColumn,
+                Progress,
+                TaskProgressColumn,
+                TextColumn,
+                TimeElapsedColumn,
+                TimeRemainingColumn,
+            )
             self._rich = Progress(TextColumn("{task.description}"), BarColumn(),
-                                  TaskProgressColumn(), console=console, transient=True)
+                                  TaskProgressColumn(), TimeElapsedColumn(),
+                                  TextColumn("elapsed,"), TimeRemainingColumn(),
+                                  TextColumn("left"), console=console, transient=True)
             self._rich.start()
             self._task = self._rich.add_task(self.label, total=self.total)
         return self
@@ -354,24 +438,39 @@ class _ProgressBar:
         if self._rich is not None:
             self._rich.update(self._task, completed=min(done, self.total))
             return
-        pct = min(100, 100 * done // self.total)
-        if pct != self._last_pct:
-            self._last_pct = pct
-            sys.stderr.write("\r%s %3d %%" % (self.label, pct))
+        import time
+        fraction = min(1.0, done / self.total)
+        elapsed = time.monotonic() - self._started
+        left = elapsed * (1.0 - fraction) / fraction if fraction > 0 else None
+        text = "%s %3d %%  %s elapsed, %s left" % (
+            self.label, int(100 * fraction), _clock(elapsed),
+            "?" if left is None else _clock(left))
+        if text != self._last_shown:
+            self._last_shown = text
+            self._width = max(self._width, len(text))
+            sys.stderr.write("\r" + text.ljust(self._width))
             sys.stderr.flush()
 
     def __exit__(self, *exc: object) -> None:
         if self._rich is not None:
             self._rich.stop()
-        elif self._last_pct >= 0:
-            sys.stderr.write("\r%s\r" % (" " * (len(self.label) + 6)))
+        elif self._last_shown:
+            sys.stderr.write("\r%s\r" % (" " * self._width))
             sys.stderr.flush()
+
+
+def _clock(seconds: float) -> str:
+    """`0:07` or `1:02:03`: a duration as a clock shows it."""
+    whole = int(seconds + 0.5)
+    hours, rest = divmod(whole, 3600)
+    minutes, secs = divmod(rest, 60)
+    return "%d:%02d:%02d" % (hours, minutes, secs) if hours else "%d:%02d" % (minutes, secs)
 
 
 def _progress(args: argparse.Namespace, label: str, passes: int = 1
               ) -> contextlib.AbstractContextManager[_ProgressBar | None]:
     """A progress bar for a large file on a terminal, else a context yielding None."""
-    if args.json or args.quiet or not _is_terminal(sys.stderr):
+    if getattr(args, "json", False) or args.quiet or not _is_terminal(sys.stderr):
         return contextlib.nullcontext()
     try:
         size = os.path.getsize(args.file)
@@ -389,16 +488,18 @@ def _write_json(doc: dict[str, Any]) -> None:
 
 def cmd_estimate(args: argparse.Namespace) -> int:
     """`kestimator estimate`."""
-    limits, source, warnings = resolve_limits(args, args.file)
-    _check_time_options(args)
     check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
+    _check_time_options(args)
     with _progress(args, "timing") as progress:
-        est = estimate_file(args.file, limits, homing_time=args.homing_time,
+        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
                             heat_time=args.heat_time, progress=progress, macros=args.macros)
+    warnings = list(resolved.warnings)
     if est.last_move_line is None:
-        warnings = warnings + ["the file has no moves: there is nothing to time"]
-    slicer = detect_file(args.file)
-    doc = estimate_to_json(est, slicer, source, warnings)
+        warnings.append("the file has no moves: there is nothing to time")
+    slicer = slicer_of_file(args.file)
+    doc = estimate_to_json(est, slicer, resolved.summary, warnings,
+                           limits_guessed=resolved.guessed)
     if args.json:
         _write_json(doc)
     elif args.quiet:
@@ -406,28 +507,48 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     else:
         console = _rich_console()
         if console is None:
-            print_text(doc, sys.stdout, layers=args.layers)
+            print_text(printable_doc(doc), sys.stdout, layers=args.layers,
+                       verbose=args.verbose)
         else:
-            _print_rich(doc, console, layers=args.layers)
+            _print_rich(printable_doc(doc), console, layers=args.layers,
+                        verbose=args.verbose)
+    _say_guessed(resolved)
     return EXIT_OK
 
 
-def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None:
-    """The summary, feature table, optional layer table and warnings, drawn with rich."""
+def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False,
+                verbose: bool = False) -> None:
+    """The optional layer table, then the summary, feature table, untimed commands and
+    warnings, drawn with rich (the summary last, so hundreds of layers do not push it off
+    the screen)."""
     from rich import box
     from rich.panel import Panel
     from rich.table import Table
     from rich.text import Text
 
+    if layers and doc["layers"]:
+        longest = max(layer["duration_s"] for layer in doc["layers"])
+        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
+        for title in ("Layer", "Line", "Starts at", "Takes"):
+            table.add_column(title, justify="right")
+        table.add_column("", no_wrap=True)
+        for number, layer in enumerate(doc["layers"], 1):
+            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
+                          format_duration(layer["duration_s"]),
+                          Text(_bar(layer["duration_s"], longest), style="magenta"))
+        console.print(table)
     total = doc["total_s"]
     grid = Table.grid(padding=(0, 2))
     grid.add_column(style="bold")
     grid.add_column()
+    approximate = approximate_text(doc)
     parts = parts_rows(doc)
     grid.add_row("Total" if parts else "Klipper time",
-                 Text.assemble((format_duration(total), "bold green"),
+                 Text.assemble((format_duration(total),
+                                "bold yellow" if approximate else "bold green"),
                                ("  %.3f s" % total, "dim"),
-                               ("  until the part is done" if parts else "", "")))
+                               ("  until the part is done" if parts else "", ""),
+                               ("  " + approximate if approximate else "", "yellow")))
     for label, text in parts[1:]:
         grid.add_row(label, Text(text))
     slicer = doc["slicer"]
@@ -460,28 +581,21 @@ def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False) -> None
             table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
                           Text(_bar(share, 100.0), style="cyan"))
         console.print(table)
-    if layers and doc["layers"]:
-        longest = max(layer["duration_s"] for layer in doc["layers"])
-        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
-        for title in ("Layer", "Line", "Starts at", "Takes"):
-            table.add_column(title, justify="right")
-        table.add_column("", no_wrap=True)
-        for number, layer in enumerate(doc["layers"], 1):
-            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
-                          format_duration(layer["duration_s"]),
-                          Text(_bar(layer["duration_s"], longest), style="magenta"))
-        console.print(table)
-    untimed = untimed_commands(doc)
-    if untimed:
-        console.print(Text("Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in untimed.items()), style="dim"))
     preflight = summary_lines(doc["preflight"])
     if preflight:
         stops = any(f["kind"] == KIND_STOP for f in doc["preflight"])
-        console.print(Text(preflight[0], style="bold red" if stops else "bold yellow"))
+        console.print(Text(printable(preflight[0]),
+                           style="bold red" if stops else "bold yellow"))
         for line in preflight[1:]:
-            console.print(Text(line))
-    for warning in doc["warnings"]:
+            console.print(Text(printable(line)))
+    summary = untimed_summary(doc)
+    if summary is not None:
+        if verbose:
+            for text in untimed_detail(doc):
+                console.print(Text("Not counted, " + text, style="dim"))
+        else:
+            console.print(Text(summary, style="dim"))
+    for warning in shown_warnings(doc, verbose):
         console.print(Text.assemble(("warning: ", "bold yellow"), warning))
     if doc["warnings_dropped"]:
         console.print(Text("warning: %d more warnings not shown" % doc["warnings_dropped"],
@@ -499,33 +613,39 @@ def _bar(value: float, full: float) -> str:
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """`kestimator inject`."""
-    limits, source, warnings = resolve_limits(args, args.file)
+    check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
     _check_time_options(args)
     with _progress(args, "rewriting", passes=2) as progress:
-        result = inject_file(args.file, limits, output=args.output, limits_source=source,
+        result = inject_file(args.file, resolved.limits, output=args.output,
+                             limits_source=resolved.marker_source,
                              homing_time=args.homing_time, heat_time=args.heat_time,
-                             progress=progress, macros=args.macros)
+                             progress=progress, macros=args.macros,
+                             layer_info=args.layer_info)
     args.written.append(result.output)
     if args.json:
-        doc = estimate_to_json(result.estimate, result.slicer, source, warnings)
+        doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
+                               list(resolved.warnings), limits_guessed=resolved.guessed)
         set_slicer_estimate(doc, result.slicer_estimate_s)
         doc["output"] = result.output
         doc["m73_written"] = result.m73_written
         _write_json(doc)
-        return _stop_status(result.estimate)
     elif not args.quiet:
         est = result.estimate
         slicer_s = result.slicer_estimate_s
         said = ("" if slicer_s is None else
                 ", the slicer said %s" % format_duration(slicer_s))
+        approximate = " (approximate: the limits are guesses)" if resolved.guessed else ""
         preflight = summary_lines(_findings(est))
         # One line, as hooks expect: the pre-flight's counts, `kestimator check` the rest.
         found = ("" if not preflight else
                  "; pre-flight: %s (kestimator check FILE shows each)"
                  % preflight[0][len(SUMMARY_HEAD):])
-        sys.stdout.write("kestimator: %s: Klipper time %s%s%s; wrote %d M73 lines%s\n" % (
-            printable(result.output), format_duration(est.total_s), _parts_text(est), said,
-            result.m73_written, found))
+        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
+                                   % (result.output, format_duration(est.total_s),
+                                      _parts_text(est), approximate, said,
+                                      result.m73_written, found)) + "\n")
+    _say_guessed(resolved)
     return _stop_status(result.estimate)
 
 
@@ -539,30 +659,34 @@ def _stop_status(est: Estimate) -> int:
     line = stderr_line(_findings(est))
     if line is None:
         return EXIT_OK
-    sys.stderr.write(line + "\n")
+    sys.stderr.write(printable(line) + "\n")
     return EXIT_KLIPPER_STOPS
 
 
 def cmd_check(args: argparse.Namespace) -> int:
     """`kestimator check`: only the pre-flight check."""
-    limits, source, warnings = resolve_limits(args, args.file)
-    _check_time_options(args)
     check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
+    _check_time_options(args)
     with _progress(args, "checking") as progress:
-        est = estimate_file(args.file, limits, homing_time=args.homing_time,
-                            heat_time=args.heat_time, progress=progress)
+        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
+                            heat_time=args.heat_time, progress=progress, macros=args.macros)
     findings = _findings(est)
     if args.json:
         _write_json({"schema": JSON_SCHEMA_VERSION, "kestimator": __version__,
-                     "file": est.path, "limits_source": source, "preflight": findings,
-                     "warnings": warnings})
+                     "file": est.path, "limits_source": resolved.summary,
+                     "limits_guessed": resolved.guessed, "preflight": findings,
+                     "warnings": list(resolved.warnings)})
     elif not args.quiet:
         lines = summary_lines(findings) or [
             "Pre-flight: Klipper runs every command of this file on this printer"]
-        sys.stdout.write("%s\n" % est.path + "".join("  %s\n" % line for line in lines))
+        sys.stdout.write(printable(est.path) + "\n"
+                         + "".join("  %s\n" % printable(line) for line in lines))
+    _say_guessed(resolved)
     if est.stops_print:
         return EXIT_KLIPPER_STOPS
     return EXIT_OK
+
 
 def _parts_text(est: Estimate) -> str:
     """`` (motion 3m 42s + macros and prep 7m 00s, 7m 00s of it before the first
@@ -610,27 +734,103 @@ def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]
     }
 
 
-def _print_limits(doc: dict[str, Any], out: Any) -> None:
-    slicer = doc["slicer"]
-    lines = ["%s" % (doc["file"] or "(no file)")]
-    if slicer is not None:
-        lines.append("  slicer  : %s%s" % (slicer["name"], " " + slicer["version"]
-                                           if slicer["version"] else ""))
-    lines.append("  machine : %s" % (doc["machine"] or "none (no printer.cfg or Moonraker)"))
-    lines.append("  profile : %s" % (doc["profile"] or "none"))
-    width = max(len(field) for field in doc["limits"])
+# The unit of each limit, as `kestimator limits` shows it.
+LIMIT_UNITS = {
+    "max_velocity": "mm/s", "max_accel": "mm/s²", "square_corner_velocity": "mm/s",
+    "max_z_velocity": "mm/s", "max_z_accel": "mm/s²", "nozzle_diameter": "mm",
+    "filament_diameter": "mm", "max_extrude_cross_section": "mm²",
+    "max_extrude_only_velocity": "mm/s", "max_extrude_only_accel": "mm/s²",
+    "max_extrude_only_distance": "mm", "instantaneous_corner_velocity": "mm/s",
+    "arc_resolution": "mm", "retract_length": "mm", "retract_speed": "mm/s",
+    "unretract_extra_length": "mm", "unretract_speed": "mm/s", "max_accel_to_decel": "mm/s²",
+}
+SLICER_SOURCE_PREFIX = "slicer:"
+
+
+# What the printer config holds besides limits (its section names and macro texts): in
+# `limits --json`, not in the table, where a list of names would widen every row.
+TABLE_HIDDEN_LIMITS = frozenset(("configured_sections", "gcode_macros"))
+
+
+def limit_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """(setting, value, unit, source, what the slicer assumed) for every limit; the last is
+    empty unless the file's slicer settings proposed another value that lost."""
+    rows = []
     for field, entry in doc["limits"].items():
-        lines.append("  %-*s %-10s %s" % (width, field, _shown(entry["value"]),
-                                           entry["source"]))
+        if field in TABLE_HIDDEN_LIMITS:
+            continue
+        assumed = [c["value"] for c in entry["overridden"]
+                   if str(c["source"]).startswith(SLICER_SOURCE_PREFIX)]
+        rows.append((field, _shown(entry["value"]), LIMIT_UNITS.get(field, ""),
+                     str(entry["source"]),
+                     "" if not assumed or assumed[0] == entry["value"] else _shown(assumed[0])))
+    return rows
+
+
+def _limits_head(doc: dict[str, Any]) -> list[tuple[str, str]]:
+    slicer = doc["slicer"]
+    head = [("file", doc["file"] or "(no file)")]
+    if slicer is not None:
+        head.append(("slicer", slicer["name"] + (" " + slicer["version"]
+                                                 if slicer["version"] else "")))
+    head.append(("machine", doc["machine"] or "none (no printer.cfg or Moonraker)"))
+    head.append(("profile", doc["profile"] or "none"))
+    return head
+
+
+def _limits_tail(doc: dict[str, Any]) -> list[str]:
+    lines = []
     accelerations = doc["slicer_settings"]["accelerations"]
     if accelerations:
-        lines.append("  accelerations the file sets itself (mm/s^2, not limits): " + ", ".join(
+        lines.append("accelerations the file sets itself (mm/s², not limits): " + ", ".join(
             "%s %g" % (key, value) for key, value in accelerations.items()))
-    for note in doc["slicer_settings"]["notes"]:
-        lines.append("  note: " + note)
-    for warning in doc["warnings"]:
-        lines.append("  warning: " + warning)
+    lines.extend("note: " + note for note in doc["slicer_settings"]["notes"])
+    lines.extend("warning: " + w for w in doc["warnings"]
+                 if not w.startswith(GUESS_WARNING_START))  # that one is said on stderr
+    return lines
+
+
+def _print_limits(doc: dict[str, Any], out: Any) -> None:
+    """The limits as a table: setting, value and unit, where it came from, and what the
+    slicer assumed where its settings in the file say something else."""
+    lines = ["  %-8s: %s" % pair for pair in _limits_head(doc)]
+    rows = limit_rows(doc)
+    any_assumed = any(row[4] for row in rows)
+    titles = ("setting", "value", "unit", "source", "slicer assumed")
+    widths = [max(len(titles[i]), *(len(row[i]) for row in rows)) for i in range(3)]
+    header = "  %-*s  %*s %-*s  %s" % (widths[0], titles[0], widths[1], titles[1], widths[2],
+                                       titles[2], titles[3])
+    lines.append(header + ("  | " + titles[4] if any_assumed else ""))
+    for name, value, unit, source, assumed in rows:
+        line = "  %-*s  %*s %-*s  %s" % (widths[0], name, widths[1], value, widths[2], unit,
+                                         source)
+        lines.append(line + ("  | slicer: %s" % assumed if assumed else ""))
+    lines.extend("  " + text for text in _limits_tail(doc))
     out.write("\n".join(lines) + "\n")
+
+
+def _print_limits_rich(doc: dict[str, Any], console: Any) -> None:
+    """The same table drawn with rich."""
+    from rich import box
+    from rich.table import Table
+    from rich.text import Text
+
+    for label, text in _limits_head(doc):
+        console.print(Text.assemble(("%-8s " % label, "bold"), text))
+    rows = limit_rows(doc)
+    table = Table(box=box.SIMPLE_HEAD)
+    table.add_column("Setting")
+    table.add_column("Value", justify="right")
+    table.add_column("Unit")
+    table.add_column("Source", overflow="fold")
+    assumed = any(row[4] for row in rows)
+    if assumed:
+        table.add_column("Slicer assumed", justify="right", style="yellow")
+    for row in rows:
+        table.add_row(*(Text(cell) for cell in (row if assumed else row[:4])))
+    console.print(table)
+    for text in _limits_tail(doc):
+        console.print(Text(text, style="yellow" if text.startswith("warning") else "dim"))
 
 
 def _shown(value: object) -> str:
@@ -651,7 +851,9 @@ def _shown(value: object) -> str:
 
 def cmd_limits(args: argparse.Namespace) -> int:
     """`kestimator limits`."""
-    resolved = resolve.resolve_limits(_limit_request(args, args.file))
+    if args.file is not None:
+        check_gcode_file(args.file)
+    resolved = _resolve(args, args.file)
     doc = limits_to_json(resolved, args.file)
     learned = _learned(args, resolved)
     doc["macros"] = {name: {"seconds": t.seconds, "source": t.source}
@@ -661,15 +863,20 @@ def cmd_limits(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
-        _print_limits(doc, sys.stdout)
+        console = _rich_console()
+        if console is None:
+            _print_limits(printable_doc(doc), sys.stdout)
+        else:
+            _print_limits_rich(printable_doc(doc), console)
         for name, entry in doc["macros"].items():
-            sys.stdout.write("  macro %s: %g s (%s)\n" % (name, entry["seconds"],
-                                                          entry["source"]))
+            sys.stdout.write(printable("  macro %s: %g s (%s)" % (
+                name, entry["seconds"], entry["source"])) + "\n")
         if learned is not None:
-            sys.stdout.write("Learned from %s's history (%s):\n" % (learned.url,
-                                                                     learned.learned_at))
+            sys.stdout.write(printable("Learned from %s's history (%s):" % (
+                learned.url, learned.learned_at)) + "\n")
             for line in learned.lines():
-                sys.stdout.write("  " + line + "\n")
+                sys.stdout.write("  " + printable(line) + "\n")
+    _say_guessed(resolved)
     return EXIT_OK
 
 
@@ -694,36 +901,102 @@ def cmd_learn(args: argparse.Namespace) -> int:
     learned = learn.learn_from_moonraker(url, resolved.limits, resolved.moonraker_api_key,
                                          max_jobs=max(1, args.jobs))
     path = learn.save(learned)
-    sys.stdout.write("Learned from %s: %d jobs read (%s), stored in %s\n" % (
-        url, learned.jobs_read, learned.learned_at, path))
+    sys.stdout.write(printable("Learned from %s: %d jobs read (%s), stored in %s" % (
+        url, learned.jobs_read, learned.learned_at, path)) + "\n")
     for line in learned.lines():
-        sys.stdout.write("  " + line + "\n")
+        sys.stdout.write("  " + printable(line) + "\n")
     for note in learned.notes:
-        sys.stdout.write("  note: " + note + "\n")
+        sys.stdout.write("  note: " + printable(note) + "\n")
     return EXIT_OK
+
+
+REPORT_EXTENSIONS = (".html", ".htm", ".xhtml")
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
+    extension = os.path.splitext(args.output)[1].lower()
     if not args.output:
         raise KestimatorError("-o names no file (an empty name)")
     check_gcode_file(args.file)
     if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
         raise KestimatorError("the report would overwrite the G-code it reports on: give "
                               "another -o", args.output)
-    limits, source, limit_warnings = resolve_limits(args, args.file)
+    if extension not in REPORT_EXTENSIONS:
+        raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
+                         "in a browser to save a picture)" % (extension or "a file without "
+                                                              "an extension"))
+    resolved = _resolve(args, args.file)
     _check_time_options(args)
-    resolved: ResolvedLimits = args.resolved
-    data = collect(args.file, limits, source, homing_time=args.homing_time,
-                   heat_time=args.heat_time, macros=args.macros,
-                   limit_warnings=limit_warnings, limit_sources=resolved.sources,
-                   guessed_limits=resolved.machine is None)
+    with _progress(args, "timing") as progress:
+        data = collect(args.file, resolved.limits, resolved.summary,
+                       homing_time=args.homing_time, heat_time=args.heat_time,
+                       macros=args.macros, limit_warnings=list(resolved.warnings),
+                       limit_sources=resolved.sources, guessed_limits=resolved.guessed,
+                       bytes_read=progress)
     page = render_html(data)
     write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
-        sys.stdout.write("kestimator: wrote %s (Klipper time %s)\n"
-                         % (printable(args.output), format_duration(data.estimate.total_s)))
+        approximate = ", approximate: the limits are guesses" if resolved.guessed else ""
+        sys.stdout.write(printable("kestimator: wrote %s (Klipper time %s%s)" % (
+            args.output, format_duration(data.estimate.total_s), approximate)) + "\n")
+    _say_guessed(resolved)
     return EXIT_OK
+
+
+class UsageError(KestimatorError):
+    """A wrong command line found after parsing: one line, exit status 2."""
+
+
+# The commands; options given before one of them are moved after it.
+COMMANDS = ("estimate", "inject", "limits", "report", "learn")
+_TOP_LEVEL_ONLY = frozenset(("-h", "--help", "-V", "--version"))
+# Options whose value is a path: a value with an unquoted space or Windows backslashes is
+# explained (a slicer's post-processing line splits at spaces).
+_PATH_OPTIONS = frozenset(("--printer-cfg", "--profile", "-o", "--output"))
+
+
+def _fix_argv(argv: list[str]) -> list[str]:
+    """`kestimator FILE` runs `estimate FILE`; options before the command go after it."""
+    if any(arg in _TOP_LEVEL_ONLY for arg in argv) and not any(a in COMMANDS for a in argv):
+        return argv
+    index = next((i for i, arg in enumerate(argv) if arg in COMMANDS), None)
+    if index is None:
+        # `kestimator FILE`: the first word that is not an option names an existing file.
+        first = next((arg for arg in argv if not arg.startswith("-")), None)
+        if first is None or not os.path.isfile(first):
+            return argv
+        return ["estimate", *argv]
+    if index == 0 or any(arg in _TOP_LEVEL_ONLY for arg in argv[:index]):
+        return argv
+    return [argv[index], *argv[:index], *argv[index + 1:]]
+
+
+def _path_mistake(argv: list[str]) -> str | None:
+    """One line on a path option whose value a slicer's hook line cut at a space, or that is
+    written with Windows backslashes where it does not exist."""
+    for i, arg in enumerate(argv[:-1]):
+        option, equals, value = arg.partition("=")
+        if option not in _PATH_OPTIONS:
+            continue
+        start = i if equals else i + 1
+        value = value if equals else argv[start]
+        if option in ("-o", "--output") or os.path.exists(value):
+            continue
+        joined = value
+        for extra in argv[start + 1:]:
+            joined += " " + extra
+            if os.path.exists(joined):
+                return ("%s %s does not exist, but %s does: the path has a space, so quote it "
+                        "(in a slicer's post-processing line too): %s \"%s\""
+                        % (option, printable(value), printable(joined), option,
+                           printable(joined)))
+        if "\\" in value:
+            return ("%s %s does not exist: write the path with forward slashes (C:/Users/...) "
+                    "and quote it if it has a space, e.g. %s \"%s\""
+                    % (option, printable(value), option,
+                       printable(value.replace("\\", "/"))))
+    return None
 
 
 def _error_text(exc: KestimatorError) -> str:
@@ -820,14 +1093,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout = real_stdout
 
 
-def printable(text: str) -> str:
-    """`text` (a path, a message) on one line: control characters shown as escapes."""
-    return "".join(ch if ch.isprintable() else ascii(ch)[1:-1] for ch in text)
-
-
 def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     parser = _build_parser()
-    args = parser.parse_args(argv)
+    arguments = _fix_argv(list(sys.argv[1:] if argv is None else argv))
+    mistake = _path_mistake(arguments)
+    if mistake is not None:
+        sys.stderr.write("kestimator: error: %s\n" % mistake)
+        return EXIT_USAGE
+    args = parser.parse_args(arguments)
     args.written = written
     if args.command is None:
         parser.print_help(sys.stderr)
@@ -845,6 +1118,9 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
             return cmd_report(args)
         if args.command == "learn":
             return cmd_learn(args)
+    except UsageError as exc:
+        sys.stderr.write("kestimator: error: %s\n" % _error_text(exc))
+        return EXIT_USAGE
     except KestimatorError as exc:
         if args.debug or getattr(args, "sub_debug", False):
             traceback.print_exc()
@@ -867,7 +1143,7 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
             traceback.print_exc()
         sys.stderr.write("kestimator: internal error: %s: %s (run with --debug for the "
                          "traceback and please report it)\n"
-                         % (type(exc).__name__, str(exc).replace("\n", " ")))
+                         % (type(exc).__name__, printable(str(exc).replace("\n", " "))))
         return EXIT_INTERNAL
     parser.error("unknown command %r" % args.command)
     return EXIT_USAGE

@@ -15,8 +15,10 @@ import re
 from typing import Any, TextIO
 
 from kestimator import __version__
+from kestimator.config.resolve import GUESS_WARNING_START
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate
+from kestimator.estimate import KIND_UNKNOWN, Estimate
+from kestimator.interpreter import KIND_MACRO
 from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
 
@@ -38,6 +40,46 @@ _SLICER_M_RE = re.compile(r"^;Filament used: ([\d.]+)m\s*$", re.M)  # Cura
 _SLICER_G_RE = re.compile(r"^; (?:total )?filament used \[g\] = (.+)$", re.M)
 _DIAMETER_RE = re.compile(r"^; filament_diameter ?[=:] ?([\d.,\s]+)$", re.M)
 _DENSITY_RE = re.compile(r"^; filament_density ?[=:] ?([\d.,\s]+)$", re.M)
+
+
+# Characters never written to a terminal as they are: C0 and C1 controls, DEL, the bidi
+# overrides and isolates (they reorder what follows), and lone surrogates (undecodable bytes
+# read with surrogateescape).
+_UNSAFE_RE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069"
+                        "\ud800-\udfff]")
+
+
+def _escaped(match: re.Match[str]) -> str:
+    code = ord(match.group())
+    if code in _SPACES:  # a message stays one line: breaks and tabs shown as escapes
+        return _SPACES[code]
+    if 0xDC80 <= code <= 0xDCFF:  # a byte surrogateescape could not decode
+        return "\\x%02x" % (code - 0xDC00)
+    return "\\x%02x" % code if code < 0x100 else "\\u%04x" % code
+
+
+_SPACES = {0x09: "\\t", 0x0A: "\\n", 0x0D: "\\r"}
+
+
+def printable(text: str) -> str:
+    """`text` safe for a terminal, on one line: every control character is shown as an
+    escape (`\\n`, `\\x1b`).
+
+    Everything kestimator prints that came from a file, a server or a path goes through
+    this."""
+    return _UNSAFE_RE.sub(_escaped, text)
+
+
+def printable_doc(value: Any) -> Any:
+    """A copy of a JSON-like document with every string (keys too) made `printable`."""
+    if isinstance(value, str):
+        return printable(value)
+    if isinstance(value, dict):
+        return {printable(k) if isinstance(k, str) else k: printable_doc(v)
+                for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [printable_doc(v) for v in value]
+    return value
 
 
 def _numbers(text: str) -> list[float]:
@@ -112,13 +154,15 @@ def _rounded(value: float | None) -> float | None:
 
 def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
                      extra_warnings: list[str],
-                     filament: dict[str, Any] | None = None) -> dict[str, Any]:
+                     filament: dict[str, Any] | None = None,
+                     limits_guessed: bool = False) -> dict[str, Any]:
     """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md)."""
     ends = [t for _, t in est.layers[1:]] + [est.total_s] if est.layers else []
     slicer_s = slicer.estimate_s
     # The slicer times the moves: it is compared with Klipper's motion time.
     motion_s = est.parts.motion_s
     difference = None if slicer_s is None else slicer_s - motion_s
+    parts = parts_to_json(est)
     return {
         "schema": JSON_SCHEMA_VERSION,
         "kestimator": __version__,
@@ -127,7 +171,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "first_layer_s": _rounded(est.first_layer_s),
         "layer_count": len(est.layers),
         "layers": [{"line": line, "t": round(t, 6), "duration_s": round(max(end - t, 0.0), 6)}
-                   for (line, t), end in zip(est.layers, ends, strict=True)],
+                   for (line, t), end in zip(est.layers, ends)],
         "features": {name: round(t, 6) for name, t in est.features.items()},
         "objects": {name: round(t, 6) for name, t in est.objects.items()},
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
@@ -138,12 +182,15 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "filament": filament if filament is not None
         else filament_to_json(est, read_slicer_filament(est.path)),
         "limits_source": limits_source,
+        "limits_guessed": limits_guessed,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
         "commands": est.commands,
+        "untimed_commands": untimed_by_kind(est, {source["name"]
+                                                  for source in parts["sources"]}),
         "preflight": [finding.to_json() for finding in est.preflight],
-        "parts": parts_to_json(est),
+        "parts": parts,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
     }
@@ -192,13 +239,6 @@ def parts_rows(doc: dict[str, Any]) -> list[tuple[str, str]]:
     return rows
 
 
-def untimed_commands(doc: dict[str, Any]) -> dict[str, int]:
-    """Commands Klipper does not know that no time was given for (they count 0 s)."""
-    timed = {source["name"] for source in doc["parts"]["sources"]}
-    return {name: count for name, count in doc["ignored_commands"].items()
-            if name not in timed}
-
-
 def set_slicer_estimate(doc: dict[str, Any], slicer_s: float | None) -> None:
     """Replace the slicer's estimate in `doc` (inject looks through its own marker)."""
     total = doc["parts"]["motion_s"]
@@ -208,6 +248,95 @@ def set_slicer_estimate(doc: dict[str, Any], slicer_s: float | None) -> None:
     slicer["difference_s"] = _rounded(difference)
     slicer["difference_pct"] = (None if difference is None or not total
                                 else round(PERCENT * difference / total, 3))
+
+
+def approximate_text(doc: dict[str, Any]) -> str:
+    """What follows Klipper's time when the limits were guessed ("" when they were not)."""
+    return "approximate: the limits are guesses" if doc.get("limits_guessed") else ""
+
+
+def shown_warnings(doc: dict[str, Any], verbose: bool = False) -> list[str]:
+    """The warnings the summary lists: not the guessed-limits one (said on stderr), and the
+    one-per-command ones only with --verbose (the grouped summary says what they say)."""
+    return [w for w in doc["warnings"]
+            if not (doc.get("limits_guessed") and w.startswith(GUESS_WARNING_START))
+            and (verbose or _PER_COMMAND_WARNING_RE.search(w) is None)]
+
+
+# Commands of Klipper's optional modules (extras) a print file often holds: known to a printer
+# that configures the module; kestimator counts no time for them.
+MODULE_COMMANDS = frozenset((
+    "EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT",
+    "SET_PRINT_STATS_INFO", "BED_MESH_CALIBRATE", "BED_MESH_PROFILE", "BED_MESH_CLEAR",
+    "BED_MESH_OFFSET", "QUAD_GANTRY_LEVEL", "Z_TILT_ADJUST", "SCREWS_TILT_CALCULATE",
+    "PROBE", "PROBE_CALIBRATE", "SAVE_GCODE_STATE", "RESTORE_GCODE_STATE", "SET_GCODE_OFFSET",
+    "SET_SKEW", "SKEW_PROFILE", "SET_FAN_SPEED", "SET_LED", "SET_PIN", "SET_SERVO",
+    "SET_FILAMENT_SENSOR", "SET_TMC_CURRENT", "SET_STEPPER_ENABLE", "SET_KINEMATIC_POSITION",
+    "SET_HEATER_TEMPERATURE", "TEMPERATURE_WAIT", "M486", "PAUSE", "RESUME", "CANCEL_PRINT",
+    "SDCARD_RESET_FILE", "SET_Z_FADE", "SET_TEMPERATURE_FAN_TARGET", "SET_DISPLAY_GROUP",
+    "ACTIVATE_EXTRUDER", "SET_PRESSURE_ADVANCE", "SET_INPUT_SHAPER", "FIRMWARE_RESTART",
+))
+# Kinds of untimed commands, in the order the summary names them: (kind, one, many).
+UNTIMED_KINDS = (("macro", "macro", "macros"),
+                 ("module", "module command", "module commands"),
+                 ("unknown", "unknown command", "unknown commands"))
+# Warnings that repeat, one per command, what the grouped summary says (shown with -v).
+_PER_COMMAND_WARNING_RE = re.compile(r"'[^']*' is not a Klipper command: |: macros ran: |"
+                                     r"^macros ran: |macros of the printer config ran: ")
+# The estimate's record of untimed commands (Estimate.commands) uses these kinds.
+_RECORD_MACRO = KIND_MACRO
+_RECORD_UNKNOWN = KIND_UNKNOWN
+
+
+def untimed_by_kind(est: Estimate, timed: set[str]) -> dict[str, dict[str, int]]:
+    """The commands whose time is not counted, by kind (`UNTIMED_KINDS`): name -> runs.
+
+    From the estimate's record (`Estimate.commands`): the printer config's template macros
+    are macros (the no-time commands of modules it configures are timed right: 0 s); of the
+    commands Klipper does not know, those of Klipper's optional modules are module commands,
+    those
+    that look like G-code (Marlin's M201, M900...) unknown commands, and the rest macros
+    (of a printer whose config was not given; the pre-flight says when Klipper skips one).
+    Commands the profile's [macros] or learned times give a time are left out.
+    """
+    record = est.commands
+    groups: dict[str, dict[str, int]] = {kind: {} for kind, _, _ in UNTIMED_KINDS}
+    groups["macro"].update({name: runs for name, runs in record.get(_RECORD_MACRO, {}).items()
+                            if name not in timed})
+    for name, runs in record.get(_RECORD_UNKNOWN, {}).items():
+        if name in timed:
+            continue
+        if name in MODULE_COMMANDS:
+            kind = "module"
+        elif len(name) >= 2 and name[0] in "GMTD" and name[1].isdigit():
+            kind = "unknown"
+        else:
+            kind = "macro"
+        groups[kind][name] = groups[kind].get(name, 0) + runs
+    return {kind: dict(sorted(names.items())) for kind, names in groups.items() if names}
+
+
+def untimed_summary(doc: dict[str, Any]) -> str | None:
+    """`3 macros and 2 module commands: their time is not counted (-v lists them)`."""
+    groups = doc.get("untimed_commands") or {}
+    parts = []
+    for kind, one, many in UNTIMED_KINDS:
+        count = len(groups.get(kind, {}))
+        if count:
+            parts.append("%d %s" % (count, one if count == 1 else many))
+    if not parts:
+        return None
+    listed = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    return "%s: %s not counted (--verbose lists them)" % (
+        listed, "its time is" if sum(len(v) for v in groups.values()) == 1
+        else "their time is")
+
+
+def untimed_detail(doc: dict[str, Any]) -> list[str]:
+    """One line per kind naming each untimed command and how often it ran (--verbose)."""
+    groups = doc.get("untimed_commands") or {}
+    return ["%s: %s" % (many, ", ".join("%s x%d" % kv for kv in groups[kind].items()))
+            for kind, _, many in UNTIMED_KINDS if groups.get(kind)]
 
 
 def slicer_label(doc: dict[str, Any]) -> str:
@@ -256,15 +385,19 @@ def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
             for name, t in sorted(doc["features"].items(), key=lambda kv: -kv[1])]
 
 
-def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False) -> None:
+def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
+               verbose: bool = False) -> None:
     """The plain-text summary (stdout is not a terminal, or rich is not installed)."""
     total = doc["total_s"]
+    approximate = approximate_text(doc)
+    approximate = ", " + approximate if approximate else ""
     parts = parts_rows(doc)
     lines = ["%s" % doc["file"]]
     if parts:
-        lines.append("  %-12s : %s" % parts[0])
+        lines.append("  %-12s : %s%s" % (parts[0] + (approximate,)))
     else:
-        lines.append("  Klipper time : %s (%.3f s)" % (format_duration(total), total))
+        lines.append("  Klipper time : %s (%.3f s)%s" % (format_duration(total), total,
+                                                        approximate))
     for label, text in parts[1:]:
         lines.append("  %-12s %s %s" % (label, ":" if label else " ", text))
     slicer = doc["slicer"]
@@ -285,20 +418,31 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False) -> None:
         for feature, t, share in rows:
             lines.append("    %-*s %10s %5.1f %%" % (
                 FEATURE_NAME_WIDTH, feature[:FEATURE_NAME_WIDTH], format_duration(t), share))
+    lines.extend(summary_tail_lines(doc, verbose))
+    table: list[str] = []
     if layers and doc["layers"]:
-        lines.append("  Time per layer:")
-        lines.append("    %5s %8s %10s %10s" % ("layer", "line", "starts", "takes"))
+        table.append("Time per layer (the summary follows the table):")
+        table.append("  %5s %8s %10s %10s" % ("layer", "line", "starts", "takes"))
         for number, layer in enumerate(doc["layers"], 1):
-            lines.append("    %5d %8d %10s %10s" % (number, layer["line"],
-                                                    format_duration(layer["t"]),
-                                                    format_duration(layer["duration_s"])))
-    untimed = untimed_commands(doc)
-    if untimed:
-        lines.append("  Not Klipper commands (0 s): " + ", ".join(
-            "%s x%d" % kv for kv in untimed.items()))
-    lines.extend("  " + line for line in summary_lines(doc["preflight"]))
-    for warning in doc["warnings"]:
+            table.append("  %5d %8d %10s %10s" % (number, layer["line"],
+                                                  format_duration(layer["t"]),
+                                                  format_duration(layer["duration_s"])))
+    # The layer table first and the summary last: with hundreds of layers the summary
+    # stays on screen.
+    out.write("\n".join(table + lines) + "\n")
+
+
+def summary_tail_lines(doc: dict[str, Any], verbose: bool = False) -> list[str]:
+    """The untimed commands (grouped, or per kind with --verbose) and the warnings."""
+    lines = ["  " + printable(line) for line in summary_lines(doc["preflight"])]
+    summary = untimed_summary(doc)
+    if summary is not None:
+        if verbose:
+            lines.extend("  Not counted, " + text for text in untimed_detail(doc))
+        else:
+            lines.append("  " + summary)
+    for warning in shown_warnings(doc, verbose):
         lines.append("  warning: " + warning)
     if doc["warnings_dropped"]:
         lines.append("  warning: %d more warnings not shown" % doc["warnings_dropped"])
-    out.write("\n".join(lines) + "\n")
+    return lines

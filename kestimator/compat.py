@@ -38,7 +38,7 @@ from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
 
 from kestimator import __version__
-from kestimator.cli_output import parts_to_json
+from kestimator.cli_output import parts_to_json, printable
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
@@ -67,6 +67,11 @@ OTHER_KIND = "Other"
 SAME_Z_MM = sys.float_info.epsilon
 LAYER_Z_DECIMALS = 3
 STDIN_NAME = "-"
+# The guessed-limits line's fix, in terms this program accepts (Moonraker passes only
+# --config_file to post-process and estimate).
+COMPAT_GUESS_FIX = ("name the printer in kestimator's profile (printer_cfg or moonraker in "
+                    "~/.config/kestimator/config.toml of the user Moonraker runs as), or pass "
+                    "--config_moonraker_url URL")
 # An internal error's text is cut to this many characters (it may quote a file or a server).
 MAX_ERROR_CHARS = 300
 
@@ -147,12 +152,12 @@ def _build_parser() -> argparse.ArgumentParser:
 def _request(args: argparse.Namespace, gcode: str | None) -> LimitRequest:
     return LimitRequest(gcode=gcode, moonraker_url=args.config_moonraker_url,
                         api_key=args.api_key, estimator_config=args.config_file,
-                        read_slicer_environment=False)
+                        read_slicer_environment=False, guess_fix=COMPAT_GUESS_FIX)
 
 
 def _warn(resolved: ResolvedLimits, err: TextIO) -> None:
     for warning in resolved.warnings:
-        err.write("kestimator-compat: warning: %s\n" % warning)
+        err.write("kestimator-compat: warning: %s\n" % printable(warning))
 
 
 def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
@@ -201,7 +206,7 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     check_gcode_file(path)
     resolved = resolve_limits(_request(args, path))
     _warn(resolved, err)
-    result = inject_file(path, resolved.limits, limits_source=resolved.summary,
+    result = inject_file(path, resolved.limits, limits_source=resolved.marker_source,
                          homing_time=resolved.homing_time_s or 0.0,
                          heat_time=resolved.heat_time_s or 0.0,
                          macros=macro_times_for(resolved), finish=append_ident_line)

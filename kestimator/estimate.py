@@ -17,9 +17,17 @@ import re
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from typing import Final
 
 from kestimator.errors import KestimatorError
-from kestimator.gcode import Command, extended_params, parse_line, parse_plain_move
+from kestimator.gcode import (
+    SCAN_PLAIN_MOVES,
+    Command,
+    extended_params,
+    parse_line,
+    parse_plain_move_regex,
+    parse_plain_move_scan,
+)
 from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter, ParamError
 from kestimator.limits import Limits
 from kestimator.macros import (
@@ -41,34 +49,34 @@ OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
 # M486's A parameter: the current object's name, to the end of the code.
 _M486_LABEL_RE = re.compile(r"^\s*M486\b.*?\sA(\S.*)$", re.IGNORECASE)
 # Comment markers that start a layer.
-LAYER_MARKERS = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
+LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
-FEATURE_MARKERS = (";TYPE:", "; FEATURE:")
-ADD_TIME_MARKER = "ESTIMATOR_ADD_TIME"
+FEATURE_MARKERS: Final = (";TYPE:", "; FEATURE:")
+ADD_TIME_MARKER: Final = "ESTIMATOR_ADD_TIME"
 # Estimate.commands kind of commands Klipper does not know.
-KIND_UNKNOWN = "unknown"
+KIND_UNKNOWN: Final = "unknown"
 # Feature name for moves before the first feature marker.
-NO_FEATURE = "(none)"
+NO_FEATURE: Final = "(none)"
 # Object name for moves outside every labelled object (start, travel between objects, end).
-NO_OBJECT = "(no object)"
+NO_OBJECT: Final = "(no object)"
 # `; printing object NAME` / `; stop printing object NAME` (PrusaSlicer, SuperSlicer, Orca).
-OBJECT_COMMENT = ";printing object"
-OBJECT_STOP_COMMENT = ";stop printing object"
+OBJECT_COMMENT: Final = ";printing object"
+OBJECT_STOP_COMMENT: Final = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
-MAX_WARNINGS = 100
-READ_BUFFER_BYTES = 1 << 20
+MAX_WARNINGS: Final = 100
+READ_BUFFER_BYTES: Final = 1 << 20
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
-MAX_SAMPLES = 65536
-FIRST_SAMPLE_SPACING_S = 0.01
+MAX_SAMPLES: Final = 65536
+FIRST_SAMPLE_SPACING_S: Final = 0.01
 # Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
 # kept, and the cache is emptied when full).
-MAX_CACHED_COMMANDS = 4096
-MAX_CACHED_COMMAND_CHARS = 200
+MAX_CACHED_COMMANDS: Final = 4096
+MAX_CACHED_COMMAND_CHARS: Final = 200
 # An ESTIMATOR_ADD_TIME label is kept to this many characters.
-MAX_LABEL_CHARS = 60
+MAX_LABEL_CHARS: Final = 60
 # A progress callback hears about once per this many bytes read.
-PROGRESS_EVERY_BYTES = 1 << 20
+PROGRESS_EVERY_BYTES: Final = 1 << 20
 
 
 @dataclasses.dataclass
@@ -392,7 +400,7 @@ class Timeline:
 
     def _final_warnings(self) -> list[str]:
         return [w if not n else "%s (%d more like it)" % (w, n)
-                for w, n in zip(self.warnings, self._warning_repeats, strict=True)]
+                for w, n in zip(self.warnings, self._warning_repeats)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
         if self._rest_until and self.toolhead.lookahead.is_empty():
@@ -409,27 +417,29 @@ class Timeline:
     # Per line
     def feed(self, raw: bytes) -> None:
         """Process one line (bytes, with or without its line ending)."""
-        self.lineno += 1
-        values = parse_plain_move(raw)
-        if values is None:
-            self._feed_other(raw)
-            return
-        # A plain G0/G1 line: the same effect as `_feed_other`, without building a Command.
-        if self.first_command_line is None:
-            self.first_command_line = self.lineno
-        interp = self.interp
-        interp.tag = self.lineno
-        try:
-            interp.plain_move(*values)
-        except MoveError as exc:
-            interp.reset_last_position()
-            self._reject(raw.decode("utf-8", "replace").strip(), exc)
+        self.feed_lines((raw,))
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
-        """Process every line of `lines` (the same as `feed` on each)."""
-        feed = self.feed
+        """Process every line of `lines`, in order."""
+        interp = self.interp
         for raw in lines:
-            feed(raw)
+            self.lineno += 1
+            if SCAN_PLAIN_MOVES:
+                plain, x, y, z, e, f = parse_plain_move_scan(raw)
+            else:
+                plain, x, y, z, e, f = parse_plain_move_regex(raw)
+            if not plain:
+                self._feed_other(raw)
+                continue
+            # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
+            if self.first_command_line is None:
+                self.first_command_line = self.lineno
+            interp.tag = self.lineno
+            try:
+                interp.plain_move(x, y, z, e, f)
+            except MoveError as exc:
+                interp.reset_last_position()
+                self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""

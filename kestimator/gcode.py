@@ -13,7 +13,8 @@ from __future__ import annotations
 import re
 import shlex
 import sys
-from typing import NamedTuple
+import types
+from typing import Final, NamedTuple
 
 _ARGS_RE = re.compile(r"([A-Z_]+|[A-Z*])")
 
@@ -76,9 +77,10 @@ def parse_line(line: str) -> Command:
 # Klipper keeps the last of repeated parameters (a dict), and so do both parsers below.
 #
 # Two implementations give identical results (tests/test_gcode_fast_parse.py pins both
-# against `parse_line` on every corpus line and on fuzzed lines). CPython runs the regex:
-# its matching happens in C, which beats any per-byte Python loop. PyPy's JIT runs a
-# per-byte scanner about 3x faster than its regex engine.
+# against `parse_line` on every corpus line and on fuzzed lines). Pure CPython runs the
+# regex: its matching happens in C, which beats any per-byte Python loop. PyPy's JIT and the
+# mypyc-compiled build (see setup.py) run the per-byte scanner, 3x faster than the regex
+# there.
 _NUMBER = rb"([-+.0-9]+)"
 # Order X Y Z E F (PrusaSlicer, Orca, Slic3r) or F first (Cura, ideaMaker): F may stand
 # first or last; if it stands in both places, the last one counts, as in Klipper.
@@ -87,43 +89,47 @@ _PLAIN_MOVE_RE = re.compile(
     % ((_NUMBER,) * 6), re.DOTALL)
 _plain_move_match = _PLAIN_MOVE_RE.fullmatch
 # Longer lines take the general path (no number there can overflow to inf).
-_PLAIN_MOVE_MAX_BYTES = 200
-MoveValues = tuple["float | None", "float | None", "float | None", "float | None",
-                   "float | None"]
+_PLAIN_MOVE_MAX_BYTES: Final = 200
+# What the plain-move parsers return: whether the line is a plain move, then X, Y, Z, E
+# and F, with ABSENT (NaN) for a parameter the line does not give. NaN never comes from a
+# number here (digits, '.', '+' and '-' only), so `v == v` means "given". A bool and five
+# floats: the compiled build returns them in registers, with no object per line.
+MoveValues = tuple[bool, float, float, float, float, float]
+ABSENT: Final = float("nan")
+NOT_PLAIN: Final = (False, ABSENT, ABSENT, ABSENT, ABSENT, ABSENT)
 
 
-def parse_plain_move_regex(raw: bytes) -> MoveValues | None:
-    """(X, Y, Z, E, F) of a plain `G0`/`G1` byte line (None for an absent parameter).
+def parse_plain_move_regex(raw: bytes) -> MoveValues:
+    """(True, X, Y, Z, E, F) of a plain `G0`/`G1` byte line (ABSENT for a missing one).
 
-    Gives exactly what `parse_line` and float() give for the same line, or None when the
-    line is not plain (or a value is not a number, or F is not above 0): the caller then
-    uses `parse_line`, which reports the problem as Klipper would.
+    Gives exactly what `parse_line` and float() give for the same line, or NOT_PLAIN when
+    the line is not plain (or a value is not a number, or F is not above 0): the caller
+    then uses `parse_line`, which reports the problem as Klipper would.
     """
     match = _plain_move_match(raw)
     if match is None or len(raw) > _PLAIN_MOVE_MAX_BYTES:
-        return None
+        return NOT_PLAIN
     f0, x, y, z, e, f = match.groups()
     if f is None:
         f = f0
     try:
-        values = (None if x is None else float(x), None if y is None else float(y),
-                  None if z is None else float(z), None if e is None else float(e),
-                  None if f is None else float(f))
+        values = (True, ABSENT if x is None else float(x), ABSENT if y is None else float(y),
+                  ABSENT if z is None else float(z), ABSENT if e is None else float(e),
+                  ABSENT if f is None else float(f))
     except ValueError:
-        return None
-    speed = values[4]
-    if speed is not None and not speed > 0.0:
-        return None
+        return NOT_PLAIN
+    if f is not None and not values[5] > 0.0:
+        return NOT_PLAIN
     return values
 
 
 # 10**k for the decimals a G-code number has: exact as floats up to 10**22.
-_POW10 = tuple(10.0**k for k in range(23))
+_POW10: Final = tuple(10.0**k for k in range(23))
 # Up to this many digits the integer mantissa is exact as a float (< 2**53).
-_EXACT_DIGITS = 15
+_EXACT_DIGITS: Final = 15
 
 
-def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
+def parse_plain_move_scan(raw: bytes) -> MoveValues:
     """The same as `parse_plain_move_regex`, by one pass over the bytes (for PyPy).
 
     A number with at most 15 digits and k decimals is its integer mantissa divided by
@@ -132,11 +138,11 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
     """
     n = len(raw)
     if n < 3 or n > _PLAIN_MOVE_MAX_BYTES or raw[0] != 71 or raw[2] != 32:  # "G", " "
-        return None
+        return NOT_PLAIN
     code = raw[1]
     if code != 49 and code != 48:  # "1", "0"
-        return None
-    x = y = z = e = f = None
+        return NOT_PLAIN
+    x = y = z = e = f = ABSENT
     i = 3
     while i < n:
         c = raw[i]
@@ -148,7 +154,7 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
         if c == 13:  # CR: only as the line ending
             if i + 1 == n or (i + 2 == n and raw[i + 1] == 10):
                 break
-            return None
+            return NOT_PLAIN
         i += 1
         start = i
         negative = False
@@ -159,12 +165,15 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
                 i += 1
             elif d == 43:  # "+"
                 i += 1
-        mantissa = digits = 0
+        # The mantissa is summed as a float: exact while it has at most 15 digits (below
+        # 2**53), the only case it is used in.
+        mantissa = 0.0
+        digits = 0
         point = -1
         while i < n:
             d = raw[i]
             if 48 <= d <= 57:
-                mantissa = mantissa * 10 + (d - 48)
+                mantissa = mantissa * 10.0 + (d - 48)
                 digits += 1
             elif d == 46 and point < 0:  # the first "."
                 point = digits
@@ -172,11 +181,11 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
                 break
             i += 1
         if not digits:
-            return None
+            return NOT_PLAIN
         if i < n:
             d = raw[i]
             if d != 32 and d != 59 and d != 10 and d != 13:
-                return None
+                return NOT_PLAIN
         if digits <= _EXACT_DIGITS:
             v = mantissa / _POW10[0 if point < 0 else digits - point]
             if negative:
@@ -194,14 +203,19 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues | None:
         elif c == 90:  # Z
             z = v
         else:
-            return None
-    if f is not None and not f > 0.0:
-        return None
-    return x, y, z, e, f
+            return NOT_PLAIN
+    if f == f and not f > 0.0:
+        return NOT_PLAIN
+    return True, x, y, z, e, f
 
 
-parse_plain_move = (parse_plain_move_scan if sys.implementation.name == "pypy"
-                    else parse_plain_move_regex)
+# True when this module is the mypyc-compiled extension (`pip install .` with a C compiler).
+# (mypyc turns functions into builtins; a module's __file__ is not set while a compiled
+# module initialises under every mypyc version, so it cannot tell.)
+COMPILED: Final = not isinstance(split_comment, types.FunctionType)
+# Which plain-move parser runs (see above); callers branch on this constant rather than
+# calling through a variable, so the compiled build calls the parser directly.
+SCAN_PLAIN_MOVES: Final = sys.implementation.name == "pypy" or COMPILED
 
 
 def extended_params(code: str) -> dict[str, str]:

@@ -14,9 +14,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import overload
+from typing import Final, overload
 
-from kestimator.gcode import Command, extended_params, parse_line
+from kestimator.gcode import ABSENT, Command, extended_params, parse_line
 from kestimator.klipper_modules import (
     COMMAND_MODULE,
     HEATER_BED_WAIT,
@@ -39,14 +39,14 @@ from kestimator.stepgen import (
 from kestimator.toolhead import MoveError, ToolHead
 
 # Klipper's default G-code speed: 25 mm/s.
-DEFAULT_SPEED_V = 25.0
-MM_PER_MIN_TO_MM_PER_S = 1.0 / 60.0
-MS_TO_S = 1.0 / 1000.0
-PERCENT = 100.0
+DEFAULT_SPEED_V: Final = 25.0
+MM_PER_MIN_TO_MM_PER_S: Final = 1.0 / 60.0
+MS_TO_S: Final = 1.0 / 1000.0
+PERCENT: Final = 100.0
 
 # Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
 # we model. Everything else is an unknown command to Klipper: ignored, and counted.
-NO_TIME_COMMANDS = frozenset((
+NO_TIME_COMMANDS: Final = frozenset((
     "M73", "M104", "M140", "M105", "M106", "M107", "M110", "M112", "M114", "M115", "M117",
     "M118", "M119", "M21", "G21", "ECHO", "STATUS", "HELP", "GET_POSITION", "QUERY_ENDSTOPS",
     "SET_HEATER_TEMPERATURE", "TURN_OFF_HEATERS", "SET_IDLE_TIMEOUT",
@@ -65,14 +65,14 @@ KIND_MODULE = "module"
 # kestimator.klipper_modules.
 ALWAYS_KNOWN_COMMANDS = NO_TIME_COMMANDS - frozenset(COMMAND_MODULE) - frozenset(("M300",))
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
-TEXT_COMMANDS = frozenset(("M117", "M118", "M23"))
+TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 # An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
-MAX_ARC_SEGMENTS = 100_000
-_AXES = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
+MAX_ARC_SEGMENTS: Final = 100_000
+_AXES: Final = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
-_MOVE_PARAMS = frozenset("XYZEFG")
+_MOVE_PARAMS: Final = frozenset("XYZEFG")
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
@@ -358,29 +358,29 @@ class Interpreter:
                           "move-param:" + key)
         self._move(self.speed)
 
-    def plain_move(self, x: float | None, y: float | None, z: float | None,
-                   e: float | None, f: float | None) -> None:
-        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move`).
+    def plain_move(self, x: float, y: float, z: float, e: float, f: float) -> None:
+        """G0/G1 from already parsed, valid values (`gcode.parse_plain_move_scan` or `_regex`).
 
-        The same arithmetic as `cmd_G1`, in the same order, without the text handling.
+        The same arithmetic as `cmd_G1`, in the same order, without the text handling. A
+        parameter the line does not give is `gcode.ABSENT` (NaN, so `v == v` is "given").
         """
         lp = self.last_position
         base = self.base_position
         if self.absolute_coord:
-            if x is not None:
+            if x == x:
                 lp[0] = x + base[0]
-            if y is not None:
+            if y == y:
                 lp[1] = y + base[1]
-            if z is not None:
+            if z == z:
                 lp[2] = z + base[2]
         else:
-            if x is not None:
+            if x == x:
                 lp[0] += x
-            if y is not None:
+            if y == y:
                 lp[1] += y
-            if z is not None:
+            if z == z:
                 lp[2] += z
-        if e is not None:
+        if e == e:
             e *= self.extrude_factor
             if self.absolute_coord and self.absolute_extrude:
                 lp[3] = e + base[3]
@@ -388,7 +388,7 @@ class Interpreter:
                 lp[3] += e
             if not self.extrude_mode_set:
                 self.moved_e_before_mode = True
-        if f is not None:
+        if f == f:
             self.speed = f * self.speed_factor
         self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
 
@@ -764,7 +764,7 @@ class Interpreter:
         if not self.absolute_coord:
             raise CommandError("G2/G3 does not support relative move mode")
         params = cmd.params
-        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position, strict=True)]
+        current = [lp - bp for lp, bp in zip(self.last_position, self.base_position)]
         current[3] /= self.extrude_factor
         target = [_float(params, "X", current[0]), _float(params, "Y", current[1]),
                   _float(params, "Z", current[2])]
@@ -852,7 +852,7 @@ class Interpreter:
         """cmd_G1 with numeric parameters (what gcode_arcs sends)."""
         if f is not None and not f > 0.0:
             raise CommandError("Invalid speed in arc (F%s)" % f)
-        self.plain_move(x, y, z, e, f)
+        self.plain_move(x, y, z, ABSENT if e is None else e, ABSENT if f is None else f)
 
     # Firmware retraction (firmware_retraction.py)
     def cmd_G10(self, cmd: Command) -> None:

@@ -16,20 +16,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from math import sqrt
+from typing import Final
 
 # Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
-EXTRUDE_ONLY_ACCEL = 99999999.9
+EXTRUDE_ONLY_ACCEL: Final = 99999999.9
 # No limit yet on the next junction.
-UNLIMITED_JUNCTION_V2 = 999999999.9
+UNLIMITED_JUNCTION_V2: Final = 999999999.9
 # A move shorter than this in XYZ is an extrude-only move.
-MIN_KINEMATIC_MOVE_D = 0.000000001
+MIN_KINEMATIC_MOVE_D: Final = 0.000000001
 # Seconds of queued moves after which the queue tries a lazy flush.
-LOOKAHEAD_FLUSH_TIME = 0.150
+LOOKAHEAD_FLUSH_TIME: Final = 0.150
 # LookAheadQueue.flush: this move cannot accelerate (upstream's cruise_v2 = None); every
 # real cruise_v2 is >= 0.
-NO_CRUISE_V2 = -1.0
+NO_CRUISE_V2: Final = -1.0
 
-_sqrt = math.sqrt
 
 
 class Move:
@@ -51,6 +52,19 @@ class Move:
         "instant_corner_v", "tag", "timing_callbacks",
         "flush_start_v2", "flush_cruise_v2", "flush_next_start_v2",
     )
+
+    # Set by LookAheadQueue.flush: its junction_info for this move (upstream keeps a tuple
+    # per move in a list; NO_CRUISE_V2 stands for its cruise_v2 of None).
+    flush_start_v2: float
+    flush_cruise_v2: float
+    flush_next_start_v2: float
+    # Set by set_junction: the planned profile.
+    start_v: float
+    cruise_v: float
+    end_v: float
+    accel_t: float
+    cruise_t: float
+    decel_t: float
 
     def __init__(self, start_x: float, start_y: float, start_z: float, start_e: float,
                  end_x: float, end_y: float, end_z: float, end_e: float, speed: float,
@@ -77,7 +91,7 @@ class Move:
         dy = end_y - start_y
         dz = end_z - start_z
         de = end_e - start_e
-        move_d = _sqrt(dx * dx + dy * dy + dz * dz)
+        move_d = sqrt(dx * dx + dy * dy + dz * dz)
         if move_d < MIN_KINEMATIC_MOVE_D:
             # Extrude only move
             self.end_x = start_x
@@ -106,18 +120,12 @@ class Move:
         # Junction speeds are tracked in velocity squared.  The delta_v2 is the maximum
         # amount of this squared-velocity that can change in this move.
         self.max_start_v2 = 0.0
-        self.max_cruise_v2 = velocity**2
+        self.max_cruise_v2 = math.pow(velocity, 2.0)  # upstream: velocity**2
         self.delta_v2 = 2.0 * move_d * self.accel
         self.next_junction_v2 = UNLIMITED_JUNCTION_V2
         # Setup for minimum_cruise_ratio checks
         self.max_mcr_start_v2 = 0.0
         self.mcr_delta_v2 = 2.0 * move_d * mcr_pseudo_accel
-        # The profile, set by set_junction.
-        self.start_v = self.cruise_v = self.end_v = 0.0
-        self.accel_t = self.cruise_t = self.decel_t = 0.0
-        # LookAheadQueue.flush's junction_info for this move (upstream keeps a tuple per
-        # move in a list; NO_CRUISE_V2 stands for its cruise_v2 of None).
-        self.flush_start_v2 = self.flush_cruise_v2 = self.flush_next_start_v2 = 0.0
 
     @property
     def start_pos(self) -> tuple[float, float, float, float]:
@@ -141,7 +149,7 @@ class Move:
 
     def limit_speed(self, speed: float, accel: float) -> None:
         """Lower the cruise speed and acceleration (kinematic or extruder limits)."""
-        speed2 = speed**2
+        speed2 = math.pow(speed, 2.0)  # upstream: speed**2
         if speed2 < self.max_cruise_v2:
             self.max_cruise_v2 = speed2
             self.min_move_t = self.move_d / speed
@@ -157,7 +165,7 @@ class Move:
         max_cruise_v2 = self.max_cruise_v2
         diff_r = self.axes_r_e - prev_move.axes_r_e
         if diff_r:
-            ea_v2 = (self.instant_corner_v / abs(diff_r)) ** 2
+            ea_v2 = math.pow(self.instant_corner_v / abs(diff_r), 2.0)
         else:
             ea_v2 = max_cruise_v2
         # min() of the limits, written out as comparisons (the hot path; min() keeps the
@@ -180,9 +188,9 @@ class Move:
                                + self.axes_r_z * prev_move.axes_r_z)
         # max(v2, 0.0) written out: max() keeps v2 unless 0.0 > v2.
         v2 = 0.5 * (1.0 - junction_cos_theta)
-        sin_theta_d2 = _sqrt(0.0 if 0.0 > v2 else v2)
+        sin_theta_d2 = sqrt(0.0 if 0.0 > v2 else v2)
         v2 = 0.5 * (1.0 + junction_cos_theta)
-        cos_theta_d2 = _sqrt(0.0 if 0.0 > v2 else v2)
+        cos_theta_d2 = sqrt(0.0 if 0.0 > v2 else v2)
         one_minus_sin_theta_d2 = 1.0 - sin_theta_d2
         if one_minus_sin_theta_d2 > 0.0 and cos_theta_d2 > 0.0:
             R_jd = sin_theta_d2 / one_minus_sin_theta_d2
@@ -211,9 +219,9 @@ class Move:
         accel_d = (cruise_v2 - start_v2) * half_inv_accel
         decel_d = (cruise_v2 - end_v2) * half_inv_accel
         cruise_d = self.move_d - accel_d - decel_d
-        self.start_v = start_v = _sqrt(start_v2)
-        self.cruise_v = cruise_v = _sqrt(cruise_v2)
-        self.end_v = end_v = _sqrt(end_v2)
+        self.start_v = start_v = sqrt(start_v2)
+        self.cruise_v = cruise_v = sqrt(cruise_v2)
+        self.end_v = end_v = sqrt(end_v2)
         # Time is the distance divided by the average velocity.
         self.accel_t = accel_d / ((start_v + cruise_v) * 0.5)
         self.cruise_t = cruise_d / cruise_v

@@ -21,11 +21,12 @@ from collections.abc import Mapping, Sequence
 
 from kestimator import __version__
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate, estimate_file
+from kestimator.estimate import Estimate, ProgressCallback, estimate_file
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.planner import Move
-from kestimator.slicers import SlicerInfo, detect_file
+from kestimator.rewrite import slicer_of_file
+from kestimator.slicers import SlicerInfo
 
 SPEED_BIN_V = 10.0
 _M73_R_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?R(\d+(?:\.\d+)?)")
@@ -121,12 +122,13 @@ def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 
             heat_time: float = 0.0, macros: MacroTimes | None = None,
             limit_warnings: Sequence[str] = (),
             limit_sources: Mapping[str, str] | None = None,
-            guessed_limits: bool = False) -> ReportData:
+            guessed_limits: bool = False,
+            bytes_read: ProgressCallback | None = None) -> ReportData:
     """Estimate the file with move statistics; read the slicer's remaining time and Z."""
     speed = SpeedStats()
     est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
-                        macros=macros, sample=True, observer=speed)
-    slicer = detect_file(path)
+                        macros=macros, sample=True, observer=speed, progress=bytes_read)
+    slicer = slicer_of_file(path)  # through our marker in an injected file
     m73: list[tuple[float, float]] = []
     elapsed: list[tuple[float, float]] = []
     layer_lines = [line for line, _ in est.layers]

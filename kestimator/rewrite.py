@@ -61,14 +61,18 @@ from kestimator.estimate import (
     estimate_lines,
     iter_lines,
 )
+from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
 from kestimator.files import open_regular
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
-from kestimator.slicers.base import KlipperTimes
+from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
 
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
+# A SET_PRINT_STATS_INFO line the file's slicer (or start G-code) wrote, not ours.
+_FOREIGN_LAYER_INFO_RE = re.compile(
+    rb"^[ \t]*SET_PRINT_STATS_INFO\b(?![^\n]*; kestimator\r?$)", re.MULTILINE | re.IGNORECASE)
 PREP_PREFIX = "; time before first extrusion (kestimator) = "
 _PREP_PREFIX_B = PREP_PREFIX.encode()
 # The marker's exact format (`marker_line`): only a line matching it, after leading blanks and
@@ -101,7 +105,10 @@ _M73 = rb"[Mm]73(?:[ \t;\r\n]|\Z)"
 _m73_at = re.compile(_M73).match
 # Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
 # our marker) and M73 lines (dropped), as `process` recognises them after lstrip().
-_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s)" % _M73
+# Our own SET_PRINT_STATS_INFO lines (dropped and written again) need attention too.
+LAYER_INFO_COMMAND = b"SET_PRINT_STATS_INFO"
+LAYER_INFO_SUFFIX = b" ; kestimator"
+_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s|%s )" % (_M73, LAYER_INFO_COMMAND)
 _attention_at = re.compile(_ATTENTION).match
 # The next such line, found by the LF that ends the line before it.
 _next_attention = re.compile(rb"\n" + _ATTENTION).search
@@ -126,6 +133,12 @@ def _after_lines(data: bytes, pos: int, count: int) -> int:
 def _is_m73(code: bytes) -> bool:
     """True for an M73 command line (already left-stripped)."""
     return _m73_at(code) is not None
+
+
+def is_layer_info_line(code: bytes) -> bool:
+    """True for a SET_PRINT_STATS_INFO line inject wrote (`code` left-stripped)."""
+    return code.startswith(LAYER_INFO_COMMAND) and code.rstrip(b"\r\n").endswith(
+        LAYER_INFO_SUFFIX)
 
 
 def progress_pr(t: float, total_s: float) -> tuple[int, int]:
@@ -200,6 +213,21 @@ def slicer_estimate_from_head(head: bytes, detected: SlicerInfo) -> float | None
     return marker.slicer_s
 
 
+def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
+    """Which slicer wrote the file and what it estimated, looking through our own marker.
+
+    In a file `inject` (or Moonraker through kestimator-compat) already rewrote, the time
+    comments hold Klipper's time; the slicer's own estimate is the one the marker recorded,
+    and its first-layer estimate is no longer known.
+    """
+    head, tail = read_file_ends(path)
+    detected = detect(head, tail)
+    if find_marker(head) is None:
+        return detected
+    return dataclasses.replace(detected, estimate_s=slicer_estimate_from_head(head, detected),
+                               first_layer_estimate_s=None)
+
+
 @dataclasses.dataclass(frozen=True)
 class InjectPlan:
     """Everything pass 2 needs from pass 1."""
@@ -214,10 +242,18 @@ class InjectPlan:
     marker: str
     prep_line: str | None = None
     """Written after the marker when time is counted before the first extrusion."""
+    # A time comment Moonraker reads, added where the file has none (SlicerAdapter.
+    # moonraker_time_comment): before the marker (head) or at the end of the file (tail).
+    head_comment: str | None = None
+    tail_comment: str | None = None
+    # Layers for SET_PRINT_STATS_INFO TOTAL_LAYER / CURRENT_LAYER lines; 0 writes none.
+    layer_info_total: int = 0
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
-                      limits_source: str) -> InjectPlan:
+                      limits_source: str,
+                      moonraker_comment: tuple[str, str] | None = None,
+                      layer_info: bool = False) -> InjectPlan:
         """Build the plan from a sampled estimate (estimate_file(..., sample=True)).
 
         The time comments get what print_duration will measure: the total less the time
@@ -234,7 +270,12 @@ class InjectPlan:
                    layer_lines=frozenset(line for line, _ in est.layers),
                    last_move_line=est.last_move_line, times=times, adapter=adapter,
                    marker=marker_line(est.total_s, slicer_s, limits_source),
-                   prep_line=prep_line(prep_s) if prep_s > 0.0 else None)
+                   prep_line=prep_line(prep_s) if prep_s > 0.0 else None,
+                   head_comment=moonraker_comment[1] if moonraker_comment is not None
+                   and moonraker_comment[0] == HEAD else None,
+                   tail_comment=moonraker_comment[1] if moonraker_comment is not None
+                   and moonraker_comment[0] == TAIL else None,
+                   layer_info_total=len(est.layers) if layer_info else 0)
 
 
 class Rewriter:
@@ -255,6 +296,7 @@ class Rewriter:
         # The same prefixes as UTF-8: a line is decoded only if its bytes start with one.
         self._prefixes_b = tuple(prefix.encode("utf-8") for prefix in self._prefixes)
         self.m73_written = 0
+        self._layer = 0
         # Fast path: up to this line, a line starting with "G" is copied as it is (no
         # progress sample is crossed and the last move is not reached before it).
         self._quiet_until = 0
@@ -332,12 +374,16 @@ class Rewriter:
             return self._comment(raw, code, eol)
         if _is_m73(code):
             return []
+        if is_layer_info_line(code):
+            return []  # ours: written again at the layer markers
         out: list[bytes] = []
         plan = self.plan
         line_eol = eol or self.eol
         if not self._started:
             self._started = True
             self._advance(self.lineno)
+            if plan.head_comment is not None:
+                out.append(plan.head_comment.encode("utf-8") + line_eol)
             out.append(plan.marker.encode() + line_eol)
             if plan.prep_line is not None:
                 out.append(plan.prep_line.encode() + line_eol)
@@ -403,9 +449,24 @@ class Rewriter:
                 pos = nl
             if progress is not None:
                 progress(done)
+        # The tail time comment ends the file; before a last line without a line ending, so
+        # that none is ever added to the file.
+        for piece in self.finish():
+            write(piece)
         if carry:
             for piece in process(b"".join(carry)):
                 write(piece)
+
+    def finish(self) -> list[bytes]:
+        """The tail time comment (if the plan has one) with its line ending: it goes after
+        the file's last whole line (`copy_stream` calls this)."""
+        if self.plan.tail_comment is None:
+            return []
+        pending = self._eol_line
+        if pending is not None:
+            self._eol_line = None
+            self.eol = b"\r\n" if pending.endswith(b"\r\n") else b"\n"
+        return [self.plan.tail_comment.encode("utf-8") + self.eol]
 
     def _copy_quiet(self, data: bytes, pos: int, end: int,
                     write: Callable[[bytes], object]) -> int:
@@ -431,16 +492,35 @@ class Rewriter:
         self._eol_line = data[stop - 2:stop]
         return stop
 
+    def _layer_marker(self, raw: bytes, eol: bytes) -> list[bytes]:
+        """A layer marker: an M73 after it (once the print started) and, when the plan
+        asks, SET_PRINT_STATS_INFO TOTAL_LAYER before the first and CURRENT_LAYER after
+        each, so Mainsail, Fluidd and KlipperScreen show layer numbers."""
+        line_eol = eol or self.eol
+        before: list[bytes] = []
+        after: list[bytes] = []
+        total = self.plan.layer_info_total
+        if total:
+            self._layer += 1
+            if self._layer == 1:
+                before.append(b"%s TOTAL_LAYER=%d%s" % (LAYER_INFO_COMMAND, total,
+                                                        LAYER_INFO_SUFFIX) + line_eol)
+            after.append(b"%s CURRENT_LAYER=%d%s" % (LAYER_INFO_COMMAND, self._layer,
+                                                     LAYER_INFO_SUFFIX) + line_eol)
+        if self._started and not self._finished:
+            self._advance(self.lineno)
+            pr = progress_pr(self._t, self.plan.total_s)
+            after.insert(0, self._m73(pr[0], pr[1], line_eol))
+        if not eol:  # the file ends in this marker: never add a line ending to it
+            return before + after + [raw]
+        return before + [raw] + after
+
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
         if code.startswith(_PREP_PREFIX_B) or (
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
-        if self.lineno in self.plan.layer_lines and self._started and not self._finished:
-            self._advance(self.lineno)
-            pr = progress_pr(self._t, self.plan.total_s)
-            if eol:
-                return [raw, self._m73(pr[0], pr[1], eol)]
-            return [self._m73(pr[0], pr[1], self.eol), raw]
+        if self.lineno in self.plan.layer_lines:
+            return self._layer_marker(raw, eol)
         if self._prefixes and code.startswith(self._prefixes_b):
             text = code.decode("utf-8", "surrogateescape").rstrip("\r\n")
             if text.startswith(self._prefixes):
@@ -474,14 +554,17 @@ def check_gcode_file(path: str) -> os.stat_result:
         raise KestimatorError("is a directory, not a G-code file", path)
     try:
         with open_regular(path) as f:
-            magic = f.read(len(BGCODE_MAGIC))
+            start = f.read(SNIFF_BYTES)
     except OSError as exc:
         raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
-    if magic == BGCODE_MAGIC:
+    if start[:len(BGCODE_MAGIC)] == BGCODE_MAGIC:
         raise KestimatorError(
             "binary G-code (.bgcode) is not supported: export plain G-code instead", path, 1)
     if st.st_size == 0:
         raise KestimatorError("the file is empty", path)
+    what = what_is_not_gcode(start, st.st_size, os.fspath(path))
+    if what is not None:
+        raise KestimatorError(what, path)
     return st
 
 
@@ -490,7 +573,8 @@ PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
 
 def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
-               path: str = "<input>", macros: MacroTimes | None = None) -> PlanResult:
+               path: str = "<input>", macros: MacroTimes | None = None,
+               layer_info: bool = True) -> PlanResult:
     """Pass 1 over byte lines: estimate with progress samples, build the rewrite plan.
 
     `head` and `tail` are the first and last MiB (the same bytes for small input); they
@@ -504,20 +588,28 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                          sample=True, mark_prefixes=adapter.mark_prefixes, macros=macros)
     if est.last_move_line is None:
         raise KestimatorError("the file has no moves: nothing to estimate", path)
-    plan = InjectPlan.from_estimate(est, adapter, slicer_s, limits_source)
+    plan = InjectPlan.from_estimate(
+        est, adapter, slicer_s, limits_source,
+        # What the rewritten time comments hold: print_duration, without the time before the
+        # first extrusion.
+        adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail),
+                                       est.total_s - est.parts.before_first_extrusion_s),
+        # Layer numbers only where the file sets none itself (its first and last MiB).
+        layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
+        and _FOREIGN_LAYER_INFO_RE.search(tail) is None)
     return plan, est, slicer, slicer_s
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
               heat_time: float = 0.0, progress: ProgressCallback | None = None,
-              macros: MacroTimes | None = None) -> PlanResult:
+              macros: MacroTimes | None = None, layer_info: bool = True) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
     lines: Iterable[bytes] = iter_lines(path)
     if progress is not None:
         lines = counted_lines(lines, progress)
     return plan_lines(lines, head, tail, limits, limits_source, homing_time,
-                      heat_time, path, macros)
+                      heat_time, path, macros, layer_info)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
@@ -525,12 +617,15 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
                 heat_time: float = 0.0,
                 progress: ProgressCallback | None = None,
                 macros: MacroTimes | None = None,
+                layer_info: bool = True,
                 finish: Callable[[str], object] | None = None) -> InjectResult:
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
 
     `progress` hears the bytes read so far over both passes: the file is read twice, so
-    the count ends at twice its size. `finish` is called with the temporary file's name
-    once pass 2 has written it, before it is synced and replaced (compat appends its line).
+    the count ends at twice its size. `layer_info`: add SET_PRINT_STATS_INFO TOTAL_LAYER /
+    CURRENT_LAYER lines where the file sets no layer numbers itself. `finish` is called with
+    the temporary file's name once pass 2 has written it, before it is synced and replaced
+    (compat appends its line).
     """
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
@@ -542,7 +637,7 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     with _exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                                heat_time, progress, macros)
+                                                heat_time, progress, macros, layer_info)
         rewriter = Rewriter(plan)
         _write_output(src, target, rewriter, before, in_place, progress, finish)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,

@@ -20,6 +20,7 @@ homes is not in the file).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Final
 
 from kestimator.kinematics import MoveError, load_kinematics
 from kestimator.limits import ExtruderLimits, Limits
@@ -29,14 +30,14 @@ from kestimator.stepgen import SDS_CHECK_TIME_T
 __all__ = ["MoveError", "ToolHead"]
 
 # Seconds of moves queued before the first flush after the toolhead was at rest.
-BUFFER_TIME_HIGH = 1.0
+BUFFER_TIME_HIGH: Final = 1.0
 # motion_queuing's step-generation scan window (SDS_CHECK_TIME) with no input shaper or
 # pressure-advance smoothing: restarting after a full step flush waits this twice.
-KIN_FLUSH_DELAY_T = SDS_CHECK_TIME_T
+KIN_FLUSH_DELAY_T: Final = SDS_CHECK_TIME_T
 # stepper_enable's dwell before and after turning motors off.
-DISABLE_STALL_T = 0.100
+DISABLE_STALL_T: Final = 0.100
 # Junction deviation scale: sqrt(2) - 1.
-_JD_FACTOR = 2.0**0.5 - 1.0
+_JD_FACTOR: Final = 2.0**0.5 - 1.0
 
 TimingCallback = Callable[[float], None]
 

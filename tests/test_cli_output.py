@@ -33,8 +33,8 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "features": (dict,), "objects": (dict,), "slicer": (dict,), "filament": (dict,),
     "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
-    "warnings_dropped": (int,), "parts": (dict,), "commands": (dict,),
-    "preflight": (list,),
+    "warnings_dropped": (int,), "limits_guessed": (bool,), "untimed_commands": (dict,),
+    "parts": (dict,), "commands": (dict,), "preflight": (list,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
@@ -162,16 +162,23 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     assert "Time per layer" not in out and "\x1b[" not in out
     assert "  warning: %s:39: M204 without S needs both P and T" % NUT in out
     torus = estimate_text(capsys, TORUS)
-    assert "  Pre-flight: 2 commands skipped" in torus and "Difference   : " in torus
+    assert "Difference   : " in torus
+    assert "  Pre-flight: 2 commands skipped" in torus
+    # Macros are one grouped line at the end, not a warning each.
+    assert torus.endswith("\n  2 macros: their time is not counted (--verbose lists them)\n")
+    assert "is not a Klipper command" not in torus
 
 
 def test_layers_option_adds_one_row_per_layer(
         capsys: pytest.CaptureFixture[str], corpus_root: Path) -> None:
     out = estimate_text(capsys, NUT, "--layers")
-    table = out.split("  Time per layer:\n")[1].splitlines()
+    assert out.startswith("Time per layer (the summary follows the table):\n")
+    table = out.split("Time per layer (the summary follows the table):\n")[1].splitlines()
     assert table[0].split() == ["layer", "line", "starts", "takes"]
     assert table[1].split() == ["1", "25", "0s", "26s"]
     assert table[27].split()[:2] == ["27", "5034"]
+    # The summary comes after the 27 rows, so it is what stays on screen.
+    assert table[28] == str(NUT) and table[29].startswith("  Klipper time : 3m 42s")
 
 
 def test_quiet_estimate_prints_only_the_seconds(
@@ -215,7 +222,10 @@ def test_everything_works_without_rich_installed(tmp_path: Path, corpus_root: Pa
                  ["inject", str(NUT), "-o", str(tmp_path / "o.gcode")]):
         proc = subprocess.run([sys.executable, "-m", "kestimator", *argv], env=env,
                               capture_output=True, text=True, timeout=300)
-        assert proc.returncode == 0 and not proc.stderr, (argv, proc.stderr)
+        # Without a printer.cfg the only stderr line says the limits are guessed.
+        assert proc.returncode == 0 and proc.stderr.startswith(
+            "kestimator: warning: no printer.cfg or Moonraker given: ") and \
+            proc.stderr.count("\n") == 1, (argv, proc.stderr)
         assert "\x1b[" not in proc.stdout
     proc = subprocess.run([sys.executable, "-c", "import kestimator.cli, sys; "
                            "print('rich' in sys.modules)"], env=env, capture_output=True,
@@ -246,7 +256,7 @@ def test_inject_json_adds_output_and_m73_count_and_text_stays_one_line(
 def test_version_and_help_with_examples_and_exit_codes() -> None:
     for flag in ("--version", "-V"):
         proc = run(flag)
-        assert proc.returncode == 0 and proc.stdout == "kestimator %s\n" % __version__
+        assert proc.returncode == 0 and proc.stdout == "kestimator %s (pure Python)\n" % __version__
     top = run("--help").stdout
     assert "examples:" in top and "exit status: 0 success, 1" in top
     assert "KESTIMATOR_RICH" in top

@@ -43,7 +43,8 @@ from kestimator_cura.machine import (  # noqa: E402
     limits_from_machine,
 )
 
-OWNED_PREFIXES = ("M73", MARKER_PREFIX, ";TIME:", ";PRINT.TIME:", ";TIME_ELAPSED:")
+OWNED_PREFIXES = ("M73", MARKER_PREFIX, ";TIME:", ";PRINT.TIME:", ";TIME_ELAPSED:",
+                  "SET_PRINT_STATS_INFO")
 # CuraEngine 4.13 CLI; the Cura 5.0 and 4.10 applications' files are CRLF.
 CORPUS_CURA = ("cura/cura413_ender3_nut_small.gcode",
                "cura/cancelobj_cura5.0.0_inverted_pyramid.gcode",
@@ -174,8 +175,8 @@ def test_line_cut_between_two_chunks_keeps_its_pieces_in_their_chunks(
         recut[index - 1] += recut[index][:cut]
         recut[index] = recut[index][cut:]
     assert "".join(recut) == text
-    plan = plan_chunks(recut, limits_from_klipper(_cfg_choice()).limits,
-                       str(CORPUS_CFG))
+    chosen = limits_from_klipper(_cfg_choice())
+    plan = plan_chunks(recut, chosen.limits, chosen.marker_source)
     rewritten = rewrite_chunks(recut, plan.plan)
     assert len(rewritten) == len(recut)
     assert rewritten[4].endswith(";LA") and rewritten[5].startswith("YER:")

@@ -51,7 +51,7 @@ TOTAL_COMMENT_RES = (
 FIRST_LAYER_COMMENT_RE = re.compile(
     r"^; estimated first layer printing time \(normal mode\) = (.+?)\s*$")
 # Lines inject may change: M73, its marker, the slicers' time comments. Every other byte stays.
-REWRITTEN_PREFIXES = (b"; kestimator ", b"; estimated printing time",
+REWRITTEN_PREFIXES = (b"; kestimator ", b"SET_PRINT_STATS_INFO ", b"; estimated printing time",
                       b"; estimated first layer printing time", b"; model printing time:")
 
 EXAMPLE_CFG = PROJECT / "examples" / "printer.cfg"

@@ -20,7 +20,7 @@ import pytest
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
-from kestimator.rewrite import MARKER_PREFIX, inject_file, progress_pr
+from kestimator.rewrite import MARKER_PREFIX, inject_file, is_layer_info_line, progress_pr
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files
 
@@ -45,7 +45,8 @@ def _params() -> list[object]:
 
 def _owned(line: bytes) -> bool:
     return (M73_RE.match(line) is not None or line.startswith(MARKER_PREFIX.encode())
-            or TIME_COMMENT_RE.match(line) is not None)
+            or TIME_COMMENT_RE.match(line) is not None
+            or is_layer_info_line(line.lstrip()))
 
 
 def _strip_owned(data: bytes) -> list[bytes]:
@@ -101,16 +102,17 @@ def test_every_m73_agrees_with_klipper_progress(src: Path, tmp_path: Path, corpu
     out = tmp_path / src.name
     inject_file(src, corpus_limits, output=str(out), limits_source="printer.cfg")
     # Input line numbers of the lines that survive (everything but the slicer's M73s).
+    # (Time comments and layer-number lines inject adds or rewrites are left out on both
+    # sides.)
     kept_input_lines = [i + 1 for i, line in enumerate(src.read_bytes().splitlines())
-                        if not M73_RE.match(line)]
+                        if not _owned(line)]
     kept = 0
     checked = 0
     for line in out.read_bytes().splitlines():
-        if line.startswith(MARKER_PREFIX.encode()):
-            continue
         match = M73_PR_RE.match(line)
         if match is None:
-            kept += 1
+            if not _owned(line):
+                kept += 1
             continue
         # The M73 stands before input line L: its progress is the time at L.
         at = kept_input_lines[kept] if kept < len(kept_input_lines) else 10**12

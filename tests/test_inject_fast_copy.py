@@ -32,8 +32,16 @@ class FullRewriter(Rewriter):
 
 
 def reference_output(plan: InjectPlan, data: bytes) -> bytes:
-    process = FullRewriter(plan).process
-    return b"".join(piece for raw in io.BytesIO(data) for piece in process(raw))
+    rewriter = FullRewriter(plan)
+    lines = list(io.BytesIO(data))
+    open_last = bool(lines) and not lines[-1].endswith(b"\n")
+    body = lines[:-1] if open_last else lines
+    out = [piece for raw in body for piece in rewriter.process(raw)]
+    # The tail time comment (SlicerAdapter.moonraker_time_comment) after the last whole line.
+    out += rewriter.finish()
+    if open_last:
+        out += rewriter.process(lines[-1])
+    return b"".join(out)
 
 
 def fast_output(plan: InjectPlan, data: bytes) -> tuple[bytes, int]:

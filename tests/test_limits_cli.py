@@ -59,14 +59,15 @@ def test_limits_text_lists_every_setting_with_its_source(
         capsys: pytest.CaptureFixture[str], corpus_root: Path) -> None:
     gcode = CORPUS / "gcode/prusaslicer/cancelobj_ps2.3.3_issue1.gcode"
     assert cli.main(["limits", str(gcode), "--set", "max_z_accel=50"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     assert "  slicer  : PrusaSlicer 2.3.3+x64" in out
     assert "  machine : none (no printer.cfg or Moonraker)" in out
     lines = {line.split()[0]: line for line in out.splitlines()[4:] if line.startswith("  ")}
-    assert lines["max_accel"].split()[1:3] == ["1500", "slicer:"]
-    assert lines["max_z_accel"].split()[1:] == ["50", "--set"]
+    assert lines["max_accel"].split()[1:4] == ["1500", "mm/s²", "slicer:"]
+    assert lines["max_z_accel"].split()[1:] == ["50", "mm/s²", "--set", "|", "slicer:", "500"]
     assert lines["arcs_enabled"].split()[1:4] == ["true", "kestimator", "assumption:"]
-    assert "warning: no printer.cfg or Moonraker given" in out
+    assert err.startswith("kestimator: warning: no printer.cfg or Moonraker given")
+    assert "no printer.cfg or Moonraker given" not in out
 
 
 def test_limits_json_reports_the_slicers_accelerations_and_notes(

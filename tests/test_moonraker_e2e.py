@@ -19,6 +19,7 @@ import shutil
 import socket
 import subprocess
 import sys
+import tempfile
 import time
 import urllib.error
 import urllib.parse
@@ -242,9 +243,15 @@ def test_moonraker_upload_stores_kestimator_times_metadata_and_analysis_estimate
 
 
 def _metadata_of_original(python: str, source: Path) -> float:
-    """Moonraker's own estimated_time of the unprocessed file (the slicer's number)."""
+    """Moonraker's own estimated_time of the unprocessed file (the slicer's number).
+
+    Read from a copy: Moonraker's parser writes thumbnails beside the file it reads, and
+    `source` is in the shared corpus."""
     script = ("import json,sys\nfrom moonraker.components.file_manager import metadata\n"
               "print(json.dumps(metadata.extract_metadata(sys.argv[1], [])))")
-    out = subprocess.run([python, "-c", script, str(source)], check=True,
-                         capture_output=True, timeout=HTTP_TIMEOUT_S).stdout
+    with tempfile.TemporaryDirectory() as scratch:
+        copy = Path(scratch) / source.name
+        shutil.copyfile(source, copy)
+        out = subprocess.run([python, "-c", script, str(copy)], check=True,
+                             capture_output=True, timeout=HTTP_TIMEOUT_S).stdout
     return float(json.loads(out)["estimated_time"])

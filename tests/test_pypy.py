@@ -1,8 +1,10 @@
 """The core runs unchanged under Debian's PyPy and gives the very same bytes as CPython.
 
 PyPy parses plain moves with its own scanner (`gcode.parse_plain_move_scan`), so this is
-where that path meets real files in a real PyPy: `estimate --json` must print exactly
-what CPython prints, and `inject` must write exactly the same file. Skipped without
+where that path meets real files in a real PyPy: on every corpus file `estimate --json`
+must print exactly what CPython prints and `inject` must write exactly the same file, and
+every field of the estimate must agree bit for bit (tests/builds.py). Debian's PyPy is a
+Python 3.9, so this is also where the core and the zipapp are run on 3.9. Skipped without
 `pypy3` outside CI; under CI a missing `pypy3` fails (.ci/run installs it).
 """
 
@@ -15,28 +17,16 @@ from pathlib import Path
 
 import pytest
 
-from .conftest import CORPUS_CFG, PROJECT, corpus_files, require_program
+from .builds import cli_outputs, compared_files, digests, generated_programs, pure_cli_outputs
+from .conftest import PROJECT, require_program
+from .test_hook_checks import build_zipapp
 
-# Files from every slicer family, small enough to keep this test to seconds.
-MAX_FILE_BYTES = 1_500_000
+EXAMPLE = PROJECT / "examples" / "hex_nut_prusaslicer.gcode"
+EXAMPLE_CFG = PROJECT / "examples" / "printer.cfg"
 
 
 def _pypy() -> str:
     return require_program("pypy3")
-
-
-def _run(python: str, *args: str) -> subprocess.CompletedProcess[bytes]:
-    env = dict(os.environ, PYTHONPATH=str(PROJECT), PYPY_GC_NURSERY="16M")
-    return subprocess.run([python, "-m", "kestimator", *args], env=env, cwd=PROJECT,
-                          capture_output=True, timeout=600, check=False)
-
-
-def _one_per_family() -> list[Path]:
-    chosen: dict[str, Path] = {}
-    for path in corpus_files():
-        if path.stat().st_size <= MAX_FILE_BYTES:
-            chosen.setdefault(path.parent.name, path)
-    return list(chosen.values())
 
 
 def test_pypy_runs_the_core_unchanged() -> None:
@@ -47,25 +37,32 @@ def test_pypy_runs_the_core_unchanged() -> None:
     assert out.stdout.strip() == "PyPy"
 
 
-@pytest.mark.parametrize("path", _one_per_family(), ids=lambda p: p.parent.name)
-def test_pypy_estimate_prints_the_same_json_as_cpython(path: Path) -> None:
-    args = ("estimate", str(path), "--json", "--printer-cfg", str(CORPUS_CFG))
-    pypy = _run(_pypy(), *args)
-    assert pypy.returncode == 0, pypy.stderr.decode()
-    cpython = _run(sys.executable, *args)
-    assert cpython.returncode == 0, cpython.stderr.decode()
-    assert pypy.stdout == cpython.stdout
+@pytest.mark.parametrize("path", compared_files(), ids=lambda p: p.parent.name + "/" + p.name)
+def test_pypy_estimate_json_and_inject_bytes_equal_cpython_on_corpus_file(path: Path) -> None:
+    assert cli_outputs(_pypy(), path) == pure_cli_outputs(path)
 
 
-def test_pypy_inject_writes_the_same_bytes_as_cpython(tmp_path: Path) -> None:
-    pypy_python = _pypy()
-    for path in _one_per_family():
-        outputs = []
-        for python in (pypy_python, sys.executable):
-            out = tmp_path / ("%s-%s.gcode" % (path.stem, Path(python).name))
-            result = _run(python, "inject", str(path), "-o", str(out), "-q",
-                          "--printer-cfg", str(CORPUS_CFG))
-            # 4: Klipper will stop this print; the times are written all the same.
-            assert result.returncode in (0, 4), result.stderr.decode()
-            outputs.append(out.read_bytes())
-        assert outputs[0] == outputs[1], path.name
+def test_pypy_estimate_equals_cpython_field_by_field_on_corpus_and_programs(
+        tmp_path: Path) -> None:
+    paths = compared_files() + generated_programs(tmp_path)
+    pypy = digests(_pypy(), paths)
+    cpython = digests(sys.executable, paths)
+    assert len(pypy) == len(cpython) == len(paths) + 1
+    for path, a, b in zip(paths, pypy[1:], cpython[1:]):
+        assert a == b, path.name
+
+
+def test_the_zipapp_runs_under_pypy_a_python_3_9(tmp_path: Path) -> None:
+    pyz = build_zipapp(tmp_path)
+    version = subprocess.run([_pypy(), "-c", "import sys; print(sys.version_info[:2])"],
+                             capture_output=True, text=True, check=True).stdout.strip()
+    assert version == "(3, 9)"
+    out = tmp_path / "out.gcode"
+    for python in (_pypy(), sys.executable):
+        proc = subprocess.run([python, "-I", "-S", str(pyz), "inject", str(EXAMPLE), "-o",
+                               str(out), "--printer-cfg", str(EXAMPLE_CFG), "-q"],
+                              capture_output=True, text=True, timeout=600)
+        assert proc.returncode == 0, proc.stderr
+        if python != sys.executable:
+            by_pypy = out.read_bytes()
+    assert by_pypy == out.read_bytes() != EXAMPLE.read_bytes()

@@ -56,7 +56,8 @@ def big_expected(tmp_path_factory: pytest.TempPathFactory, limits, corpus_root) 
     """The complete output of one normal run on the big corpus file."""
     work = tmp_path_factory.mktemp("expected") / BIG.name
     shutil.copyfile(BIG, work)
-    inject_file(work, limits, limits_source=str(CORPUS_CFG))
+    # What the command line records for --printer-cfg: the kind of source and the file name.
+    inject_file(work, limits, limits_source="printer_cfg:" + CORPUS_CFG.name)
     return work.read_bytes()
 
 

@@ -40,7 +40,7 @@ from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_lines
 from kestimator.gcode import extended_params, parse_line
 from kestimator.limits import Limits
-from kestimator.rewrite import MARKER_PREFIX, _is_m73, inject_file
+from kestimator.rewrite import MARKER_PREFIX, _is_m73, inject_file, is_layer_info_line
 from kestimator.slicers import ADAPTERS
 
 from .conftest import corpus_files
@@ -143,7 +143,7 @@ def _lines(data: bytes) -> list[bytes]:
 def _owned(line: bytes) -> bool:
     code = line.lstrip()
     return (_is_m73(code) or code.startswith(MARKER_PREFIX.encode())
-            or code.startswith(TIME_PREFIXES))
+            or code.startswith(TIME_PREFIXES) or is_layer_info_line(code))
 
 
 def _not_owned(data: bytes) -> list[bytes]:

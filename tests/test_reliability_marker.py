@@ -112,7 +112,7 @@ def test_inject_with_a_broken_stdout_says_the_file_was_written(
     work.write_bytes(BODY)
     ref = tmp_path / "ref.gcode"
     ref.write_bytes(BODY)
-    inject_file(ref, limits, limits_source=str(CORPUS_CFG))
+    inject_file(ref, limits, limits_source="printer_cfg:" + CORPUS_CFG.name)
     with open("/dev/full" if stdout == "full" else os.devnull, "wb") as sink:
         run = subprocess.run(
             [sys.executable, "-m", "kestimator", "inject", "--printer-cfg", str(CORPUS_CFG),

@@ -3,8 +3,9 @@
 Owns the single-file zipapp that slicer users without pip paste into their post-processing
 line (`/path/to/python3 /path/to/kestimator.pyz inject ...`). The archive holds the
 `kestimator/` package's Python sources and nothing else (no third-party code, no caches), and
-its entry is `kestimator.entry:kestimator`, behind a guard that turns "this python3 is too old" into
-one line a slicer's error dialog can show (macOS's own /usr/bin/python3 is 3.9).
+its entry is `kestimator.entry:kestimator`, behind a guard that turns "this python3 is too
+old" into one line a slicer's error dialog can show (it runs on 3.9: macOS's own
+/usr/bin/python3).
 
 Usage: python3 tools/build_zipapp.py [-o dist/kestimator.pyz]
 """
@@ -22,7 +23,7 @@ from pathlib import Path
 PROJECT = Path(__file__).resolve().parents[1]
 PACKAGE = "kestimator"
 ENTRY = "kestimator.entry:kestimator"
-MIN_PYTHON = (3, 10)
+MIN_PYTHON = (3, 9)
 DEFAULT_OUTPUT = PROJECT / "dist" / "kestimator.pyz"
 INTERPRETER = "/usr/bin/env python3"
 

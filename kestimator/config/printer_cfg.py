@@ -604,7 +604,10 @@ def _include(path: str, line: int, spec: str, config: _Config,
     pattern = os.path.join(os.path.dirname(path), spec)
     names = sorted(glob.glob(pattern))
     if not names and not any(c in pattern for c in "*?["):
-        raise KestimatorError(f"include file {pattern} does not exist", path, line)
+        raise KestimatorError(f"include file {pattern} does not exist: copy the whole config "
+                              "folder (printer.cfg and the files it includes, e.g. "
+                              "mainsail.cfg), or read the live settings with --moonraker URL",
+                              path, line)
     for name in names:
         if any(os.path.realpath(name) == real for real, _ in stack):
             chain = " -> ".join([shown for _, shown in stack] + [name])

@@ -64,6 +64,11 @@ API_KEY_ENVIRONMENT = "MOONRAKER_API_KEY"
 """Where the Moonraker API key may come from when neither --api-key nor the profile gives it."""
 
 SET_SOURCE = "--set"
+GUESS_FIX = ("pass --printer-cfg PATH or --moonraker URL, or set printer_cfg or moonraker in "
+             "the profile (~/.config/kestimator/config.toml)")
+"""How to give the real limits, in every front end's guessed-limits line."""
+GUESS_WARNING_START = "no printer.cfg or Moonraker given"
+"""How the guessed-limits line (``ResolvedLimits.guess_warning``) begins."""
 NO_CONFIG_FALLBACK = ("kestimator fallback: Klipper requires it and no printer.cfg or "
                       "Moonraker gives it")
 GENERATION_DEFAULT = ("kestimator default: mainline Klipper (SET_VELOCITY_LIMIT "
@@ -82,6 +87,7 @@ MACHINE_FIELDS = frozenset(Limits.field_names()) - {"klipper_generation"}
 LEVEL_SET, LEVEL_MACHINE, LEVEL_ESTIMATOR, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED = range(6)
 _STAND_INS = frozenset((LEVEL_ESTIMATOR, LEVEL_PROFILE, LEVEL_SLICER, LEVEL_ASSUMED))
 ESTIMATOR_SOURCE_PREFIX = "klipper_estimator config "
+MOONRAKER_PREFIX = "moonraker "
 
 
 
@@ -107,6 +113,8 @@ class LimitRequest:
     """Moonraker's cache; None means ``$XDG_CACHE_HOME/kestimator``."""
     estimator_config: str | os.PathLike[str] | None = None
     """A klipper_estimator config file (JSON/JSON5): a stand-in below the machine."""
+    guess_fix: str = GUESS_FIX
+    """How this front end's user gives the real limits (ends the guessed-limits line)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -142,6 +150,39 @@ class ResolvedLimits:
     """Macro name -> seconds one run takes, from the profile's ``[macros]``."""
     moonraker_api_key: str | None = dataclasses.field(default=None, repr=False)
     """The key the Moonraker of ``machine`` was asked with (never shown)."""
+    guess_warning: str | None = None
+    """The one line that says the limits are guesses and how to give the real ones (also
+    in ``warnings``); None when a printer.cfg or Moonraker decided them."""
+
+    @property
+    def marker_source(self) -> str:
+        """Where the limits came from, for the marker line of a file people share: the kind
+        of source and a file or host name, never a directory (``printer_cfg:printer.cfg``,
+        ``moonraker:voron.local:7125``, ``guessed:slicer+defaults``, each ``+set`` when
+        ``--set`` changed a value)."""
+        used = set(self.sources.values())
+        if self.machine is not None and self.machine.startswith(MOONRAKER_PREFIX):
+            url = self.machine[len(MOONRAKER_PREFIX):].split(" ", 1)[0]
+            text = "moonraker:" + _host_of(url)
+            if "(cached" in self.machine:
+                text += "(cached)"
+        elif self.machine is not None:
+            text = "printer_cfg:" + os.path.basename(self.machine.rstrip("/\\"))
+        else:
+            kinds = [kind for kind, found in (
+                ("klipper_estimator_config",
+                 any(s.startswith(ESTIMATOR_SOURCE_PREFIX) for s in used)),
+                ("profile", any(s.startswith("profile ") for s in used)),
+                ("slicer", any(s.startswith("slicer:") for s in used))) if found]
+            text = "guessed:" + "+".join(kinds + ["defaults"])
+        if SET_SOURCE in used:
+            text += "+set"
+        return "".join(c if c.isprintable() and not c.isspace() else "_" for c in text)
+
+    @property
+    def guessed(self) -> bool:
+        """True when no printer.cfg or Moonraker is known: the times are approximate."""
+        return self.guess_warning is not None
 
     @property
     def summary(self) -> str:
@@ -164,6 +205,17 @@ class ResolvedLimits:
         if SET_SOURCE in used:
             parts.append(SET_SOURCE)
         return " + ".join(parts)
+
+
+def _host_of(url: str) -> str:
+    """``host[:port]`` of a URL, without user, password or path."""
+    from urllib.parse import urlsplit
+    try:
+        parts = urlsplit(url if "//" in url else "//" + url)
+        host = parts.hostname or "unknown"
+        return host + ("" if parts.port is None else ":%d" % parts.port)
+    except ValueError:
+        return "unknown"
 
 
 def resolve_limits(request: LimitRequest) -> ResolvedLimits:
@@ -213,6 +265,7 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
                else _default_source(field, machine is not None)
                for field in Limits.field_names()}
     warnings += _generation_warnings(limits, chosen)
+    guess_warning = None
     if machine is None:
         levels = {c.level for c in chosen.values()}
         stand_ins = [text for level, text in ((LEVEL_SET, "--set"),
@@ -221,12 +274,12 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
                                               (LEVEL_PROFILE, "the profile's"),
                                               (LEVEL_SLICER, "the slicer's guesses"))
                      if level in levels] + ["Klipper's defaults"]
-        warnings.append(
-            "no printer.cfg or Moonraker given: limits are %s (max_velocity %g, max_accel %g), "
-            "moves are not range-checked and G28 homes to 0; pass --printer-cfg or "
-            "--moonraker for exact times"
+        guess_warning = (
+            GUESS_WARNING_START + ": limits are %s (max_velocity %g, max_accel %g), "
+            "so times are approximate, moves are not range-checked and G28 homes to 0; %s"
             % (", ".join(stand_ins[:-1]) + " and " + stand_ins[-1] if len(stand_ins) > 1
-               else stand_ins[0], limits.max_velocity, limits.max_accel))
+               else stand_ins[0], limits.max_velocity, limits.max_accel, request.guess_fix))
+        warnings.append(guess_warning)
     return ResolvedLimits(
         limits=limits, sources=sources, shadowed=shadowed,
         machine=machine.description if machine is not None else None,
@@ -238,7 +291,8 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
             name: MacroTime(seconds, profile.description)
             for name, seconds in profile.macros.items()},
         moonraker_api_key=_api_key(request, profile, environ)
-        if (machine is not None and machine.description.startswith("moonraker ")) else None)
+        if (machine is not None and machine.description.startswith("moonraker ")) else None,
+        guess_warning=guess_warning)
 
 
 def _parse_overrides(overrides: Mapping[str, str]) -> dict[str, object]:

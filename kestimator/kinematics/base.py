@@ -136,26 +136,33 @@ class Section:
         return None if found is None else found[1]
 
     def get(self, option: str, default: object = _NO_DEFAULT) -> str | None:
-        """The option's text; its default (or an error, without one) when absent."""
+        """The option's text; its default (a str or None; an error without one) when absent."""
+        value = self._lookup(option, default)
+        if value is not None and not isinstance(value, str):
+            raise TypeError("the default of get(%r) must be a str or None" % option)
+        return value
+
+    def _lookup(self, option: str, default: object) -> object:
+        """The option's text, or `default` (any value) when absent; an error without one."""
         found = self.options.get(option)
         if found is None:
             if default is _NO_DEFAULT:
                 raise self._error(option, "needs option '%s'" % option)
-            return default  # type: ignore[return-value]
+            return default
         return found[0]
 
     def getfloat(self, option: str, default: object = _NO_DEFAULT, *,
                  minval: float | None = None, maxval: float | None = None,
                  above: float | None = None, below: float | None = None) -> float:
         """configfile's getfloat with its bounds."""
-        text = self.get(option, default)
+        text = self._lookup(option, default)
         if text is None or isinstance(text, float):
             if text is None:
                 raise self._error(option, "needs option '%s'" % option)
             value = text
         else:
             try:
-                value = float(text)
+                value = float(str(text))
             except ValueError:
                 raise self._error(option, "option '%s': %r is not a number"
                                   % (option, text)) from None
@@ -172,7 +179,7 @@ class Section:
     def getint(self, option: str, default: object = _NO_DEFAULT, *,
                minval: int | None = None) -> int:
         """configfile's getint."""
-        text = self.get(option, default)
+        text = self._lookup(option, default)
         if isinstance(text, int):
             value = text
         else:
@@ -187,7 +194,7 @@ class Section:
 
     def getboolean(self, option: str, default: object = _NO_DEFAULT) -> bool | None:
         """configfile's getboolean (None when absent and the default is None)."""
-        text = self.get(option, default)
+        text = self._lookup(option, default)
         if text is None or isinstance(text, bool):
             return text
         word = str(text).strip().lower()

@@ -67,6 +67,14 @@ class SlicerInfo:
                 object.__setattr__(self, name, None)
 
 
+HEAD = "head"
+"""A line added after kestimator's marker, in the first MiB Moonraker reads."""
+TAIL = "tail"
+"""A line added at the end of the file, in the last MiB Moonraker reads."""
+# Moonraker's PrusaSlicer and BambuStudio parsers: the first line matching this holds the time.
+MOONRAKER_PRUSA_TIME_RE = re.compile(r";\sestimated\sprinting\stime")
+
+
 @dataclasses.dataclass(frozen=True)
 class FileEnds:
     """The decoded first and last part of a G-code file; both are the whole file when small."""
@@ -123,6 +131,17 @@ class SlicerAdapter:
 
         ``text`` is the line without its line ending; only lines starting with one of
         ``time_comment_prefixes`` are offered. The result keeps everything but the time.
+        """
+        return None
+
+    def moonraker_time_comment(self, info: SlicerInfo, ends: FileEnds,
+                               total_s: float) -> tuple[str, str] | None:
+        """A time comment to add for Moonraker's metadata parser (Arksine/moonraker,
+        components/file_manager/metadata.py) where the file has none it reads.
+
+        Returns (``HEAD`` or ``TAIL``: where that parser looks, the line without its line
+        ending), or None when the file already has such a line (the adapter's
+        ``rewrite_time_comment`` then rewrites it) or Moonraker reads no time for the slicer.
         """
         return None
 

@@ -21,6 +21,7 @@ import re
 from collections.abc import Callable
 
 from kestimator.slicers.base import (
+    HEAD,
     SECONDS_PER_HOUR,
     SECONDS_PER_MINUTE,
     FileEnds,
@@ -167,6 +168,16 @@ class GenericAdapter(SlicerAdapter):
                     return None
                 return replace_group(match, "t", fmt(seconds))
         return None
+
+    def moonraker_time_comment(self, info: SlicerInfo, ends: FileEnds,
+                               total_s: float) -> tuple[str, str] | None:
+        """IceSL builds that do not estimate: Moonraker's IceSL parser reads
+        ``; estimated_print_time_s : <s>`` in the first MiB, so it goes after the marker.
+        ideaMaker, Kiri:Moto, KISSlicer and Simplify3D always write the line Moonraker
+        reads (rewritten in place)."""
+        if info.name != "IceSL" or _ICESL_TIME_RE.search(ends.head):
+            return None
+        return HEAD, "; estimated_print_time_s : %d" % round(total_s)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         for detector in _DETECTORS:

@@ -23,6 +23,8 @@ import re
 from collections.abc import Mapping
 
 from kestimator.slicers.base import (
+    HEAD,
+    MOONRAKER_PRUSA_TIME_RE,
     FileEnds,
     KlipperTimes,
     SlicerAdapter,
@@ -37,6 +39,7 @@ from kestimator.slicers.prusaslicer import (
     TIME_COMMENT_PREFIXES,
     Slic3rDialect,
     map_slic3r_settings,
+    prusa_time_comment,
     read_slic3r_environment,
     rewrite_estimated_time_line,
     slic3r_machine_rules,
@@ -140,6 +143,18 @@ class OrcaAdapter(SlicerAdapter):
             estimate_s=estimate_s,
             first_layer_estimate_s=find_duration(FIRST_LAYER_ESTIMATE_RE, ends.tail),
         )
+
+    def moonraker_time_comment(self, info: SlicerInfo, ends: FileEnds,
+                               total_s: float) -> tuple[str, str] | None:
+        """OrcaSlicer: as PrusaSlicer (the footer line). Bambu Studio: Moonraker's
+        BambuStudio parser reads ``; estimated printing time`` in the first MiB, which
+        Bambu Studio never writes (its ``; model printing time: ...; total estimated
+        time: ...`` line is not read), so the line goes after kestimator's marker."""
+        if info.name != "Bambu Studio":
+            return prusa_time_comment(info, ends, total_s)
+        if MOONRAKER_PRUSA_TIME_RE.search(ends.head):
+            return None
+        return HEAD, "; estimated printing time (normal mode) = " + format_prusa_duration(total_s)
 
     def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
         """The PrusaSlicer-style footer lines, and Bambu's header line."""

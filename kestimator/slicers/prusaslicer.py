@@ -27,6 +27,8 @@ from collections.abc import Mapping
 
 from kestimator.limits import find_generation_directive
 from kestimator.slicers.base import (
+    MOONRAKER_PRUSA_TIME_RE,
+    TAIL,
     FileEnds,
     KlipperTimes,
     SlicerAdapter,
@@ -267,6 +269,14 @@ def map_slic3r_settings(config: Mapping[str, SlicerValue],
                           printer_preset=(preset.text.strip() or None) if preset else None)
 
 
+def prusa_time_comment(info: SlicerInfo, ends: FileEnds,
+                       total_s: float) -> tuple[str, str] | None:
+    """The footer time line Moonraker's PrusaSlicer parser reads, if the file has none."""
+    if info.name.startswith("Slic3r") or MOONRAKER_PRUSA_TIME_RE.search(ends.tail):
+        return None
+    return TAIL, "; estimated printing time (normal mode) = " + format_prusa_duration(total_s)
+
+
 class PrusaSlicerAdapter(SlicerAdapter):
     """The Slic3r lineage except OrcaSlicer/Bambu Studio (see ``orca.py``)."""
 
@@ -289,6 +299,14 @@ class PrusaSlicerAdapter(SlicerAdapter):
     def rewrite_time_comment(self, text: str, line: int, times: KlipperTimes) -> str | None:
         """The footer's estimated-time lines."""
         return rewrite_estimated_time_line(text, times)
+
+    def moonraker_time_comment(self, info: SlicerInfo, ends: FileEnds,
+                               total_s: float) -> tuple[str, str] | None:
+        """PrusaSlicer, SuperSlicer and the forks: Moonraker's PrusaSlicer parser reads the
+        first ``; estimated printing time`` line of the last MiB; a file without one
+        (SuperSlicer with the comment turned off) gets it at its end. Moonraker reads no
+        time for Slic3r and Slic3r PE files (its Slic3r parser returns none)."""
+        return prusa_time_comment(info, ends, total_s)
 
     def read_settings(self, ends: FileEnds) -> SlicerConfig:
         """The config block at the end of the file."""

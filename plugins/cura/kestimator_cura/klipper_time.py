@@ -117,7 +117,7 @@ def compute(chunks: Sequence[str], choice: LimitsChoice, settings: Mapping[str, 
     thread). Raises KestimatorError when the limits or the G-code cannot be used."""
     snapshot = tuple(chunks)
     limits = choose_limits(choice, settings, *file_ends(snapshot), environ=environ)
-    plan = plan_chunks(snapshot, limits.limits, limits.source, limits.macros)
+    plan = plan_chunks(snapshot, limits.limits, limits.marker_source, limits.macros)
     rewritten = rewrite_chunks(snapshot, plan.plan)
     return Outcome(source_chunks=snapshot, rewritten=tuple(rewritten), plan=plan,
                    limits=limits)

@@ -40,6 +40,7 @@ SOURCES = (SOURCE_MACHINE, SOURCE_PRINTER_CFG, SOURCE_MOONRAKER)
 CURA_FAMILY = "cura"
 API_KEY_ENVIRONMENT = "MOONRAKER_API_KEY"
 MACHINE_SOURCE_TEXT = "Cura machine settings (guesses) + defaults"
+MACHINE_MARKER_SOURCE = "guessed:cura_machine_settings+defaults"
 
 MACHINE_KEYS = (
     "machine_max_feedrate_x", "machine_max_feedrate_y", "machine_max_feedrate_z",
@@ -91,6 +92,9 @@ class ChosenLimits:
     notes: tuple[str, ...] = ()
     macros: MacroTimes | None = None
     """Times learned from the printer's job history (``kestimator learn``), if any."""
+    marker_source: str = MACHINE_MARKER_SOURCE
+    """What the file's marker line records: the kind of source and a file or host name,
+    never a directory (the core's ``ResolvedLimits.marker_source``)."""
 
 
 def _setting_text(value: object) -> str:
@@ -143,7 +147,8 @@ def limits_from_klipper(choice: LimitsChoice,
         learned = learn.learned_for(resolved)
         if learned is not None:
             macros = learned.macro_times()
-    return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings), macros)
+    return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings), macros,
+                        resolved.marker_source)
 
 
 def limits_from_klipper_directly(choice: LimitsChoice,
@@ -151,7 +156,9 @@ def limits_from_klipper_directly(choice: LimitsChoice,
     """`limits_from_klipper` without the core's resolver (see the module docstring)."""
     if choice.source == SOURCE_PRINTER_CFG:
         limits, _ = limits_from_printer_cfg(choice.printer_cfg)
-        return ChosenLimits(limits, os.fspath(choice.printer_cfg))
+        return ChosenLimits(limits, os.fspath(choice.printer_cfg),
+                            marker_source="printer_cfg:" + os.path.basename(
+                                os.fspath(choice.printer_cfg)).replace(" ", "_"))
     environ = environ if environ is not None else os.environ
     found = moonraker_values(choice.moonraker_url,
                              environ.get(API_KEY_ENVIRONMENT) or None)
@@ -159,7 +166,8 @@ def limits_from_klipper_directly(choice: LimitsChoice,
         limits = Limits.from_values(dict(found.values))
     except (KeyError, TypeError, ValueError) as exc:
         raise KestimatorError("%s gives no usable limits: %s" % (found.description, exc)) from None
-    return ChosenLimits(limits, found.description, tuple(found.warnings))
+    return ChosenLimits(limits, found.description, tuple(found.warnings),
+                        marker_source="moonraker")
 
 
 def choose_limits(choice: LimitsChoice, settings: Mapping[str, object], head: bytes,

@@ -1,0 +1,138 @@
+"""Build script: the core compiled with mypyc when it can be, the pure package otherwise.
+
+`pip install .` (and a wheel built with `pip wheel .` or `python -m build`) compiles the
+hot-path modules below from the very same .py sources with mypyc (mypy's compiler) when
+this is CPython, mypy can be imported and a C compiler with Python's headers works. In
+every other case (PyPy, no compiler, no headers, a mypyc failure) it installs the pure-Python
+package unchanged. Either way it prints one line saying which (pip shows build output only
+with `-v`; `kestimator --version` says "compiled" or "pure Python" afterwards).
+
+KESTIMATOR_BUILD=pure forces the pure package; KESTIMATOR_BUILD=compiled makes any reason
+not to compile an error instead of a fallback. An editable install (`pip install -e .`,
+the development set-up) stays pure unless KESTIMATOR_BUILD=compiled.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+import sysconfig
+import tempfile
+
+from setuptools import setup
+from setuptools.command.build_ext import build_ext
+
+# The modules mypyc compiles: every module on the per-line path (the kinematics' check_move
+# runs for every move). The rest of the package (CLI, slicer detection, config, rewrite)
+# is I/O-bound and stays Python.
+HERE = os.path.dirname(os.path.abspath(__file__))
+COMPILED_MODULES = [
+    "kestimator/gcode.py",
+    "kestimator/planner.py",
+    "kestimator/toolhead.py",
+    "kestimator/interpreter.py",
+    "kestimator/estimate.py",
+] + sorted("kestimator/kinematics/" + name
+           for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
+           if name.endswith(".py"))
+PREFIX = "kestimator build: "
+
+
+def _say(message: str) -> None:
+    # stderr: a PEP 517 frontend keeps stdout for itself in some versions.
+    sys.stderr.write(PREFIX + message + "\n")
+    sys.stderr.flush()
+
+
+def _c_compiler_problem() -> str | None:
+    """Why a C extension cannot be built here (None when a test one compiles)."""
+    try:
+        from setuptools._distutils.ccompiler import new_compiler
+        from setuptools._distutils.sysconfig import customize_compiler
+    except ImportError:  # pragma: no cover - very old setuptools
+        from distutils.ccompiler import new_compiler  # type: ignore[no-redef]
+        from distutils.sysconfig import customize_compiler  # type: ignore[no-redef]
+    include = sysconfig.get_paths()["include"]
+    if not os.path.exists(os.path.join(include, "Python.h")):
+        return "Python's C headers are missing (%s/Python.h; Debian: python3-dev)" % include
+    compiler = new_compiler()
+    customize_compiler(compiler)
+    with tempfile.TemporaryDirectory(prefix="kestimator-cc-") as tmp:
+        source = os.path.join(tmp, "probe.c")
+        with open(source, "w", encoding="ascii") as f:
+            f.write("#include <Python.h>\nint kestimator_probe(void) { return 0; }\n")
+        try:
+            compiler.compile([source], output_dir=tmp, include_dirs=[include])
+        except Exception as exc:  # CompileError, or the compiler program is missing
+            return "no working C compiler (%s)" % (str(exc).splitlines() or ["?"])[0]
+    return None
+
+
+def _pure_reason() -> str | None:
+    """Why this build installs the pure package (None: compile)."""
+    wanted = os.environ.get("KESTIMATOR_BUILD", "").strip().lower()
+    if wanted not in ("", "pure", "compiled"):
+        raise SystemExit(PREFIX + "KESTIMATOR_BUILD must be 'pure' or 'compiled', not %r"
+                         % wanted)
+    if wanted == "pure":
+        return "KESTIMATOR_BUILD=pure"
+    reason = None
+    if platform.python_implementation() != "CPython":
+        reason = "%s runs the pure package (its JIT is fast on it)" % (
+            platform.python_implementation())
+    elif "editable_wheel" in sys.argv and wanted != "compiled":
+        reason = "editable install (development); `pip install .` compiles"
+    else:
+        try:
+            import mypyc.build  # noqa: F401
+        except ImportError:
+            reason = "mypy (which ships mypyc) is not installed"
+        else:
+            reason = _c_compiler_problem()
+    if reason is not None and wanted == "compiled":
+        raise SystemExit(PREFIX + "KESTIMATOR_BUILD=compiled, but " + reason)
+    return reason
+
+
+class BuildExtOrPure(build_ext):
+    """build_ext that falls back to the pure package if the C build fails."""
+
+    def run(self) -> None:
+        try:
+            super().run()
+        except Exception as exc:
+            if os.environ.get("KESTIMATOR_BUILD", "").strip().lower() == "compiled":
+                raise
+            _say("pure Python (compiling failed: %s)" % str(exc).splitlines()[0])
+            self.extensions = []
+
+
+# setuptools commands that only write metadata: a PEP 517 frontend runs them first, in
+# their own process; compiling there would only repeat the work (and the line).
+METADATA_ONLY = {"egg_info", "dist_info"}
+
+
+def _ext_modules() -> list[object]:
+    commands = [arg for arg in sys.argv[1:] if not arg.startswith("-")]
+    if commands and set(commands[:1]) <= METADATA_ONLY:
+        return []
+    reason = _pure_reason()
+    if reason is not None:
+        _say("pure Python (%s)" % reason)
+        return []
+    from mypyc.build import mypycify
+    try:
+        modules = mypycify(["--ignore-missing-imports", *COMPILED_MODULES],
+                           opt_level="3", group_name="kestimator")
+    except (Exception, SystemExit) as exc:
+        if os.environ.get("KESTIMATOR_BUILD", "").strip().lower() == "compiled":
+            raise
+        _say("pure Python (mypyc failed: %s)" % exc)
+        return []
+    _say("compiled with mypyc: %s" % ", ".join(
+        m[len("kestimator/"):-len(".py")] for m in COMPILED_MODULES))
+    return list(modules)
+
+
+setup(ext_modules=_ext_modules(), cmdclass={"build_ext": BuildExtOrPure})

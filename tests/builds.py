@@ -1,0 +1,164 @@
+"""What the builds are compared on: every corpus file and generated programs, through the CLI
+(`estimate --json` bytes, `inject` bytes) and field by field (tests/estimate_digest.py).
+
+Shared by tests/test_compiled_build.py (mypyc-compiled vs pure CPython) and
+tests/test_pypy.py (PyPy vs pure CPython). The pure CPython side is computed once per test
+session and cached here, so both comparisons reuse it.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import os
+import random
+import subprocess
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+from .conftest import CORPUS_CFG, PROJECT, corpus_files
+
+DIGEST_SCRIPT = PROJECT / "tests" / "estimate_digest.py"
+RUN_TIMEOUT_S = 900
+
+# Every command that changes the G-code or planner state between moves, in one file.
+STATE_CHANGING_PROGRAM = """\
+;LAYER_CHANGE
+G28
+M83
+G1 X10 Y10 Z0.2 F6000
+G1 X20 Y10 E1.5 F1200
+G91
+G1 X5 Y5 E0.5
+G1 X-5 Z0.1
+G90
+M82
+G92 E0
+G1 X30 Y30 E2 F3000
+M221 S90
+G1 X35 Y30 E3
+M220 S150
+G1 X40 Y30 E4
+;TYPE:Perimeter
+SET_GCODE_OFFSET Z=0.05 MOVE=1
+G1 X45 Y35 E5
+SAVE_GCODE_STATE NAME=a
+G91
+G1 X1 Y1
+RESTORE_GCODE_STATE NAME=a MOVE=1
+G1 X50 Y35 E6
+M204 S500
+G1 X60 Y35 E7
+SET_VELOCITY_LIMIT VELOCITY=50 ACCEL=800 SQUARE_CORNER_VELOCITY=2 MINIMUM_CRUISE_RATIO=0.2
+G1 X70 Y45 E8
+G10
+G1 X80 Y45
+G11
+G2 X90 Y45 I5 J0 E9
+;TIME_ELAPSED:12.5
+G1 X90 Y60 E9000
+G1 E-30 F100
+G4 P250
+M400
+G1 X1 Y1 E9001 F999999
+;LAYER_CHANGE
+G1 Z5 F600
+G1 X100 Y100 Z10 E9002
+SET_KINEMATIC_POSITION X=0 Y=0 Z=0
+G1 X10 Y10
+M109 S200
+G92 X0 Y0
+G1 X5 Y5 E9003
+M84
+G1 X1 Y1
+"""
+_OTHER_LINES = (
+    "G90", "G91", "M82", "M83", "G92 E0", "G92 X1", "M221 S80", "M220 S120", "G10", "G11",
+    "M204 S700", "SET_VELOCITY_LIMIT VELOCITY=40", "G4 P10", "M400", "G28 X", ";TYPE:Skirt",
+    ";LAYER_CHANGE", "SAVE_GCODE_STATE", "RESTORE_GCODE_STATE MOVE=1", "g1 x3 y4",
+    "G1 X1 Y2 ; comment", "G1 F1500 X3 Y3 E0.1", "G2 X5 Y5 I1 J1", "M84", ";TIME_ELAPSED:1",
+    "G1 X1.0000000000000000001 Y-0.00000000000000001", "G1 X1e3", "G1 F0.0001 X2")
+N_RANDOM_PROGRAMS = 40
+
+
+def _random_program(rng: random.Random) -> str:
+    lines = []
+    for _ in range(rng.randint(1, 120)):
+        if rng.random() < 0.25:
+            lines.append(rng.choice(_OTHER_LINES))
+            continue
+        words = ["G%d" % rng.randint(0, 1)]
+        for axis in "XYZE":
+            if rng.random() < 0.6:
+                words.append("%s%s" % (axis, round(rng.uniform(-200.0, 200.0),
+                                                   rng.randint(0, 6))))
+        if rng.random() < 0.3:
+            words.append("F%s" % rng.choice(("60", "1200", "9000", "0", "-5", "30000.5")))
+        lines.append(" ".join(words))
+    return "\n".join(lines) + "\n"
+
+
+def generated_programs(folder: Path) -> list[Path]:
+    """The state-changing program and seeded random ones, written into `folder`."""
+    rng = random.Random(15)
+    texts = [STATE_CHANGING_PROGRAM] + [_random_program(rng) for _ in range(N_RANDOM_PROGRAMS)]
+    paths = []
+    for i, text in enumerate(texts):
+        path = folder / ("program%02d.gcode" % i)
+        path.write_text(text, encoding="ascii")
+        paths.append(path)
+    return paths
+
+
+def compared_files() -> list[Path]:
+    """Every corpus file (the builds must agree on all of them)."""
+    return corpus_files()
+
+
+def _env(extra: dict[str, str] | None, on_path: bool) -> dict[str, str]:
+    env = dict(os.environ, PYPY_GC_NURSERY="16M")
+    env.pop("PYTHONPATH", None)
+    if on_path:
+        env["PYTHONPATH"] = str(PROJECT)
+    env.update(extra or {})
+    return env
+
+
+def cli_outputs(python: str, path: Path, on_path: bool = True) -> tuple[bytes, str]:
+    """`estimate --json` stdout and the sha256 of what `inject` writes, run by `python`.
+
+    With `on_path`, the checkout's package is imported (pure CPython, PyPy); without it the
+    one installed in `python`'s environment (the compiled build's venv).
+    """
+    env = _env(None, on_path)
+    with tempfile.TemporaryDirectory(prefix="kestimator-builds-") as tmp:
+        estimate = subprocess.run(
+            [python, "-m", "kestimator", "estimate", str(path), "--json", "--printer-cfg",
+             str(CORPUS_CFG)], env=env, cwd=tmp, capture_output=True, timeout=RUN_TIMEOUT_S)
+        assert estimate.returncode == 0, estimate.stderr.decode()
+        out = Path(tmp) / "out.gcode"
+        inject = subprocess.run(
+            [python, "-m", "kestimator", "inject", str(path), "-o", str(out), "-q",
+             "--printer-cfg", str(CORPUS_CFG)], env=env, cwd=tmp, capture_output=True,
+            timeout=RUN_TIMEOUT_S)
+        # 4: Klipper will stop this print (pre-flight); the times are written all the same.
+        assert inject.returncode in (0, 4), inject.stderr.decode()
+        return estimate.stdout, hashlib.sha256(out.read_bytes()).hexdigest()
+
+
+@functools.cache
+def pure_cli_outputs(path: Path) -> tuple[bytes, str]:
+    """`cli_outputs` of the pure package under this CPython (computed once per session)."""
+    return cli_outputs(sys.executable, path)
+
+
+def digests(python: str, paths: Sequence[Path], on_path: bool = True) -> list[str]:
+    """tests/estimate_digest.py's lines for `paths`, run by `python` (first line: the build)."""
+    proc = subprocess.run(
+        [python, str(DIGEST_SCRIPT), str(CORPUS_CFG), *map(str, paths)],
+        env=_env(None, on_path), cwd=tempfile.gettempdir(), capture_output=True, text=True,
+        timeout=RUN_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stderr
+    return proc.stdout.splitlines()

@@ -1,0 +1,141 @@
+"""The compiled build: `pip wheel .` compiles the core with mypyc, and it gives the same bytes.
+
+A wheel is built from a copy of the package's sources (setup.py, as `pip install .` runs
+it), installed into a fresh venv without mypy, and then run side by side with the pure
+package of this checkout: `estimate --json` prints the same bytes and `inject` writes the
+same file for every corpus file, and every field of the estimate (floats bit for bit) is
+the same on the corpus and on generated programs. The fallback is pinned too: with no
+working C compiler the same command builds the pure wheel and says so in one line.
+
+Building needs a C compiler with Python's headers, and pip fetches setuptools and mypy for
+the build as `pip install .` does: outside CI the test is skipped without a compiler; under
+CI it must be there (.ci/run installs gcc).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import sysconfig
+import venv
+from pathlib import Path
+
+import pytest
+
+from kestimator import build
+
+from .builds import (
+    cli_outputs,
+    compared_files,
+    digests,
+    generated_programs,
+    pure_cli_outputs,
+)
+from .conftest import IN_CI, PROJECT
+
+BUILD_TIMEOUT_S = 1200
+# What a wheel is built from: the package's sources and the build files (as in an sdist).
+SOURCES = ("kestimator", "setup.py", "pyproject.toml", "README.md")
+COMPILED_LINE = "kestimator build: compiled with mypyc:"
+PURE_LINE = "kestimator build: pure Python ("
+
+
+def _require_build_tools() -> None:
+    problems = []
+    if shutil.which(sysconfig.get_config_var("CC").split()[0] if sysconfig.get_config_var(
+            "CC") else "cc") is None:
+        problems.append("no C compiler")
+    if not (Path(sysconfig.get_paths()["include"]) / "Python.h").exists():
+        problems.append("no Python.h")
+    if problems:
+        if IN_CI:
+            pytest.fail("cannot build the compiled wheel: %s (.ci/run installs gcc)"
+                        % ", ".join(problems))
+        pytest.skip("cannot build the compiled wheel: %s" % ", ".join(problems))
+
+
+def _copy_sources(target: Path) -> Path:
+    target.mkdir()
+    for name in SOURCES:
+        source = PROJECT / name
+        if source.is_dir():
+            shutil.copytree(source, target / name, ignore=shutil.ignore_patterns(
+                "__pycache__", "*.so", "*.pyd", "*.c"))
+        else:
+            shutil.copyfile(source, target / name)
+    return target
+
+
+def _pip_wheel(src: Path, out: Path, env_extra: dict[str, str]) -> tuple[Path, str]:
+    # As `pip install .` does: build isolation, setuptools and mypy from the package index.
+    env = dict(os.environ, **env_extra)
+    env.pop("PYTHONPATH", None)
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "-v", "--no-deps", "-w", str(out), str(src)],
+        env=env, cwd=src, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
+    wheels = sorted(out.glob("kestimator-*.whl"))
+    assert len(wheels) == 1, wheels
+    return wheels[0], proc.stdout + proc.stderr
+
+
+@pytest.fixture(scope="module")
+def compiled_python(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """The python of a fresh venv holding the compiled wheel (and not mypy)."""
+    _require_build_tools()
+    root = tmp_path_factory.mktemp("compiled")
+    wheel, log = _pip_wheel(_copy_sources(root / "src"), root / "wheels",
+                            {"KESTIMATOR_BUILD": "compiled"})
+    assert [line.strip() for line in log.splitlines() if "kestimator build:" in line] == [
+        line.strip() for line in log.splitlines() if COMPILED_LINE in line][:1]
+    assert "-cp%d%d-" % sys.version_info[:2] in wheel.name
+    env_dir = root / "venv"
+    venv.create(env_dir, with_pip=True)
+    python = str(env_dir / "bin" / "python")
+    subprocess.run([python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
+                   check=True, capture_output=True, timeout=BUILD_TIMEOUT_S)
+    return python
+
+
+def test_the_wheel_holds_compiled_modules_and_says_compiled(compiled_python: str) -> None:
+    proc = subprocess.run([compiled_python, "-m", "kestimator", "--version"],
+                          capture_output=True, text=True, cwd="/", check=True)
+    assert proc.stdout.strip().endswith("(compiled)")
+    where = subprocess.run(
+        [compiled_python, "-c", "import kestimator.planner as p, kestimator.gcode as g;"
+         "print(p.__file__); print(g.SCAN_PLAIN_MOVES)"],
+        capture_output=True, text=True, cwd="/", check=True).stdout.split()
+    assert where[0].endswith(sysconfig.get_config_var("EXT_SUFFIX"))
+    assert where[1] == "True"  # the compiled build parses moves with the byte scanner
+    # ...while this checkout (the editable install the tests run) is the pure package.
+    assert build() == "pure Python"
+
+
+@pytest.mark.parametrize("path", compared_files(), ids=lambda p: p.parent.name + "/" + p.name)
+def test_compiled_estimate_json_and_inject_bytes_equal_pure_on_corpus_file(
+        compiled_python: str, path: Path) -> None:
+    assert cli_outputs(compiled_python, path, on_path=False) == pure_cli_outputs(path)
+
+
+def test_compiled_estimate_equals_pure_field_by_field_on_corpus_and_programs(
+        compiled_python: str, tmp_path: Path) -> None:
+    paths = compared_files() + generated_programs(tmp_path)
+    compiled = digests(compiled_python, paths, on_path=False)
+    pure = digests(sys.executable, paths)
+    assert compiled[0] == '{"build": "compiled"}' and pure[0] == '{"build": "pure Python"}'
+    assert len(compiled) == len(pure) == len(paths) + 1
+    for path, a, b in zip(paths, compiled[1:], pure[1:]):
+        assert a == b, path.name
+
+
+def test_without_a_c_compiler_the_same_build_installs_the_pure_package(
+        tmp_path: Path) -> None:
+    _require_build_tools()
+    wheel, log = _pip_wheel(_copy_sources(tmp_path / "src"), tmp_path / "wheels",
+                            {"CC": str(tmp_path / "no-such-compiler")})
+    lines = [line.strip() for line in log.splitlines() if "kestimator build:" in line]
+    assert len(lines) == 1 and lines[0].startswith(PURE_LINE), lines
+    assert "C compiler" in lines[0]
+    assert wheel.name.endswith("-py3-none-any.whl")
