@@ -20,11 +20,19 @@ import re
 from collections.abc import Mapping, Sequence
 
 from kestimator import __version__
+from kestimator.cli_output import (
+    parts_to_json,
+    shown_warnings,
+    untimed_by_kind,
+    untimed_detail,
+    untimed_summary,
+)
 from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, ProgressCallback, estimate_file
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.planner import Move
+from kestimator.preflight import KIND_STOP, summary_lines
 from kestimator.rewrite import slicer_of_file
 from kestimator.slicers import SlicerInfo
 
@@ -500,7 +508,23 @@ def _banner(data: ReportData) -> str:
                      'Moonraker was given, so the times below use stand-in limits and may '
                      'be wrong: pass <code>--printer-cfg</code> or <code>--moonraker</code>.'
                      '</div>')
-    notes = list(data.limit_warnings) + list(est.warnings)
+    findings = [finding.to_json() for finding in est.preflight]
+    preflight = summary_lines(findings)
+    if preflight:
+        stops = any(f["kind"] == KIND_STOP for f in findings)
+        parts.append('<div class="banner%s"><b>%s</b><ul>%s</ul></div>'
+                     % (" bad" if stops else "", html.escape(preflight[0]),
+                        "".join("<li>%s</li>" % html.escape(line.strip())
+                                for line in preflight[1:])))
+    # Untimed commands are one grouped line, as in the text summary (not one warning each).
+    doc = {"warnings": list(data.limit_warnings) + list(est.warnings),
+           # The page has no stderr: the guessed-limits warning stays in the list.
+           "limits_guessed": False,
+           "untimed_commands": untimed_by_kind(
+               est, {source["name"] for source in parts_to_json(est)["sources"]})}
+    untimed = untimed_summary(doc)
+    notes = ([untimed.replace(" (--verbose lists them)", ": " + "; ".join(untimed_detail(doc)))]
+             if untimed else []) + shown_warnings(doc)
     if notes:
         shown = "".join("<li>%s</li>" % html.escape(w) for w in notes[:20])
         more = len(notes) - 20 + est.warnings_dropped

@@ -232,3 +232,16 @@ def test_chromium_draws_every_chart_readably_at_phone_and_desktop_width(
             assert len(bars) >= 2
             assert sum(bars) == pytest.approx(m["total_s"], abs=1.0)
             assert m["total_s"] == pytest.approx(data.estimate.total_s, abs=1e-5)
+
+
+def test_preflight_and_untimed_commands_are_banners_not_one_warning_per_command(
+        reports: dict[str, tuple[ReportData, str]]) -> None:
+    # The Orca file runs EXCLUDE_OBJECT_*, SET_PRINT_STATS_INFO and macros the corpus
+    # printer.cfg does not configure: Klipper skips them, and the page says so above the
+    # numbers, with the untimed commands grouped in one line as the text summary does.
+    page = reports["orca-objects"][1]
+    cards = page.index('class="cards"')
+    assert page.index("Pre-flight: ") < cards
+    assert page.index("commands skipped") < cards
+    assert re.search(r"\d+ macros?, \d+ module commands?", page)
+    assert "is not a Klipper command" not in page
