@@ -9,6 +9,7 @@ cap, so a huge one is an error, not all of memory.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import stat
 from typing import BinaryIO
@@ -87,3 +88,34 @@ def cleanup_on_termination() -> None:
                 signal.signal(signum, _terminate)
             except (ValueError, OSError):  # not the main thread
                 pass
+
+
+def make_temp_file(prefix: str, suffix: str, directory: str) -> tuple[int, str]:
+    """`tempfile.mkstemp` with SIGTERM/SIGHUP held back until its name is known here.
+
+    A signal arriving while the file is being created would otherwise unwind before the
+    caller's cleanup knows the name, and leave the file behind. A signal held back is
+    delivered on the way out (as `Terminated`), after the file is removed again.
+    """
+    import signal
+    import tempfile
+
+    held = [getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name)]
+    mask = getattr(signal, "pthread_sigmask", None)
+    if mask is None or not held:  # Windows: no signal masks
+        return tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=directory)
+    previous = mask(signal.SIG_BLOCK, held)
+    try:
+        fd, name = tempfile.mkstemp(prefix=prefix, suffix=suffix, dir=directory)
+    except BaseException:
+        mask(signal.SIG_SETMASK, previous)
+        raise
+    try:
+        # Unblocking runs the handler of a signal that came meanwhile (it raises here).
+        mask(signal.SIG_SETMASK, previous)
+    except BaseException:
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(name)
+        raise
+    return fd, name

@@ -41,7 +41,6 @@ import math
 import os
 import re
 import stat
-import tempfile
 from array import array
 from collections.abc import Callable, Iterable, Iterator
 from typing import BinaryIO
@@ -62,7 +61,7 @@ from kestimator.estimate import (
     iter_lines,
 )
 from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
-from kestimator.files import open_regular
+from kestimator.files import make_temp_file, open_regular
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
@@ -766,8 +765,7 @@ def _write_output(src: str, target: OutputTarget, rewriter: Rewriter,
     dest = target.path
     dest_dir = os.path.dirname(dest)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=temp_name_prefix(dest), suffix=TEMP_SUFFIX,
-                                   dir=dest_dir)
+        fd, tmp = make_temp_file(temp_name_prefix(dest), TEMP_SUFFIX, dest_dir)
     except OSError as exc:
         raise KestimatorError("cannot write next to the output: %s"
                               % (exc.strerror or exc), dest) from None
@@ -826,8 +824,7 @@ def write_bytes_atomically(dest: str, data: bytes) -> None:
     path = target.path
     directory = os.path.dirname(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=temp_name_prefix(path), suffix=TEMP_SUFFIX,
-                                   dir=directory)
+        fd, tmp = make_temp_file(temp_name_prefix(path), TEMP_SUFFIX, directory)
     except OSError as exc:
         raise KestimatorError("cannot write next to the output: %s"
                               % (exc.strerror or exc), dest) from None

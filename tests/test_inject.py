@@ -14,6 +14,7 @@ import re
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -280,7 +281,7 @@ def test_permission_denied_anywhere_exits_1_with_one_line_and_the_file_intact(
         raise PermissionError(errno.EACCES, "Permission denied")
 
     if where == "mkstemp":
-        monkeypatch.setattr(rewrite.tempfile, "mkstemp", denied)
+        monkeypatch.setattr(tempfile, "mkstemp", denied)
     elif where == "replace":
         monkeypatch.setattr(rewrite.os, "replace", denied)
     else:

@@ -23,6 +23,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -186,7 +187,7 @@ def test_read_only_directory_gives_one_line_and_keeps_the_file(
     def refuse(*args: object, **kwargs: object) -> None:
         raise OSError(code, os.strerror(code))
 
-    target = rewrite.tempfile if where == "mkstemp" else rewrite.os
+    target = tempfile if where == "mkstemp" else rewrite.os
     monkeypatch.setattr(target, where, refuse)
     assert cli.main(["inject", str(work)]) == 1
     err = capsys.readouterr().err

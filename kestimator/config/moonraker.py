@@ -18,7 +18,6 @@ import json
 import math
 import os
 import re
-import tempfile
 import urllib.parse
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -32,7 +31,7 @@ from kestimator.config.printer_cfg import (
     STEPPER_OPTIONS,
 )
 from kestimator.errors import KestimatorError
-from kestimator.files import read_config_bytes
+from kestimator.files import make_temp_file, read_config_bytes
 from kestimator.kinematics.base import MachineConfig, is_machine_section
 from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
 
@@ -486,7 +485,7 @@ def _write_cache(path: Path, url: str, settings: Settings,
     }
     try:
         path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-        handle, temp = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+        handle, temp = make_temp_file(path.name, ".tmp", str(path.parent))
         try:
             with os.fdopen(handle, "w", encoding="utf-8") as out:
                 json.dump(document, out, indent=1, sort_keys=True)
