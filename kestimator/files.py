@@ -10,8 +10,10 @@ cap, so a huge one is an error, not all of memory.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import stat
+from pathlib import Path
 from typing import BinaryIO
 
 from kestimator.errors import KestimatorError
@@ -119,3 +121,21 @@ def make_temp_file(prefix: str, suffix: str, directory: str) -> tuple[int, str]:
             os.unlink(name)
         raise
     return fd, name
+
+
+def write_json_privately(path: Path, document: object) -> None:
+    """Write `document` as JSON to `path` in a directory only the user may enter (created
+    0700), through a temporary file renamed into place: never a partial file.
+
+    Raises OSError (the caller words it); the temporary file is removed on any failure.
+    """
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    handle, temp = make_temp_file(path.name, ".tmp", str(path.parent))
+    try:
+        with os.fdopen(handle, "w", encoding="utf-8") as out:
+            json.dump(document, out, indent=1, sort_keys=True)
+        os.replace(temp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(temp)
+        raise

@@ -46,7 +46,7 @@ from kestimator.config.moonraker import (
 from kestimator.config.resolve import ResolvedLimits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import make_temp_file
+from kestimator.files import write_json_privately
 from kestimator.limits import Limits
 from kestimator.macros import LEARNED_PREP_LABEL, TOOL_CHANGE, MacroTime, MacroTimes
 
@@ -366,15 +366,7 @@ def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
     directory = directory if directory is not None else default_cache_dir(os.environ)
     path = store_path(learned.url, directory)
     document = {"format": STORE_FORMAT, **dataclasses.asdict(learned)}
-    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    handle, temp = make_temp_file(path.name, ".tmp", str(path.parent))
-    try:
-        with os.fdopen(handle, "w", encoding="utf-8") as out:
-            json.dump(document, out, indent=1, sort_keys=True)
-        os.replace(temp, path)
-    except BaseException:
-        os.unlink(temp)
-        raise
+    write_json_privately(path, document)
     return path
 
 

@@ -31,7 +31,7 @@ from kestimator.config.printer_cfg import (
     STEPPER_OPTIONS,
 )
 from kestimator.errors import KestimatorError
-from kestimator.files import make_temp_file, read_config_bytes
+from kestimator.files import read_config_bytes, write_json_privately
 from kestimator.kinematics.base import MachineConfig, is_machine_section
 from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
 
@@ -484,15 +484,7 @@ def _write_cache(path: Path, url: str, settings: Settings,
                      for name, options in settings.items()},
     }
     try:
-        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-        handle, temp = make_temp_file(path.name, ".tmp", str(path.parent))
-        try:
-            with os.fdopen(handle, "w", encoding="utf-8") as out:
-                json.dump(document, out, indent=1, sort_keys=True)
-            os.replace(temp, path)
-        except BaseException:
-            os.unlink(temp)
-            raise
+        write_json_privately(path, document)
     except OSError as exc:
         return f"could not cache Moonraker's settings in {path}: {exc.strerror or exc}"
     return None
