@@ -16,7 +16,7 @@ from .vendoring import use_vendored_core
 
 use_vendored_core()
 
-MIN_PYTHON = (3, 10)
+MIN_PYTHON = (3, 9)
 """The core's own minimum (Cura 5 bundles 3.10 or newer; Cura 4.13's own builds bundle 3.8)."""
 
 
