@@ -486,14 +486,20 @@ def _write_json(doc: dict[str, Any]) -> None:
     sys.stdout.write("\n")
 
 
-def cmd_estimate(args: argparse.Namespace) -> int:
-    """`kestimator estimate`."""
+def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Estimate]:
+    """The one pass `estimate` and `check` share: the file checked, limits resolved, timed."""
     check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
     _check_time_options(args)
-    with _progress(args, "timing") as progress:
+    with _progress(args, label) as progress:
         est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
                             heat_time=args.heat_time, progress=progress, macros=args.macros)
+    return resolved, est
+
+
+def cmd_estimate(args: argparse.Namespace) -> int:
+    """`kestimator estimate`."""
+    resolved, est = _time_file(args, "timing")
     warnings = list(resolved.warnings)
     if est.last_move_line is None:
         warnings.append("the file has no moves: there is nothing to time")
@@ -665,12 +671,7 @@ def _stop_status(est: Estimate) -> int:
 
 def cmd_check(args: argparse.Namespace) -> int:
     """`kestimator check`: only the pre-flight check."""
-    check_gcode_file(args.file)
-    resolved = _resolve(args, args.file)
-    _check_time_options(args)
-    with _progress(args, "checking") as progress:
-        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
-                            heat_time=args.heat_time, progress=progress, macros=args.macros)
+    resolved, est = _time_file(args, "checking")
     findings = _findings(est)
     if args.json:
         _write_json({"schema": JSON_SCHEMA_VERSION, "kestimator": __version__,
