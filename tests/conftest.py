@@ -31,6 +31,20 @@ def corpus_root() -> Path:
     return CORPUS
 
 
+def isolate_user_environment(home: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """A run as a new user would make it: `home` as HOME with its own config and cache, no
+    profile, no slicer hook environment (SLIC3R_*), no forced rich."""
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(home / "config"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(home / "cache"))
+    from kestimator.cli import RICH_ENV
+
+    monkeypatch.delenv(RICH_ENV, raising=False)
+    for name in [name for name in os.environ if name.startswith("SLIC3R_")]:
+        monkeypatch.delenv(name)
+    return home
+
+
 def require_program(name: str) -> str:
     """The path of a program a test drives: skipped without it, but under CI it must be there
     (.ci/run installs it)."""

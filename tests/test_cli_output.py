@@ -19,7 +19,7 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
 from kestimator.rewrite import inject_file
 
-from .conftest import CORPUS, CORPUS_CFG, PROJECT
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
 
 NUT = CORPUS / "gcode/prusaslicer/ps25_nut_accelA_small.gcode"          # M204 P warnings
 TORUS = CORPUS / "gcode/prusaslicer/ps25_torus_x4_labels_marlin.gcode"  # warnings, M73
@@ -47,13 +47,7 @@ FILAMENT_FIELDS = ("extruded_mm", "diameter_mm", "volume_cm3", "density_g_cm3", 
 @pytest.fixture(autouse=True)
 def private_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """No profile, a private cache, no slicer hook environment, no forced rich."""
-    monkeypatch.setenv("HOME", str(tmp_path))
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.delenv(cli.RICH_ENV, raising=False)
-    for name in [name for name in os.environ if name.startswith("SLIC3R_")]:
-        monkeypatch.delenv(name)
-    return tmp_path
+    return isolate_user_environment(tmp_path, monkeypatch)
 
 
 def run(*args: str, env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:

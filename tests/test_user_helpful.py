@@ -19,7 +19,7 @@ from kestimator import cli
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.rewrite import inject_file
 
-from .conftest import CORPUS, CORPUS_CFG, PROJECT
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
 
 NUT = CORPUS / "gcode/prusaslicer/ps25_nut_accelA_small.gcode"
 ORCA = CORPUS / "gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode"
@@ -30,13 +30,8 @@ LAYER_INFO_RE = re.compile(rb"^SET_PRINT_STATS_INFO (TOTAL_LAYER|CURRENT_LAYER)=
 
 @pytest.fixture(autouse=True)
 def private_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
-    monkeypatch.setenv("HOME", str(tmp_path))
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.delenv(cli.RICH_ENV, raising=False)
-    for name in [name for name in os.environ if name.startswith("SLIC3R_")]:
-        monkeypatch.delenv(name)
-    return tmp_path
+    """No profile, a private cache, no slicer hook environment, no forced rich."""
+    return isolate_user_environment(tmp_path, monkeypatch)
 
 
 def run(*args: str, env: dict[str, str] | None = None,

@@ -22,7 +22,7 @@ import pytest
 from kestimator import cli, compat
 from kestimator.config.resolve import GUESS_FIX
 
-from .conftest import CORPUS, CORPUS_CFG, PROJECT
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
 
 NUT = CORPUS / "gcode/prusaslicer/ps25_nut_accelA_small.gcode"
 TORUS = CORPUS / "gcode/prusaslicer/ps25_torus_x4_labels_marlin.gcode"
@@ -38,13 +38,7 @@ ANSI_RE = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]|\x1b\][^\x07]*\x07")
 @pytest.fixture(autouse=True)
 def private_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     """No profile, a private cache, no slicer hook environment, no forced rich."""
-    monkeypatch.setenv("HOME", str(tmp_path))
-    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "config"))
-    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
-    monkeypatch.delenv(cli.RICH_ENV, raising=False)
-    for name in [name for name in os.environ if name.startswith("SLIC3R_")]:
-        monkeypatch.delenv(name)
-    return tmp_path
+    return isolate_user_environment(tmp_path, monkeypatch)
 
 
 def run(*args: str, env: dict[str, str] | None = None,
