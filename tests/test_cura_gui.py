@@ -27,7 +27,7 @@ from .conftest import CORPUS_CFG, IN_CI
 
 SCRIPT = Path(__file__).resolve().parents[1] / "plugins" / "cura" / "harness" / "gui_check.py"
 CURA5_ROOT_VARIABLE = "KESTIMATOR_CURA5_ROOT"
-GUI_TIMEOUT_S = 600
+GUI_TIMEOUT_S = 900
 
 
 def _require(ok: bool, what: str) -> None:
