@@ -403,9 +403,18 @@ class Timeline:
                 for w, n in zip(self.warnings, self._warning_repeats)]
 
     def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
-        if self._rest_until and self.toolhead.lookahead.is_empty():
-            # Nothing moved since an added time: the line comes after it, not before.
-            store.append((lineno, max(self.toolhead.last_move_end_t, self._rest_until)))
+        """The time at which the printer reaches ``lineno``: when every move queued before
+        it has finished (a look-ahead callback, as in Klipper's register_lookahead_callback)
+        or, with nothing queued, Klipper's print_time there (after any dwell or motors-off
+        pause since the last move), read without the flush or priming that
+        get_last_move_time would do: a comment changes nothing in Klipper."""
+        toolhead = self.toolhead
+        if toolhead.lookahead.is_empty():
+            if self._rest_until:
+                # Nothing moved since an added time: the line comes after it, not before.
+                store.append((lineno, max(toolhead.last_move_end_t, self._rest_until)))
+            else:
+                store.append((lineno, toolhead.print_time))
             return
         index = len(store)
         store.append((lineno, 0.0))
@@ -494,12 +503,6 @@ class Timeline:
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
-            toolhead = self.toolhead
-            if toolhead.lookahead.is_empty() and not self._rest_until:
-                # Nothing queued: the layer starts now, after any dwell or motors-off pause
-                # since the last move (the oracle reads Klipper's print_time there).
-                self.layers.append((self.lineno, toolhead.print_time))
-                return
             self._record(self.layers, self.lineno)
             return
         if self.mark_prefixes and text.startswith(self.mark_prefixes):

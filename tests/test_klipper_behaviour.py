@@ -319,3 +319,23 @@ def test_features_add_up_to_the_motion_time() -> None:
                         CORPUS_LIMITS)
     assert set(est.features) == {"Perimeter", "Infill"}
     assert sum(est.features.values()) == pytest.approx(est.total_s, abs=1e-9)
+
+
+def test_a_time_mark_after_a_dwell_gets_klipper_print_time_like_a_layer_marker() -> None:
+    # A slicer's time comment (Cura's ;TIME_ELAPSED:) right after a dwell on an empty
+    # look-ahead queue is reached after the dwell: Klipper's print_time there, the time the
+    # oracle records for a layer marker at the same place (tests/oracle_refs/snippets/
+    # dwell_then_layer.gcode), not the end of the last move.
+    import io
+
+    from kestimator.estimate import estimate_lines
+    gcode = ("G90\nG1 X10 Y10 Z1 F6000\nG4 P500\n;LAYER_CHANGE\n;TIME_ELAPSED:1\n"
+             "G1 X20 F6000\nG4 P250\nM400\n;LAYER_CHANGE\n;TIME_ELAPSED:2\nG1 X30 F6000\n")
+    result = estimate_lines(io.BytesIO(gcode.encode()), CORPUS_LIMITS,
+                            mark_prefixes=(";TIME_ELAPSED:",))
+    layers = dict(result.layers)
+    assert sorted(result.marks) == [5, 10]
+    assert result.marks[5] == layers[4]
+    assert result.marks[10] == layers[9]
+    # The first mark is 0.5 s (the G4 P500) after the first move's end.
+    assert result.marks[5] == pytest.approx(t("G90\nG1 X10 Y10 Z1 F6000\n") + 0.5, abs=1e-9)
