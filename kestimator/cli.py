@@ -40,6 +40,7 @@ from kestimator.cli_output import (
     slicer_label,
     untimed_detail,
     untimed_summary,
+    write_json,
 )
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
@@ -482,8 +483,7 @@ def _progress(args: argparse.Namespace, label: str, passes: int = 1
 
 
 def _write_json(doc: dict[str, Any]) -> None:
-    json.dump(doc, sys.stdout, indent=1)
-    sys.stdout.write("\n")
+    write_json(doc, sys.stdout)
 
 
 def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Estimate]:

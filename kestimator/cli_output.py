@@ -10,8 +10,10 @@ rendering of the same document lives in `kestimator.cli`.
 
 from __future__ import annotations
 
+import json
 import math
 import re
+from collections.abc import Iterator
 from typing import Any, TextIO
 
 from kestimator import __version__
@@ -152,12 +154,62 @@ def _rounded(value: float | None) -> float | None:
     return None if value is None else round(value, 6)
 
 
+class LayerEntries:
+    """The `layers` list of the `--json` object, made an entry at a time when iterated.
+
+    A file may hold a million layer markers: the list of dicts (hundreds of MB) is never
+    built; `write_json` writes it entry by entry, the text output reads it only for
+    `--layers`."""
+
+    def __init__(self, est: Estimate) -> None:
+        self._layers = est.layers
+        self._total_s = est.total_s
+
+    def __len__(self) -> int:
+        return len(self._layers)
+
+    def __bool__(self) -> bool:
+        return len(self._layers) > 0
+
+    def __iter__(self) -> Iterator[dict[str, Any]]:
+        times = self._layers.times
+        last = len(times) - 1
+        for i, (line, t) in enumerate(self._layers):
+            end = times[i + 1] if i < last else self._total_s
+            yield {"line": line, "t": round(t, 6), "duration_s": round(max(end - t, 0.0), 6)}
+
+
+# Stands for the layer entries while the rest of the document is encoded.
+_LAYERS_PLACEHOLDER = "\u0000kestimator-layers\u0000"
+
+
+def write_json(doc: dict[str, Any], out: TextIO) -> None:
+    """`json.dump(doc, out, indent=1)` and a newline, byte for byte, with a `LayerEntries`
+    written entry by entry (memory stays bounded however many layers there are)."""
+    layers = doc.get("layers")
+    if not isinstance(layers, LayerEntries) or not layers:
+        json.dump({**doc, "layers": []} if isinstance(layers, LayerEntries) else doc, out,
+                  indent=1)
+        out.write("\n")
+        return
+    text = json.dumps({**doc, "layers": [_LAYERS_PLACEHOLDER]}, indent=1)
+    at = text.index(json.dumps(_LAYERS_PLACEHOLDER))
+    out.write(text[:at])
+    # Each entry sits two levels deep: its inner lines take two more spaces.
+    separator = ""
+    for entry in layers:
+        out.write(separator)
+        out.write(json.dumps(entry, indent=1).replace("\n", "\n  "))
+        separator = ",\n  "
+    out.write(text[at + len(json.dumps(_LAYERS_PLACEHOLDER)):])
+    out.write("\n")
+
+
 def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
                      extra_warnings: list[str],
                      filament: dict[str, Any] | None = None,
                      limits_guessed: bool = False) -> dict[str, Any]:
     """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md)."""
-    ends = [t for _, t in est.layers[1:]] + [est.total_s] if est.layers else []
     slicer_s = slicer.estimate_s
     # The slicer times the moves: it is compared with Klipper's motion time.
     motion_s = est.parts.motion_s
@@ -170,8 +222,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "total_s": round(est.total_s, 6),
         "first_layer_s": _rounded(est.first_layer_s),
         "layer_count": len(est.layers),
-        "layers": [{"line": line, "t": round(t, 6), "duration_s": round(max(end - t, 0.0), 6)}
-                   for (line, t), end in zip(est.layers, ends)],
+        "layers": LayerEntries(est),
         "features": {name: round(t, 6) for name, t in est.features.items()},
         "objects": {name: round(t, 6) for name, t in est.objects.items()},
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
@@ -186,6 +237,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "n_moves": est.n_moves,
         "n_lines": est.n_lines,
         "ignored_commands": est.ignored_commands,
+        "ignored_commands_unlisted": est.ignored_unlisted,
         "commands": est.commands,
         "untimed_commands": untimed_by_kind(est, {source["name"]
                                                   for source in parts["sources"]}),
@@ -327,6 +379,9 @@ def untimed_summary(doc: dict[str, Any]) -> str | None:
     if not parts:
         return None
     listed = parts[0] if len(parts) == 1 else ", ".join(parts[:-1]) + " and " + parts[-1]
+    unlisted = doc.get("ignored_commands_unlisted") or 0
+    if unlisted:
+        listed += " (and %d more lines of commands with further names)" % unlisted
     return "%s: %s not counted (--verbose lists them)" % (
         listed, "its time is" if sum(len(v) for v in groups.values()) == 1
         else "their time is")
@@ -419,17 +474,16 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
             lines.append("    %-*s %10s %5.1f %%" % (
                 FEATURE_NAME_WIDTH, feature[:FEATURE_NAME_WIDTH], format_duration(t), share))
     lines.extend(summary_tail_lines(doc, verbose))
-    table: list[str] = []
+    # The layer table first and the summary last: with hundreds of layers the summary
+    # stays on screen. Written a row at a time (a file may have a million layers).
     if layers and doc["layers"]:
-        table.append("Time per layer (the summary follows the table):")
-        table.append("  %5s %8s %10s %10s" % ("layer", "line", "starts", "takes"))
+        out.write("Time per layer (the summary follows the table):\n")
+        out.write("  %5s %8s %10s %10s\n" % ("layer", "line", "starts", "takes"))
         for number, layer in enumerate(doc["layers"], 1):
-            table.append("  %5d %8d %10s %10s" % (number, layer["line"],
+            out.write("  %5d %8d %10s %10s\n" % (number, layer["line"],
                                                   format_duration(layer["t"]),
                                                   format_duration(layer["duration_s"])))
-    # The layer table first and the summary last: with hundreds of layers the summary
-    # stays on screen.
-    out.write("\n".join(table + lines) + "\n")
+    out.write("\n".join(lines) + "\n")
 
 
 def summary_tail_lines(doc: dict[str, Any], verbose: bool = False) -> list[str]:

@@ -28,7 +28,13 @@ from kestimator.gcode import (
     parse_plain_move_regex,
     parse_plain_move_scan,
 )
-from kestimator.interpreter import KIND_MACRO, CommandError, Interpreter, ParamError
+from kestimator.interpreter import (
+    KIND_MACRO,
+    MAX_COMMAND_NAMES,
+    CommandError,
+    Interpreter,
+    ParamError,
+)
 from kestimator.limits import Limits
 from kestimator.macros import (
     ADD_TIME_SOURCE,
@@ -41,6 +47,7 @@ from kestimator.macros import (
 )
 from kestimator.planner import Move
 from kestimator.preflight import KIND_STOP, Finding, Preflight
+from kestimator.timedlines import TimedLines
 from kestimator.toolhead import MoveError, ToolHead
 
 # Commands that say which object the following moves belong to.
@@ -64,7 +71,9 @@ OBJECT_COMMENT: Final = ";printing object"
 OBJECT_STOP_COMMENT: Final = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
 MAX_WARNINGS: Final = 100
-READ_BUFFER_BYTES: Final = 1 << 20
+# The file is read in blocks of this size; a line is held whole up to MAX_LINE_BYTES.
+READ_BLOCK_BYTES: Final = 1 << 20
+MAX_LINE_BYTES: Final = 1 << 20
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES: Final = 65536
@@ -85,7 +94,8 @@ class Estimate:
 
     path: str
     total_s: float
-    layers: list[tuple[int, float]]
+    # (line, seconds) of each layer marker, in file order.
+    layers: TimedLines
     features: dict[str, float]
     n_moves: int
     n_lines: int
@@ -96,8 +106,9 @@ class Estimate:
     # (spacing at most total_s / 32768, so any line's time is known to that precision).
     sample_lines: array
     sample_times: array
-    # Exact times at comment lines asked for (e.g. Cura's ;TIME_ELAPSED:): line -> t.
-    marks: dict[int, float]
+    # Exact times at comment lines asked for (e.g. Cura's ;TIME_ELAPSED:), in file order
+    # (`marks.by_line()` maps line -> t).
+    marks: TimedLines
     first_command_line: int | None
     last_move_line: int | None
     # Net filament the moves push (mm of E, after M221; retractions count negative).
@@ -125,6 +136,9 @@ class Estimate:
     untimed_macros: dict[str, int] = dataclasses.field(default_factory=dict)
     # When the first move that extrudes starts (print_stats starts print_duration there).
     first_extrusion_t: float | None = None
+    # Lines of unknown commands left out of ignored_commands and commands: their names came
+    # after MAX_COMMAND_NAMES others (memory stays bounded).
+    ignored_unlisted: int = 0
 
     @property
     def parts(self) -> Parts:
@@ -149,35 +163,86 @@ def _is_layer_marker(comment_line: str) -> bool:
     return False
 
 
-def iter_lines(path: str | os.PathLike[str]) -> Iterator[bytes]:
-    """The file's lines as bytes, split at LF only (the LF is kept)."""
-    try:
-        with open(path, "rb", buffering=READ_BUFFER_BYTES) as f:
-            yield from f
-    except IsADirectoryError:
-        raise KestimatorError("is a directory, not a G-code file", path) from None
-    except OSError as exc:
-        raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
-
-
 # Called with each batch of planned moves and the time the first of them starts.
 MoveObserver = Callable[[list[Move], float], None]
 # Called with the number of bytes read so far (about once per PROGRESS_EVERY_BYTES).
 ProgressCallback = Callable[[int], None]
 
 
-def counted_lines(lines: Iterable[bytes], progress: ProgressCallback,
-                  start: int = 0) -> Iterator[bytes]:
-    """`lines` unchanged; `progress(start + bytes so far)` about once per MiB and at the end."""
-    done = start
-    next_report = start + PROGRESS_EVERY_BYTES
-    for raw in lines:
-        done += len(raw)
-        if done >= next_report:
+def iter_lines(path: str | os.PathLike[str],
+               progress: ProgressCallback | None = None) -> Iterator[bytes]:
+    """The file's lines as bytes, split at LF only (the LF is dropped; a CR before it stays).
+
+    Memory stays bounded whatever the file holds: it is read in blocks, and a line longer
+    than MAX_LINE_BYTES is never held whole (see `over_long_line`). `progress` hears the
+    bytes read so far, about once per PROGRESS_EVERY_BYTES and at the end.
+    """
+    try:
+        with open(path, "rb", buffering=0) as f:
+            yield from _split_lines(f.read, os.fspath(path), progress)
+    except IsADirectoryError:
+        raise KestimatorError("is a directory, not a G-code file", path) from None
+    except OSError as exc:
+        raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
+
+
+def _split_lines(read: Callable[[int], bytes], path: str,
+                 progress: ProgressCallback | None) -> Iterator[bytes]:
+    # A line that fits in a block is split out by C code; only a line that spans blocks
+    # (its start is `rest`) can be over MAX_LINE_BYTES (READ_BLOCK_BYTES <= that bound).
+    rest = b""
+    lineno = 0  # lines yielded so far
+    done = 0
+    next_report = PROGRESS_EVERY_BYTES
+    skipping: bytes | None = None  # the start of an over-long line whose rest is skipped
+    while True:
+        block = read(READ_BLOCK_BYTES)
+        if not block:
+            break
+        done += len(block)
+        if progress is not None and done >= next_report:
             progress(done)
             next_report = done + PROGRESS_EVERY_BYTES
-        yield raw
-    progress(done)
+        if skipping is not None:
+            nl = block.find(b"\n")
+            if nl < 0:
+                continue
+            lineno += 1
+            yield over_long_line(skipping, lineno, path)
+            skipping = None
+            block = block[nl + 1:]
+        parts = block.split(b"\n")
+        if rest:
+            first = rest + parts[0]
+            if len(first) > MAX_LINE_BYTES and len(parts) > 1:
+                first = over_long_line(first[:MAX_LINE_BYTES], lineno + 1, path)
+            parts[0] = first
+        rest = parts.pop()
+        lineno += len(parts)
+        yield from parts
+        if len(rest) > MAX_LINE_BYTES:
+            skipping = rest[:MAX_LINE_BYTES]
+            rest = b""
+    if skipping is not None:
+        yield over_long_line(skipping, lineno + 1, path)
+    elif rest:
+        yield rest
+    if progress is not None:
+        progress(done)
+
+
+def over_long_line(head: bytes, lineno: int, path: str) -> bytes:
+    """What stands for a line longer than MAX_LINE_BYTES, given its first MAX_LINE_BYTES.
+
+    Klipper reads a line whole, whatever its length, and ignores what follows a ``;``. A
+    line whose start already holds a ``;`` (a comment, or a command with a long comment) is
+    therefore exactly its start; any other such line is refused (a command line of
+    megabytes is no G-code a slicer writes, and reading it whole costs memory without
+    bound), with the file and line named."""
+    if b";" in head:
+        return head
+    raise KestimatorError("a line of over %d MiB with no comment: kestimator reads no "
+                          "command line that long" % (MAX_LINE_BYTES >> 20), path, lineno)
 
 
 class Timeline:
@@ -232,8 +297,8 @@ class Timeline:
         # Where the time already given to a segment ends: the head at rest between batches
         # (G4, flush delays, homing) goes to the segment of the last move before it.
         self._counted_until = 0.0
-        self.layers: list[tuple[int, float]] = []
-        self.marks: list[tuple[int, float]] = []
+        self.layers = TimedLines()
+        self.marks = TimedLines()
         self.mark_prefixes = mark_prefixes
         self.sample = sample
         self.sample_lines = array("q")
@@ -351,8 +416,8 @@ class Timeline:
 
         def stretch(t: float) -> float:
             return t if t <= first else first + (t - first) * factor
-        self.layers = [(line, stretch(t)) for line, t in self.layers]
-        self.marks = [(line, stretch(t)) for line, t in self.marks]
+        self.layers.map_times(stretch)
+        self.marks.map_times(stretch)
         times = self.sample_times
         for i in range(len(times)):
             times[i] = stretch(times[i])
@@ -402,7 +467,7 @@ class Timeline:
         return [w if not n else "%s (%d more like it)" % (w, n)
                 for w, n in zip(self.warnings, self._warning_repeats)]
 
-    def _record(self, store: list[tuple[int, float]], lineno: int) -> None:
+    def _record(self, store: TimedLines, lineno: int) -> None:
         """The time at which the printer reaches ``lineno``: when every move queued before
         it has finished (a look-ahead callback, as in Klipper's register_lookahead_callback)
         or, with nothing queued, Klipper's print_time there (after any dwell or motors-off
@@ -412,15 +477,15 @@ class Timeline:
         if toolhead.lookahead.is_empty():
             if self._rest_until:
                 # Nothing moved since an added time: the line comes after it, not before.
-                store.append((lineno, max(toolhead.last_move_end_t, self._rest_until)))
+                store.append(lineno, max(toolhead.last_move_end_t, self._rest_until))
             else:
-                store.append((lineno, toolhead.print_time))
+                store.append(lineno, toolhead.print_time)
             return
         index = len(store)
-        store.append((lineno, 0.0))
+        store.append(lineno, 0.0)
 
         def resolve(t: float) -> None:
-            store[index] = (lineno, t)
+            store.set_time(index, t)
         self.toolhead.register_lookahead_callback(resolve)
 
     # Per line
@@ -649,6 +714,10 @@ class Timeline:
         if ran:
             self.warn("macros of the printer config ran: %s; their time is not included "
                       "(counted as 0 s)" % ", ".join("%s x%d" % kv for kv in ran))
+        if interp.ignored_unlisted:
+            self.warn("%d more lines of unknown commands are not listed: the file uses more "
+                      "than %d names of commands Klipper does not know"
+                      % (interp.ignored_unlisted, MAX_COMMAND_NAMES))
         commands = {kind: dict(sorted(names.items()))
                     for kind, names in sorted(interp.command_kinds.items())}
         if interp.ignored:
@@ -668,12 +737,13 @@ class Timeline:
                 if object_time[i] > 0.0:
                     objects[name] = objects.get(name, 0.0) + object_time[i]
         return Estimate(
-            path=self.path, total_s=total, layers=list(self.layers), features=features,
+            path=self.path, total_s=total, layers=self.layers, features=features,
             n_moves=self.n_moves, n_lines=self.lineno,
             ignored_commands=dict(sorted(interp.ignored.items())),
+            ignored_unlisted=interp.ignored_unlisted,
             warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
-            marks=dict(self.marks), first_command_line=self.first_command_line,
+            marks=self.marks, first_command_line=self.first_command_line,
             last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
@@ -733,10 +803,7 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
         raise KestimatorError("is a directory, not a G-code file", path_s)
-    lines: Iterable[bytes] = iter_lines(path_s)
-    if progress is not None:
-        lines = counted_lines(lines, progress)
-    return estimate_lines(lines, limits, path_s, homing_time=homing_time,
+    return estimate_lines(iter_lines(path_s, progress), limits, path_s, homing_time=homing_time,
                           heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes,
                           observer=observer, macros=macros)
 

@@ -70,6 +70,9 @@ TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 # An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
 MAX_ARC_SEGMENTS: Final = 100_000
+# Distinct names of unknown commands recorded with their counts; lines with further names
+# are counted together (`ignored_unlisted`), so memory stays bounded whatever the file.
+MAX_COMMAND_NAMES: Final = 1000
 _AXES: Final = (("X", 0), ("Y", 1), ("Z", 2), ("E", 3))
 # Parameters a G0/G1 may carry (G is the command letter itself).
 _MOVE_PARAMS: Final = frozenset("XYZEFG")
@@ -161,6 +164,8 @@ class Interpreter:
         self.extrude_mode_set = False
         self.moved_e_before_mode = False
         self.ignored: dict[str, int] = {}
+        # Lines whose unknown command came after MAX_COMMAND_NAMES other names.
+        self.ignored_unlisted = 0
         # Commands that are not Klipper's own, by kind (KIND_*): name -> times run.
         self.command_kinds: dict[str, dict[str, int]] = {}
         self.macros = dict(limits.gcode_macros)
@@ -250,7 +255,13 @@ class Interpreter:
             if name and not known and self._silent(name, cmd):
                 return
             if name and not known:
-                self.ignored[name] = self.ignored.get(name, 0) + 1
+                ignored = self.ignored
+                if name in ignored:
+                    ignored[name] += 1
+                elif len(ignored) < MAX_COMMAND_NAMES:
+                    ignored[name] = 1
+                else:
+                    self.ignored_unlisted += 1
                 if self.preflight is not None and self.modules is not None:
                     self.preflight.unknown_command(name, self.tag)
                 if self.on_unknown is not None:

@@ -31,6 +31,8 @@ SEVERITY_ERROR = "error"
 SEVERITY_WARNING = "warning"
 KIND_STOP = "stop"
 KIND_SKIPPED = "skipped"
+# Skipped commands listed one finding per name, at most; the rest share one finding.
+MAX_SKIPPED_NAMES = 1000
 # Commands that need a section, and the section (extras/gcode_arcs.py,
 # extras/firmware_retraction.py).
 SECTION_OF_COMMAND = {
@@ -77,6 +79,8 @@ class Preflight:
     def __init__(self) -> None:
         self.stop: Finding | None = None
         self.skipped: dict[str, Finding] = {}
+        # Skipped commands whose name came after MAX_SKIPPED_NAMES others: one finding.
+        self.skipped_unlisted: Finding | None = None
 
     def command_error(self, line: int, message: str) -> Finding | None:
         """Klipper answers this line with an error; the new stop finding, if it is the first."""
@@ -92,6 +96,15 @@ class Preflight:
         if found is not None:
             found.count += 1
             return
+        if len(self.skipped) >= MAX_SKIPPED_NAMES:
+            if self.skipped_unlisted is None:
+                self.skipped_unlisted = Finding(
+                    SEVERITY_WARNING, KIND_SKIPPED, line,
+                    "Unknown commands of more than %d names (the others are not listed): "
+                    "Klipper skips them" % MAX_SKIPPED_NAMES)
+            else:
+                self.skipped_unlisted.count += 1
+            return
         section = SECTION_OF_COMMAND.get(name)
         if section is not None:
             message = ('Unknown command:"%s": the printer config has no [%s], so Klipper '
@@ -103,7 +116,10 @@ class Preflight:
     def findings(self) -> list[Finding]:
         """The stop first, then skipped commands in the order first seen."""
         found = [self.stop] if self.stop is not None else []
-        return found + sorted(self.skipped.values(), key=lambda f: f.line or 0)
+        found += sorted(self.skipped.values(), key=lambda f: f.line or 0)
+        if self.skipped_unlisted is not None:
+            found.append(self.skipped_unlisted)
+        return found
 
 
 def summary_lines(findings: list[dict[str, object]]) -> list[str]:

@@ -54,9 +54,9 @@ from kestimator import __version__
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import (
+    MAX_LINE_BYTES,
     Estimate,
     ProgressCallback,
-    counted_lines,
     estimate_lines,
     iter_lines,
 )
@@ -66,6 +66,7 @@ from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
+from kestimator.timedlines import TimedLines
 
 MARKER_PREFIX = "; kestimator "
 _MARKER_PREFIX_B = MARKER_PREFIX.encode()
@@ -234,7 +235,8 @@ class InjectPlan:
     total_s: float
     sample_lines: array
     sample_times: array
-    layer_lines: frozenset[int]
+    layer_lines: TimedLines
+    """The layer markers (membership by bisection: `index_of`)."""
     last_move_line: int | None
     times: KlipperTimes
     adapter: SlicerAdapter
@@ -260,13 +262,12 @@ class InjectPlan:
         """
         prep_s = est.parts.before_first_extrusion_s
         model_s = est.total_s - est.layers[0][1] if est.layers else None
-        marks = est.marks if not prep_s else {
-            line: max(0.0, t - prep_s) for line, t in est.marks.items()}
+        marks = est.marks.by_line(-prep_s)
         times = KlipperTimes(total_s=est.total_s - prep_s, first_layer_s=est.first_layer_s,
                              model_s=model_s, marks=marks)
         return cls(total_s=est.total_s, sample_lines=est.sample_lines,
                    sample_times=est.sample_times,
-                   layer_lines=frozenset(line for line, _ in est.layers),
+                   layer_lines=est.layers,
                    last_move_line=est.last_move_line, times=times, adapter=adapter,
                    marker=marker_line(est.total_s, slicer_s, limits_source),
                    prep_line=prep_line(prep_s) if prep_s > 0.0 else None,
@@ -418,15 +419,51 @@ class Rewriter:
         # The start of a line that continues in the next block (a list, so a line over
         # many blocks is joined once, not copied again at every block).
         carry: list[bytes] = []
+        carry_bytes = 0
+        # Inside a line over MAX_LINE_BYTES: True while its bytes are copied through, False
+        # while they are dropped (the line was replaced), None outside such a line.
+        long_copy: bool | None = None
+        long_after: list[bytes] = []  # what `process` put after that line
         done = 0
         while True:
             block = inp.read(COPY_BLOCK_BYTES)
             if not block:
                 break
             done += len(block)
+            if long_copy is not None:
+                nl = block.find(b"\n") + 1
+                if long_copy:
+                    write(block[:nl] if nl else block)
+                if not nl:
+                    if progress is not None:
+                        progress(done)
+                    continue
+                for piece in long_after:
+                    write(piece)
+                long_copy = None
+                long_after = []
+                block = block[nl:]
             end = block.rfind(b"\n") + 1
             if not end:
                 carry.append(block)
+                carry_bytes += len(block)
+                if carry_bytes > MAX_LINE_BYTES:
+                    # A line too long to hold (pass 1 took its start for it, see
+                    # estimate.over_long_line): its start goes through `process`, the rest
+                    # is copied through (or dropped with it) as it is read.
+                    data = b"".join(carry)
+                    head = data[:MAX_LINE_BYTES]
+                    carry = []
+                    carry_bytes = 0
+                    long_copy = False
+                    pieces = process(head)
+                    for index, piece in enumerate(pieces):
+                        if piece is head:
+                            write(data)
+                            long_copy = True
+                            long_after = pieces[index + 1:]
+                            break
+                        write(piece)
                 if progress is not None:
                     progress(done)
                 continue
@@ -437,6 +474,7 @@ class Rewriter:
             else:
                 data = block
             carry = [data[end:]] if end < len(data) else []
+            carry_bytes = len(data) - end
             pos = 0
             while pos < end:
                 pos = self._copy_quiet(data, pos, end, write)
@@ -448,9 +486,17 @@ class Rewriter:
                 pos = nl
             if progress is not None:
                 progress(done)
+        tail = self.finish()
+        if long_copy is not None:
+            # The file ended inside the long line, already written: the tail time comment
+            # can only follow it, on a line of its own.
+            for piece in long_after:
+                write(piece)
+            if tail:
+                write(self.eol)
         # The tail time comment ends the file; before a last line without a line ending, so
         # that none is ever added to the file.
-        for piece in self.finish():
+        for piece in tail:
             write(piece)
         if carry:
             for piece in process(b"".join(carry)):
@@ -518,7 +564,7 @@ class Rewriter:
         if code.startswith(_PREP_PREFIX_B) or (
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
-        if self.lineno in self.plan.layer_lines:
+        if self.plan.layer_lines.index_of(self.lineno) >= 0:
             return self._layer_marker(raw, eol)
         if self._prefixes and code.startswith(self._prefixes_b):
             text = code.decode("utf-8", "surrogateescape").rstrip("\r\n")
@@ -604,10 +650,7 @@ def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float 
               macros: MacroTimes | None = None, layer_info: bool = True) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
-    lines: Iterable[bytes] = iter_lines(path)
-    if progress is not None:
-        lines = counted_lines(lines, progress)
-    return plan_lines(lines, head, tail, limits, limits_source, homing_time,
+    return plan_lines(iter_lines(path, progress), head, tail, limits, limits_source, homing_time,
                       heat_time, path, macros, layer_info)
 
 

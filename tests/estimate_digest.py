@@ -16,6 +16,7 @@ from kestimator import build
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file
+from kestimator.timedlines import TimedLines
 
 MARKS = (";TIME_ELAPSED:",)
 
@@ -33,6 +34,8 @@ def _plain(value: object) -> object:
             f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}}
     if isinstance(value, (set, frozenset)):
         return sorted(_plain(v) for v in value)  # type: ignore[type-var]
+    if isinstance(value, TimedLines):
+        return [_plain(list(pair)) for pair in value]
     if hasattr(value, "tolist"):  # array.array
         return _plain(value.tolist())  # type: ignore[attr-defined]
     return value

@@ -33,6 +33,7 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "features": (dict,), "objects": (dict,), "slicer": (dict,), "filament": (dict,),
     "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
+    "ignored_commands_unlisted": (int,),
     "warnings_dropped": (int,), "limits_guessed": (bool,), "untimed_commands": (dict,),
     "parts": (dict,), "commands": (dict,), "preflight": (list,),
 }

@@ -334,8 +334,9 @@ def test_a_time_mark_after_a_dwell_gets_klipper_print_time_like_a_layer_marker()
     result = estimate_lines(io.BytesIO(gcode.encode()), CORPUS_LIMITS,
                             mark_prefixes=(";TIME_ELAPSED:",))
     layers = dict(result.layers)
-    assert sorted(result.marks) == [5, 10]
-    assert result.marks[5] == layers[4]
-    assert result.marks[10] == layers[9]
+    marks = result.marks.by_line()
+    assert sorted(marks) == [5, 10]
+    assert marks[5] == layers[4]
+    assert marks[10] == layers[9]
     # The first mark is 0.5 s (the G4 P500) after the first move's end.
-    assert result.marks[5] == pytest.approx(t("G90\nG1 X10 Y10 Z1 F6000\n") + 0.5, abs=1e-9)
+    assert marks[5] == pytest.approx(t("G90\nG1 X10 Y10 Z1 F6000\n") + 0.5, abs=1e-9)

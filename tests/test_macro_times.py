@@ -202,7 +202,7 @@ def test_a_learned_motion_ratio_stretches_the_time_after_the_first_extrusion() -
     assert est.parts.motion_s == pytest.approx(plain.total_s, abs=1e-9)
     assert est.parts.print_duration_s == pytest.approx(est.total_s, abs=1e-9)
     assert est.timed_parts[0].name.startswith("motion correction")
-    (_, start), (_, second) = plain.layers[:2]
+    (_, start), (_, second) = plain.layers[0], plain.layers[1]
     assert start <= first < second  # the first layer's marker comes before its extrusion
     assert est.first_layer_s == pytest.approx(first + (second - first) * 1.05 - start,
                                               abs=1e-9)
