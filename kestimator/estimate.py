@@ -72,7 +72,9 @@ OBJECT_STOP_COMMENT: Final = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
 MAX_WARNINGS: Final = 100
 # The file is read in blocks of this size; a line is held whole up to MAX_LINE_BYTES.
-READ_BLOCK_BYTES: Final = 1 << 20
+# 16 KiB: the same CPU as 1 MiB blocks under CPython; under PyPy, whose GC frees large
+# objects late, peak RSS 146 MB instead of 210 MB on the 40 MB file.
+READ_BLOCK_BYTES: Final = 1 << 14
 MAX_LINE_BYTES: Final = 1 << 20
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
