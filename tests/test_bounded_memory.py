@@ -13,7 +13,9 @@ import io
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -62,6 +64,24 @@ def run_cli(tmp_path: Path, *args: str) -> tuple[subprocess.CompletedProcess[str
     return proc, int(peak.read_text())
 
 
+def hostile_file(path: Path, line: Callable[[int], bytes], count: int = 200_000) -> Path:
+    """HEAD, then ``line(i)`` for i in range(count)."""
+    with open(path, "wb") as f:
+        f.write(HEAD)
+        for i in range(count):
+            f.write(line(i))
+    return path
+
+
+def bounded_estimate_json(tmp_path: Path, path: Path) -> dict[str, Any]:
+    """`estimate --json` of ``path``, checked to succeed under PEAK_LIMIT_MIB."""
+    proc, peak = run_cli(tmp_path, "estimate", str(path), "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert peak < PEAK_LIMIT_MIB
+    doc: dict[str, Any] = json.loads(proc.stdout)
+    return doc
+
+
 def test_a_huge_comment_line_is_timed_and_copied_without_being_held(tmp_path: Path) -> None:
     big = b"; " + b"x" * (40 << 20) + b"\n"
     path = tmp_path / "comment.gcode"
@@ -98,15 +118,9 @@ def test_a_huge_command_line_is_refused_naming_its_line_and_the_file_stays(
 
 def test_a_million_layer_markers_are_stored_compactly_and_written_a_row_at_a_time(
         tmp_path: Path) -> None:
-    path = tmp_path / "layers.gcode"
-    with open(path, "wb") as f:
-        f.write(HEAD)
-        for i in range(200_000):
-            f.write(b";LAYER_CHANGE\nG1 X%d E0.01\n" % (10 + (i % 2) * 5))
-    proc, peak = run_cli(tmp_path, "estimate", str(path), "--json")
-    assert proc.returncode == 0, proc.stderr
-    assert peak < PEAK_LIMIT_MIB
-    doc = json.loads(proc.stdout)
+    path = hostile_file(tmp_path / "layers.gcode",
+                        lambda i: b";LAYER_CHANGE\nG1 X%d E0.01\n" % (10 + (i % 2) * 5))
+    doc = bounded_estimate_json(tmp_path, path)
     assert doc["layer_count"] == len(doc["layers"]) == 200_001
     ends = [layer["t"] + layer["duration_s"] for layer in doc["layers"]]
     assert ends[-1] == pytest.approx(doc["total_s"], abs=1e-5)
@@ -118,15 +132,8 @@ def test_a_million_layer_markers_are_stored_compactly_and_written_a_row_at_a_tim
 
 def test_a_million_macro_names_keep_a_thousand_names_and_count_the_rest(
         tmp_path: Path) -> None:
-    path = tmp_path / "macros.gcode"
-    with open(path, "wb") as f:
-        f.write(HEAD)
-        for i in range(200_000):
-            f.write(b"MACRO_%07d\n" % i)
-    proc, peak = run_cli(tmp_path, "estimate", str(path), "--json")
-    assert proc.returncode == 0, proc.stderr
-    assert peak < PEAK_LIMIT_MIB
-    doc = json.loads(proc.stdout)
+    path = hostile_file(tmp_path / "macros.gcode", lambda i: b"MACRO_%07d\n" % i)
+    doc = bounded_estimate_json(tmp_path, path)
     assert len(doc["ignored_commands"]) == 1000
     assert doc["ignored_commands_unlisted"] == 199_000
     skipped = [f for f in doc["preflight"] if f["kind"] == "skipped"]
