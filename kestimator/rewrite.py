@@ -424,6 +424,7 @@ class Rewriter:
         # while they are dropped (the line was replaced), None outside such a line.
         long_copy: bool | None = None
         long_after: list[bytes] = []  # what `process` put after that line
+        long_replaced = False  # `process` put something else in that line's place
         done = 0
         while True:
             block = inp.read(COPY_BLOCK_BYTES)
@@ -438,6 +439,10 @@ class Rewriter:
                     if progress is not None:
                         progress(done)
                     continue
+                if long_replaced:
+                    # `process` replaced the line from its start, which has no line ending:
+                    # the one the line ends with follows the replacement.
+                    write(b"\r\n" if block[nl - 2:nl] == b"\r\n" else b"\n")
                 for piece in long_after:
                     write(piece)
                 long_copy = None
@@ -457,6 +462,7 @@ class Rewriter:
                     carry_bytes = 0
                     long_copy = False
                     pieces = process(head)
+                    long_replaced = bool(pieces) and not any(p is head for p in pieces)
                     for index, piece in enumerate(pieces):
                         if piece is head:
                             write(data)

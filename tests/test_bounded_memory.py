@@ -180,3 +180,37 @@ def test_json_layers_written_row_by_row_equal_json_dump_of_the_whole_list() -> N
     write_json({"layers": LayerEntries(estimate_lines(io.BytesIO(b"G28\n"),
                                                       Limits.from_values({})))}, empty)
     assert empty.getvalue() == json.dumps({"layers": []}, indent=1) + "\n"
+
+
+def test_a_huge_time_comment_is_replaced_on_its_own_line_like_a_short_one(
+        tmp_path: Path) -> None:
+    # inject's pass 2 hands the first MiB of an over-long line to the rewriter; when the
+    # rewriter replaces it (here PrusaSlicer's time comment), the rest is dropped and the
+    # line keeps its line ending.
+    comment = b"; estimated printing time (normal mode) = 1h "
+    tail = b"\nG1 X10 Y50 E1\n"
+    long_file = tmp_path / "long.gcode"
+    long_file.write_bytes(HEAD + comment + b"9" * (3 << 20) + tail)
+    short_file = tmp_path / "short.gcode"
+    short_file.write_bytes(HEAD + comment + b"9" + tail)
+    for path in (long_file, short_file):
+        proc, peak = run_cli(tmp_path, "inject", str(path))
+        assert proc.returncode == 0, proc.stderr
+        assert peak < PEAK_LIMIT_MIB
+    # The same file, and one more time comment at the end: the long line pushes the
+    # comment out of the file's first and last MiB, where Moonraker looks for one.
+    assert long_file.read_bytes() == (short_file.read_bytes()
+                                      + b"; estimated printing time (normal mode) = 5s\n")
+    assert b"= 5s\nM73 " in long_file.read_bytes()
+
+
+def test_a_huge_last_line_without_line_ending_gets_the_time_comment_after_it(
+        tmp_path: Path) -> None:
+    big = b"; " + b"z" * (3 << 20)
+    path = tmp_path / "eof.gcode"
+    path.write_bytes(HEAD + big)
+    proc, _ = run_cli(tmp_path, "inject", str(path))
+    assert proc.returncode == 0, proc.stderr
+    data = path.read_bytes()
+    assert data.endswith(b"M73 P100 R0\n" + big
+                         + b"\n; estimated printing time (normal mode) = 2s\n")
