@@ -23,6 +23,7 @@ from kestimator.estimate import KIND_UNKNOWN, Estimate
 from kestimator.interpreter import KIND_MACRO
 from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
+from kestimator.textsearch import search
 
 JSON_SCHEMA_VERSION = 1
 MM_PER_M = 1000.0
@@ -110,19 +111,19 @@ def read_slicer_filament(path: str) -> dict[str, float | None]:
     text = (head if head == tail else head + b"\n" + tail).decode("utf-8", "replace")
     slicer_mm = None
     for regex in _SLICER_MM_RES:
-        match = regex.search(text)
+        match = search(regex, text)
         if match is not None:
             slicer_mm = sum(_numbers(match.group(1))) or None
             break
     if slicer_mm is None:
-        match = _SLICER_M_RE.search(text)
+        match = search(_SLICER_M_RE, text)
         if match is not None:
             slicer_mm = float(match.group(1)) * MM_PER_M or None
-    match = _SLICER_G_RE.search(text)
+    match = search(_SLICER_G_RE, text)
     slicer_g = (sum(_numbers(match.group(1))) or None) if match else None
-    match = _DIAMETER_RE.search(text)
+    match = search(_DIAMETER_RE, text)
     diameter = _first_positive(match.group(1)) if match else None
-    match = _DENSITY_RE.search(text)
+    match = search(_DENSITY_RE, text)
     density = _first_positive(match.group(1)) if match else None
     if density is not None and density > MAX_DENSITY_G_CM3:
         density = None

@@ -197,6 +197,8 @@ def parse_marker(line: str | bytes) -> Marker | None:
 
 def find_marker(text: bytes) -> Marker | None:
     """The first marker line in `text` (a file's head), or None."""
+    if _MARKER_PREFIX_B not in text:  # every marker holds it: skip the regex's slow scan
+        return None
     match = _MARKER_IN_TEXT.search(text)
     return None if match is None else _marker_from_match(match)
 

@@ -18,6 +18,7 @@ import re
 from collections.abc import Mapping
 
 from kestimator.slicers.settings import NO_SETTINGS, SlicerConfig, SlicerSettings
+from kestimator.textsearch import search
 
 DETECT_WINDOW_BYTES = 1024 * 1024
 """Bytes read from each end of a file, as Moonraker does: headers and footers fit in it."""
@@ -170,13 +171,13 @@ def replace_group(match: re.Match[str], group: int | str, new: str) -> str:
 
 def first_group(pattern: re.Pattern[str], text: str) -> str | None:
     """Group 1 of the first match of ``pattern`` in ``text``, or None."""
-    match = pattern.search(text)
+    match = search(pattern, text)
     return None if match is None else match.group(1)
 
 
 def find_duration(pattern: re.Pattern[str], text: str) -> float | None:
     """Seconds in group 1 of the first match of ``pattern`` (duration text), or None."""
-    match = pattern.search(text)
+    match = search(pattern, text)
     return None if match is None else parse_prusa_duration(match.group(1))
 
 

@@ -52,6 +52,7 @@ from kestimator.slicers.settings import (
     first_item,
     flag,
 )
+from kestimator.textsearch import search
 
 _ORCA_NAME = "OrcaSlicer"
 _BAMBU_HEADER_RE = re.compile(r"^; BambuStudio\S*\s+(\S+)", re.MULTILINE)
@@ -129,7 +130,7 @@ class OrcaAdapter(SlicerAdapter):
         if generated_by is not None and generated_by[0] == _ORCA_NAME:
             name, version = _ORCA_NAME, generated_by[1]
         else:
-            match = _BAMBU_HEADER_RE.search(ends.head)
+            match = search(_BAMBU_HEADER_RE, ends.head)
             if match is None:
                 return None
             name, version = "Bambu Studio", match.group(1)
