@@ -14,7 +14,11 @@ import re
 import shlex
 import sys
 import types
-from typing import Final, NamedTuple
+from typing import TYPE_CHECKING, Final, NamedTuple
+
+if TYPE_CHECKING:
+    # 64-bit machine integers in the compiled build (plain ints when run as Python).
+    from mypy_extensions import i64
 
 _ARGS_RE = re.compile(r"([A-Z_]+|[A-Z*])")
 
@@ -136,16 +140,16 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
     10**k: both are exact floats and IEEE division rounds correctly, so the result is the
     correctly rounded value float() gives. Longer numbers go through float() itself.
     """
-    n = len(raw)
+    n: i64 = len(raw)
     if n < 3 or n > _PLAIN_MOVE_MAX_BYTES or raw[0] != 71 or raw[2] != 32:  # "G", " "
         return NOT_PLAIN
-    code = raw[1]
+    code: i64 = raw[1]
     if code != 49 and code != 48:  # "1", "0"
         return NOT_PLAIN
     x = y = z = e = f = ABSENT
-    i = 3
+    i: i64 = 3
     while i < n:
-        c = raw[i]
+        c: i64 = raw[i]
         if c == 32:  # " "
             i += 1
             continue
@@ -156,10 +160,10 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
                 break
             return NOT_PLAIN
         i += 1
-        start = i
+        start: i64 = i
         negative = False
         if i < n:
-            d = raw[i]
+            d: i64 = raw[i]
             if d == 45:  # "-"
                 negative = True
                 i += 1
@@ -168,12 +172,12 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
         # The mantissa is summed as a float: exact while it has at most 15 digits (below
         # 2**53), the only case it is used in.
         mantissa = 0.0
-        digits = 0
-        point = -1
+        digits: i64 = 0
+        point: i64 = -1
         while i < n:
             d = raw[i]
             if 48 <= d <= 57:
-                mantissa = mantissa * 10.0 + (d - 48)
+                mantissa = mantissa * 10.0 + float(d - 48)
                 digits += 1
             elif d == 46 and point < 0:  # the first "."
                 point = digits
