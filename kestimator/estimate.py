@@ -17,6 +17,7 @@ import re
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
+from itertools import chain
 from typing import Final
 
 from kestimator.errors import KestimatorError
@@ -177,19 +178,26 @@ def iter_lines(path: str | os.PathLike[str],
 
     Memory stays bounded whatever the file holds: it is read in blocks, and a line longer
     than MAX_LINE_BYTES is never held whole (see `over_long_line`). `progress` hears the
-    bytes read so far, about once per PROGRESS_EVERY_BYTES and at the end.
+    bytes read so far, about once per PROGRESS_EVERY_BYTES and at the end. The lines of a
+    block come as one list, flattened by C code (no generator step per line).
     """
+    return chain.from_iterable(_line_batches(path, progress))
+
+
+def _line_batches(path: str | os.PathLike[str],
+                  progress: ProgressCallback | None) -> Iterator[list[bytes]]:
     try:
         with open(path, "rb", buffering=0) as f:
-            yield from _split_lines(f.read, os.fspath(path), progress)
+            yield from split_line_batches(f.read, os.fspath(path), progress)
     except IsADirectoryError:
         raise KestimatorError("is a directory, not a G-code file", path) from None
     except OSError as exc:
         raise KestimatorError("cannot read file: %s" % (exc.strerror or exc), path) from None
 
 
-def _split_lines(read: Callable[[int], bytes], path: str,
-                 progress: ProgressCallback | None) -> Iterator[bytes]:
+def split_line_batches(read: Callable[[int], bytes], path: str,
+                       progress: ProgressCallback | None) -> Iterator[list[bytes]]:
+    """The lines `read` gives, block by block: a list of lines per block (see iter_lines)."""
     # A line that fits in a block is split out by C code; only a line that spans blocks
     # (its start is `rest`) can be over MAX_LINE_BYTES (READ_BLOCK_BYTES <= that bound).
     rest = b""
@@ -210,7 +218,7 @@ def _split_lines(read: Callable[[int], bytes], path: str,
             if nl < 0:
                 continue
             lineno += 1
-            yield over_long_line(skipping, lineno, path)
+            yield [over_long_line(skipping, lineno, path)]
             skipping = None
             block = block[nl + 1:]
         parts = block.split(b"\n")
@@ -220,15 +228,16 @@ def _split_lines(read: Callable[[int], bytes], path: str,
                 first = over_long_line(first[:MAX_LINE_BYTES], lineno + 1, path)
             parts[0] = first
         rest = parts.pop()
-        lineno += len(parts)
-        yield from parts
+        if parts:
+            lineno += len(parts)
+            yield parts
         if len(rest) > MAX_LINE_BYTES:
             skipping = rest[:MAX_LINE_BYTES]
             rest = b""
     if skipping is not None:
-        yield over_long_line(skipping, lineno + 1, path)
+        yield [over_long_line(skipping, lineno + 1, path)]
     elif rest:
-        yield rest
+        yield [rest]
     if progress is not None:
         progress(done)
 

@@ -21,7 +21,7 @@ import pytest
 
 from kestimator.cli_output import LayerEntries, write_json
 from kestimator.errors import KestimatorError
-from kestimator.estimate import MAX_LINE_BYTES, _split_lines, estimate_lines
+from kestimator.estimate import MAX_LINE_BYTES, estimate_lines, split_line_batches
 from kestimator.limits import Limits
 
 from .conftest import CORPUS_CFG, isolate_user_environment
@@ -146,7 +146,8 @@ def test_a_million_macro_names_keep_a_thousand_names_and_count_the_rest(
 
 def _lines(data: bytes, block: int) -> list[bytes]:
     stream = io.BytesIO(data)
-    return list(_split_lines(lambda _n: stream.read(block), "f.gcode", None))
+    return [line for batch in split_line_batches(lambda _n: stream.read(block), "f.gcode", None)
+            for line in batch]
 
 
 @pytest.mark.parametrize("block", [1, 2, 3, 7, 64])
