@@ -42,6 +42,7 @@ import os
 import re
 import stat
 from array import array
+from bisect import bisect_right
 from collections.abc import Callable, Iterable, Iterator
 from typing import BinaryIO
 
@@ -103,15 +104,22 @@ COPY_BLOCK_BYTES = 1 << 20
 # An M73 command (already left-stripped): M73 alone or followed by a space, tab, ';' or EOL.
 _M73 = rb"[Mm]73(?:[ \t;\r\n]|\Z)"
 _m73_at = re.compile(_M73).match
-# Lines pass 2 must look at even in a quiet stretch: comments (layer markers, time comments,
-# our marker) and M73 lines (dropped), as `process` recognises them after lstrip().
-# Our own SET_PRINT_STATS_INFO lines (dropped and written again) need attention too.
 LAYER_INFO_COMMAND = b"SET_PRINT_STATS_INFO"
 LAYER_INFO_SUFFIX = b" ; kestimator"
-_ATTENTION = rb"[ \t\r\x0b\x0c]*(?:;|%s|%s )" % (_M73, LAYER_INFO_COMMAND)
-_attention_at = re.compile(_ATTENTION).match
-# The next such line, found by the LF that ends the line before it.
-_next_attention = re.compile(rb"\n" + _ATTENTION).search
+
+
+def attention_pattern(time_comment_prefixes: tuple[bytes, ...]) -> bytes:
+    """What starts a line pass 2 must look at even in a quiet stretch (after the blanks
+    `process` strips): an M73 (dropped), a SET_PRINT_STATS_INFO (ours are dropped and
+    written again), our marker or time-before-first-extrusion line (dropped), or one of the
+    slicer's time comments (rewritten). Every other comment is copied as it is, except a
+    layer marker, which a quiet stretch ends before by its line number."""
+    starts = [_M73, LAYER_INFO_COMMAND + b" ", re.escape(_MARKER_PREFIX_B),
+              re.escape(_PREP_PREFIX_B)]
+    starts += [re.escape(prefix) for prefix in time_comment_prefixes]
+    return rb"[ \t\r\x0b\x0c]*(?:%s)" % b"|".join(starts)
+
+
 # Skip 2**k whole lines (k = 0..20; a block of 1 MiB holds at most 2**20 lines).
 _SKIP_LINES = tuple(re.compile(rb"(?:[^\n]*\n){%d}" % (1 << k)).match for k in range(21))
 
@@ -128,6 +136,23 @@ def _after_lines(data: bytes, pos: int, count: int) -> int:
         count >>= 1
         k += 1
     return pos
+
+
+def _lines_upto(data: bytes, pos: int, stop: int, most: int) -> tuple[int, int]:
+    """(n, after): the first n <= `most` whole lines from `pos` (a line start) before
+    `stop` (a line start), and where they end. Lines are counted in growing windows, so a
+    far `stop` costs no more than the lines taken."""
+    taken = 0
+    window = 1 << 12
+    while pos < stop:
+        upto = min(pos + window, stop)
+        found = data.count(b"\n", pos, upto)
+        if taken + found >= most:
+            return most, _after_lines(data, pos, most - taken)
+        taken += found
+        pos = upto
+        window <<= 1
+    return taken, stop
 
 
 def _is_m73(code: bytes) -> bool:
@@ -306,6 +331,15 @@ class Rewriter:
         self._eol_line: bytes | None = None
         # (last progress written, index of the first sample showing other progress).
         self._quiet_scan: tuple[tuple[int, int] | None, int] = (None, 0)
+        attention = attention_pattern(self._prefixes_b)
+        self._attention_at = re.compile(attention).match
+        # The next line that needs attention, found by the LF that ends the line before it.
+        self._next_attention = re.compile(rb"\n" + attention).search
+        # Index of the first layer marker not yet passed (`_copy_quiet` stops before it).
+        self._next_layer = 0
+        # (block, from, where the next line needing attention starts): `_copy_quiet`'s
+        # last search, valid for any line start between the two in that block.
+        self._attention_cache: tuple[bytes | None, int, int] = (None, 0, 0)
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
         self._last_pr = (percent, minutes)
@@ -344,8 +378,18 @@ class Rewriter:
             j = i
         times = plan.sample_times
         total_s = plan.total_s
-        while j < n and progress_pr(times[j], total_s) == last_pr:
-            j += 1
+        if j < n and progress_pr(times[j], total_s) == last_pr:
+            # The samples showing last_pr from j on are a run: the times grow, and whole
+            # percent done and whole minutes left each change one way only as time grows.
+            # So the run's end is found by bisection.
+            lo, hi = j + 1, n
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if progress_pr(times[mid], total_s) == last_pr:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            j = lo
         self._quiet_scan = (last_pr, j)
         quiet = lines[j] if j < n else _NO_LINE_LIMIT
         last = plan.last_move_line
@@ -525,20 +569,34 @@ class Rewriter:
                     write: Callable[[bytes], object]) -> int:
         """Write the quiet lines from `pos` on as they are; where the next line starts.
 
-        Before the next change of progress and before the last move, `process` writes
-        every line as it is except comments and M73 lines (and the lines it skips over
-        leave no state behind that a later line would not catch up on), so the run up to
-        the next such line is copied in one slice.
+        Before the next change of progress, the next layer marker and the last move,
+        `process` writes every line as it is except the ones `attention_pattern` matches
+        (and the lines it skips over leave no state behind that a later line would not
+        catch up on), so the run up to the next such line is copied in one slice.
         """
-        allowed = self._quiet_until - self.lineno
-        if allowed <= 0 or _attention_at(data, pos) is not None:
+        lineno = self.lineno
+        allowed = self._quiet_until - lineno
+        layers = self.plan.layer_lines.lines
+        k = self._next_layer
+        if k < len(layers) and layers[k] <= lineno:
+            k = self._next_layer = bisect_right(layers, lineno, k)
+        if k < len(layers) and layers[k] - 1 - lineno < allowed:
+            allowed = layers[k] - 1 - lineno
+        if allowed <= 0:
             return pos
-        match = _next_attention(data, pos, end)
-        stop = end if match is None else match.start() + 1
-        count = data.count(b"\n", pos, stop)
-        if count > allowed:
-            count = allowed
-            stop = _after_lines(data, pos, allowed)
+        # Where the next line needing attention starts (or `end`). A search that ran to a
+        # line past `pos` in this block still holds: nothing between needs attention.
+        cached_data, cached_from, stop = self._attention_cache
+        if cached_data is not data or not cached_from <= pos <= stop:
+            if self._attention_at(data, pos) is not None:
+                stop = pos
+            else:
+                match = self._next_attention(data, pos, end)
+                stop = end if match is None else match.start() + 1
+            self._attention_cache = (data, pos, stop)
+        if stop == pos:
+            return pos
+        count, stop = _lines_upto(data, pos, stop, allowed)
         write(data[pos:stop])
         self.lineno += count
         # The last line copied decides the line ending of a later inserted line.
