@@ -507,8 +507,10 @@ class Timeline:
     def feed_lines(self, lines: Iterable[bytes]) -> None:
         """Process every line of `lines`, in order."""
         interp = self.interp
+        lineno = self.lineno
         for raw in lines:
-            self.lineno += 1
+            lineno += 1
+            self.lineno = lineno
             if SCAN_PLAIN_MOVES:
                 plain, x, y, z, e, f = parse_plain_move_scan(raw)
             else:
@@ -518,8 +520,8 @@ class Timeline:
                 continue
             # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
             if self.first_command_line is None:
-                self.first_command_line = self.lineno
-            interp.tag = self.lineno
+                self.first_command_line = lineno
+            interp.tag = lineno
             try:
                 interp.plain_move(x, y, z, e, f)
             except MoveError as exc:

@@ -122,14 +122,15 @@ def parse_plain_move_regex(raw: bytes) -> MoveValues:
     if f is None:
         f = f0
     try:
-        values = (True, ABSENT if x is None else float(x), ABSENT if y is None else float(y),
-                  ABSENT if z is None else float(z), ABSENT if e is None else float(e),
-                  ABSENT if f is None else float(f))
+        speed = ABSENT
+        if f is not None:
+            speed = float(f)
+            if not speed > 0.0:
+                return NOT_PLAIN
+        return (True, ABSENT if x is None else float(x), ABSENT if y is None else float(y),
+                ABSENT if z is None else float(z), ABSENT if e is None else float(e), speed)
     except ValueError:
         return NOT_PLAIN
-    if f is not None and not values[5] > 0.0:
-        return NOT_PLAIN
-    return values
 
 
 # 10**k for the decimals a G-code number has: exact as floats up to 10**22.
