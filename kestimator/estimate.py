@@ -77,6 +77,10 @@ MAX_WARNINGS: Final = 100
 # objects late, peak RSS 146 MB instead of 210 MB on the 40 MB file.
 READ_BLOCK_BYTES: Final = 1 << 14
 MAX_LINE_BYTES: Final = 1 << 20
+# Pure CPython feeds lines through kestimator/fused.py: `Timeline.feed_lines` with the move
+# path inlined, generated from the same methods (kestimator/fusegen.py). A compiled build
+# and PyPy's JIT make those calls cheap themselves and run the methods as written.
+FUSED_FEED: Final = not SCAN_PLAIN_MOVES
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES: Final = 65536
@@ -791,7 +795,11 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
                         macros=macros)
     try:
-        timeline.feed_lines(lines)
+        if FUSED_FEED:
+            from kestimator.fused import feed_lines as fused_feed_lines
+            fused_feed_lines(timeline, lines)
+        else:
+            timeline.feed_lines(lines)
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a
