@@ -62,7 +62,6 @@ from kestimator.preflight import (
     stderr_line,
     summary_lines,
 )
-from kestimator.report import collect, render_html
 from kestimator.rewrite import (
     check_gcode_file,
     inject_file,
@@ -916,6 +915,9 @@ REPORT_EXTENSIONS = (".html", ".htm", ".xhtml")
 
 def cmd_report(args: argparse.Namespace) -> int:
     """`kestimator report`."""
+    # Only this command draws the page: the other commands do not pay for its import.
+    from kestimator.report import collect, render_html
+
     extension = os.path.splitext(args.output)[1].lower()
     if not args.output:
         raise KestimatorError("-o names no file (an empty name)")

@@ -27,8 +27,6 @@ import datetime
 import json
 import os
 import re
-import statistics
-import tempfile
 import urllib.parse
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -136,6 +134,8 @@ class LearnedTimes:
 
 def robust(values: Sequence[float]) -> tuple[LearnedValue | None, list[int]]:
     """Median of `values` (newest first) without outliers, and the indexes rejected."""
+    import statistics  # only when learning: a start-up cost for every command under PyPy
+
     if not values:
         return None, []
     median = statistics.median(values)
@@ -306,6 +306,8 @@ def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
                          max_jobs: int = MAX_HISTORY_JOBS,
                          now: Callable[[], str] = _now_text) -> LearnedTimes:
     """Read the history, time each completed job's file with `limits`, learn."""
+    import tempfile
+
     url = normalise_url(url)
     client = _Client(url, api_key, max(timeout_s, 30.0))
     jobs = client.jobs(max_jobs)
