@@ -120,6 +120,9 @@ class Estimate:
     last_move_line: int | None
     # Net filament the moves push (mm of E, after M221; retractions count negative).
     filament_mm: float = 0.0
+    # The lines other than plain moves that the `note` matcher given to the estimate
+    # matched, by number, in file order (inject's pass 2 stops its block copies there).
+    noted_lines: array = dataclasses.field(default_factory=lambda: array("q"))
     # Object name -> seconds; NO_OBJECT is time outside every labelled object. Empty when
     # the file labels no objects. Sums to total_s (as features do).
     objects: dict[str, float] = dataclasses.field(default_factory=dict)
@@ -267,7 +270,8 @@ class Timeline:
                  heat_time: float = 0.0, sample: bool = False,
                  mark_prefixes: tuple[str, ...] = (),
                  observer: MoveObserver | None = None,
-                 macros: MacroTimes | None = None) -> None:
+                 macros: MacroTimes | None = None,
+                 note: Callable[[bytes], object] | None = None) -> None:
         self.path = path
         self.observer = observer
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
@@ -315,6 +319,8 @@ class Timeline:
         self.layers = TimedLines()
         self.marks = TimedLines()
         self.mark_prefixes = mark_prefixes
+        self.note = note
+        self.noted_lines = array("q")
         self.sample = sample
         self.sample_lines = array("q")
         self.sample_times = array("d")
@@ -534,6 +540,9 @@ class Timeline:
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""
+        note = self.note
+        if note is not None and note(raw) is not None:
+            self.noted_lines.append(self.lineno)
         text = raw.decode("utf-8", "replace")
         stripped = text.strip()
         if not stripped:
@@ -760,7 +769,8 @@ class Timeline:
             ignored_unlisted=interp.ignored_unlisted,
             warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
-            marks=self.marks, first_command_line=self.first_command_line,
+            marks=self.marks, noted_lines=self.noted_lines,
+            first_command_line=self.first_command_line,
             last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
@@ -783,17 +793,20 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
                    homing_time: float = 0.0, heat_time: float = 0.0, sample: bool = False,
                    mark_prefixes: tuple[str, ...] = (),
                    observer: MoveObserver | None = None,
-                   macros: MacroTimes | None = None) -> Estimate:
+                   macros: MacroTimes | None = None,
+                   note: Callable[[bytes], object] | None = None) -> Estimate:
     """Estimate from an iterable of byte lines (split at LF).
 
     With `sample`, progress samples for M73 placement are kept; comment lines starting
     with one of `mark_prefixes` get their exact time in `Estimate.marks`; `observer` sees
     every planned move (with its start time) as the planner releases them; `macros` times the
-    macros the file runs (and may hold a learned time before the first extrusion).
+    macros the file runs (and may hold a learned time before the first extrusion); the
+    numbers of the lines other than plain G0/G1 moves for which `note(line)` is not None
+    are in `Estimate.noted_lines`.
     """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
-                        macros=macros)
+                        macros=macros, note=note)
     try:
         if FUSED_FEED:
             from kestimator.fused import feed_lines as fused_feed_lines

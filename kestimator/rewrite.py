@@ -110,6 +110,12 @@ LAYER_INFO_COMMAND = b"SET_PRINT_STATS_INFO"
 LAYER_INFO_SUFFIX = b" ; kestimator"
 
 
+def attention_matcher(time_comment_prefixes: tuple[str, ...]) -> Callable[[bytes], object]:
+    """`match(line)`: not None for a line `attention_pattern` describes (pass 1 notes them)."""
+    return re.compile(attention_pattern(tuple(prefix.encode("utf-8")
+                                              for prefix in time_comment_prefixes))).match
+
+
 def attention_pattern(time_comment_prefixes: tuple[bytes, ...]) -> bytes:
     """What starts a line pass 2 must look at even in a quiet stretch (after the blanks
     `process` strips): an M73 (dropped), a SET_PRINT_STATS_INFO (ours are dropped and
@@ -267,6 +273,8 @@ class InjectPlan:
     sample_times: array
     layer_lines: TimedLines
     """The layer markers (membership by bisection: `index_of`)."""
+    attention_lines: array
+    """The lines `attention_pattern` matches (pass 1 notes them), in file order."""
     last_move_line: int | None
     times: KlipperTimes
     adapter: SlicerAdapter
@@ -297,7 +305,7 @@ class InjectPlan:
                              model_s=model_s, marks=marks)
         return cls(total_s=est.total_s, sample_lines=est.sample_lines,
                    sample_times=est.sample_times,
-                   layer_lines=est.layers,
+                   layer_lines=est.layers, attention_lines=est.noted_lines,
                    last_move_line=est.last_move_line, times=times, adapter=adapter,
                    marker=marker_line(est.total_s, slicer_s, limits_source),
                    prep_line=prep_line(prep_s) if prep_s > 0.0 else None,
@@ -334,15 +342,10 @@ class Rewriter:
         self._eol_line: bytes | None = None
         # (last progress written, index of the first sample showing other progress).
         self._quiet_scan: tuple[tuple[int, int] | None, int] = (None, 0)
-        attention = attention_pattern(self._prefixes_b)
-        self._attention_at = re.compile(attention).match
-        # The next line that needs attention, found by the LF that ends the line before it.
-        self._next_attention = re.compile(rb"\n" + attention).search
-        # Index of the first layer marker not yet passed (`_copy_quiet` stops before it).
+        # Indexes of the first layer marker and the first line needing attention not yet
+        # passed (`_copy_quiet` stops before them).
         self._next_layer = 0
-        # (block, from, where the next line needing attention starts): `_copy_quiet`'s
-        # last search, valid for any line start between the two in that block.
-        self._attention_cache: tuple[bytes | None, int, int] = (None, 0, 0)
+        self._next_attention = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
         self._last_pr = (percent, minutes)
@@ -459,9 +462,9 @@ class Rewriter:
                     progress: Callable[[int], None] | None = None) -> None:
         """Pass 2 over a whole file: the same bytes as `process` line by line, faster.
 
-        Reads blocks; a run of quiet lines (before the next change of progress, see
-        `_copy_quiet`) is found with C-level searches and written as one slice, so Python
-        code runs only for comments, M73 lines and the lines where an M73 is due.
+        Reads blocks; a run of quiet lines (see `_copy_quiet`) is measured with C-level
+        line counts and written as one slice, so Python code runs only for the lines where
+        an M73 is due, layer markers and the lines `attention_pattern` matches.
         `progress` hears the bytes read so far.
         """
         process = self.process
@@ -572,34 +575,30 @@ class Rewriter:
                     write: Callable[[bytes], object]) -> int:
         """Write the quiet lines from `pos` on as they are; where the next line starts.
 
-        Before the next change of progress, the next layer marker and the last move,
-        `process` writes every line as it is except the ones `attention_pattern` matches
-        (and the lines it skips over leave no state behind that a later line would not
-        catch up on), so the run up to the next such line is copied in one slice.
+        Before the next change of progress, the next layer marker, the next line that
+        `attention_pattern` matches (pass 1 noted their numbers) and the last move, `process`
+        writes every line as it is (and the lines it skips over leave no state behind that
+        a later line would not catch up on), so the run up to the first of them is copied
+        in one slice: no Python code runs per line, and no search looks at every line.
         """
         lineno = self.lineno
         allowed = self._quiet_until - lineno
-        layers = self.plan.layer_lines.lines
+        plan = self.plan
+        layers = plan.layer_lines.lines
         k = self._next_layer
         if k < len(layers) and layers[k] <= lineno:
             k = self._next_layer = bisect_right(layers, lineno, k)
         if k < len(layers) and layers[k] - 1 - lineno < allowed:
             allowed = layers[k] - 1 - lineno
+        attention = plan.attention_lines
+        k = self._next_attention
+        if k < len(attention) and attention[k] <= lineno:
+            k = self._next_attention = bisect_right(attention, lineno, k)
+        if k < len(attention) and attention[k] - 1 - lineno < allowed:
+            allowed = attention[k] - 1 - lineno
         if allowed <= 0:
             return pos
-        # Where the next line needing attention starts (or `end`). A search that ran to a
-        # line past `pos` in this block still holds: nothing between needs attention.
-        cached_data, cached_from, stop = self._attention_cache
-        if cached_data is not data or not cached_from <= pos <= stop:
-            if self._attention_at(data, pos) is not None:
-                stop = pos
-            else:
-                match = self._next_attention(data, pos, end)
-                stop = end if match is None else match.start() + 1
-            self._attention_cache = (data, pos, stop)
-        if stop == pos:
-            return pos
-        count, stop = _lines_upto(data, pos, stop, allowed)
+        count, stop = _lines_upto(data, pos, end, allowed)
         write(data[pos:stop])
         self.lineno += count
         # The last line copied decides the line ending of a later inserted line.
@@ -699,7 +698,8 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
     adapter = adapter_for(slicer.family)
     slicer_s = slicer_estimate_from_head(head, slicer)
     est = estimate_lines(lines, limits, path, homing_time=homing_time, heat_time=heat_time,
-                         sample=True, mark_prefixes=adapter.mark_prefixes, macros=macros)
+                         sample=True, mark_prefixes=adapter.mark_prefixes, macros=macros,
+                         note=attention_matcher(adapter.time_comment_prefixes))
     if est.last_move_line is None:
         raise KestimatorError("the file has no moves: nothing to estimate", path)
     plan = InjectPlan.from_estimate(
