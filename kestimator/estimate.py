@@ -363,7 +363,8 @@ class Timeline:
             while changes and changes[0][0] <= move.tag:
                 segment = changes.popleft()[1]
             dt = move.accel_t + move.cruise_t + move.decel_t
-            segment_time[segment] += dt
+            # Not `+=`: mypyc boxes dt for that; this is the same addition, unboxed.
+            segment_time[segment] = segment_time[segment] + dt
             t += dt
             filament += move.axes_d_e
             if t >= next_sample_t:

@@ -56,17 +56,17 @@ def feed_lines(self: Timeline, lines: Iterable[bytes]) -> None:
                     pm_lp[2] = z + pm_base[2]
             else:
                 if x == x:
-                    pm_lp[0] += x
+                    pm_lp[0] = pm_lp[0] + x
                 if y == y:
-                    pm_lp[1] += y
+                    pm_lp[1] = pm_lp[1] + y
                 if z == z:
-                    pm_lp[2] += z
+                    pm_lp[2] = pm_lp[2] + z
             if pm_e == pm_e:
                 pm_e *= interp.extrude_factor
                 if interp.absolute_coord and interp.absolute_extrude:
                     pm_lp[3] = pm_e + pm_base[3]
                 else:
-                    pm_lp[3] += pm_e
+                    pm_lp[3] = pm_lp[3] + pm_e
                 if not interp.extrude_mode_set:
                     interp.moved_e_before_mode = True
             if f == f:

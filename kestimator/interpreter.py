@@ -385,18 +385,20 @@ class Interpreter:
             if z == z:
                 lp[2] = z + base[2]
         else:
+            # Upstream's `last_position[pos] += v`, written out: the same float addition,
+            # which mypyc compiles to a machine add (`+=` on a list item boxes v first).
             if x == x:
-                lp[0] += x
+                lp[0] = lp[0] + x
             if y == y:
-                lp[1] += y
+                lp[1] = lp[1] + y
             if z == z:
-                lp[2] += z
+                lp[2] = lp[2] + z
         if e == e:
             e *= self.extrude_factor
             if self.absolute_coord and self.absolute_extrude:
                 lp[3] = e + base[3]
             else:
-                lp[3] += e
+                lp[3] = lp[3] + e
             if not self.extrude_mode_set:
                 self.moved_e_before_mode = True
         if f == f:
