@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import heapq
 import math
 import os
 import re
@@ -342,10 +343,10 @@ class Rewriter:
         self._eol_line: bytes | None = None
         # (last progress written, index of the first sample showing other progress).
         self._quiet_scan: tuple[tuple[int, int] | None, int] = (None, 0)
-        # Indexes of the first layer marker and the first line needing attention not yet
-        # passed (`_copy_quiet` stops before them).
-        self._next_layer = 0
-        self._next_attention = 0
+        # The lines `_copy_quiet` stops before, in order: the layer markers and the lines
+        # needing attention; and the index of the first one not yet passed.
+        self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines))
+        self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
         self._last_pr = (percent, minutes)
@@ -583,19 +584,12 @@ class Rewriter:
         """
         lineno = self.lineno
         allowed = self._quiet_until - lineno
-        plan = self.plan
-        layers = plan.layer_lines.lines
-        k = self._next_layer
-        if k < len(layers) and layers[k] <= lineno:
-            k = self._next_layer = bisect_right(layers, lineno, k)
-        if k < len(layers) and layers[k] - 1 - lineno < allowed:
-            allowed = layers[k] - 1 - lineno
-        attention = plan.attention_lines
-        k = self._next_attention
-        if k < len(attention) and attention[k] <= lineno:
-            k = self._next_attention = bisect_right(attention, lineno, k)
-        if k < len(attention) and attention[k] - 1 - lineno < allowed:
-            allowed = attention[k] - 1 - lineno
+        stops = self._stops
+        k = self._next_stop
+        if k < len(stops) and stops[k] <= lineno:
+            k = self._next_stop = bisect_right(stops, lineno, k)
+        if k < len(stops) and stops[k] - 1 - lineno < allowed:
+            allowed = stops[k] - 1 - lineno
         if allowed <= 0:
             return pos
         count, stop = _lines_upto(data, pos, end, allowed)
