@@ -1,4 +1,4 @@
-"""The built plugin in the real Cura GUIs under Xvfb (plugins/cura/harness/gui_check.py).
+"""The built plugin in the real Cura GUIs under Xvfb (tests/cura_harness/gui_check.py).
 
 - Cura 4.13: Debian's, on this system, with Debian's python3-pyqt6 installed beside its
   PyQt5 (the plugin's dialogs once picked PyQt6 there and Qt aborted Cura).
@@ -25,7 +25,7 @@ import pytest
 
 from .conftest import CORPUS_CFG, IN_CI
 
-SCRIPT = Path(__file__).resolve().parents[1] / "plugins" / "cura" / "harness" / "gui_check.py"
+SCRIPT = Path(__file__).resolve().parent / "cura_harness" / "gui_check.py"
 CURA5_ROOT_VARIABLE = "KESTIMATOR_CURA5_ROOT"
 GUI_TIMEOUT_S = 900
 

@@ -22,11 +22,10 @@ from kestimator.estimate import estimate_file
 from kestimator.rewrite import MARKER_PREFIX
 
 from .conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT, corpus_files
+from .cura_harness.curaengine import find_curaengine, slice_cube
 
 sys.path.insert(0, str(PROJECT / "plugins" / "cura"))
-sys.path.insert(0, str(PROJECT / "plugins" / "cura" / "harness"))
 
-from curaengine import find_curaengine, slice_cube  # noqa: E402
 from kestimator_cura import klipper_time  # noqa: E402
 from kestimator_cura.chunks import (  # noqa: E402
     is_processed,

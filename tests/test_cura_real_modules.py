@@ -1,6 +1,6 @@
 """The plugin inside Debian's real Cura 4.13 / Uranium 4.13 modules, from load to save.
 
-``plugins/cura/harness/uranium_host.py`` runs in Debian's ``/usr/bin/python3`` (where the
+``tests/cura_harness/uranium_host.py`` runs in Debian's ``/usr/bin/python3`` (where the
 ``cura`` and ``python3-uranium`` packages put ``cura`` and ``UM``): Uranium's PluginRegistry
 loads the bundled PostProcessingPlugin and this plugin, a real CuraEngine slice goes through
 backend-done → background Job → message → writeStarted. Run twice: from the source tree (the
@@ -19,17 +19,16 @@ from typing import Any
 import pytest
 
 from .conftest import CORPUS_CFG, IN_CI, PROJECT, load_cura_build_script
+from .cura_harness.curaengine import find_curaengine, slice_cube
 
 sys.path.insert(0, str(PROJECT / "plugins" / "cura"))
-sys.path.insert(0, str(PROJECT / "plugins" / "cura" / "harness"))
 
-from curaengine import find_curaengine, slice_cube  # noqa: E402
 from kestimator_cura import klipper_time  # noqa: E402
 from kestimator_cura.chunks import split_like_cura  # noqa: E402
 from kestimator_cura.machine import LimitsChoice  # noqa: E402
 
 DEBIAN_PYTHON = "/usr/bin/python3"
-HARNESS = PROJECT / "plugins" / "cura" / "harness" / "uranium_host.py"
+HARNESS = PROJECT / "tests" / "cura_harness" / "uranium_host.py"
 HARNESS_TIMEOUT_S = 300
 PAUSE_SCRIPT_LINE = "G4 P1000 ;added by a post-processing script\n"
 

@@ -51,8 +51,10 @@ from collections.abc import Iterator
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent))
-from harness.curaengine import write_cube_stl  # noqa: E402
+PROJECT = HERE.parents[1]
+BUILD_SCRIPT = PROJECT / "plugins" / "cura" / "build.py"
+sys.path.insert(0, str(HERE))  # run as a script, beside curaengine.py
+from curaengine import write_cube_stl  # noqa: E402
 
 SCREEN = "1600x1000x24"
 SEED_TIMEOUT_S = 120
@@ -406,7 +408,7 @@ def register(app):
 
 def build_package(out_dir: Path) -> Path:
     """The .curapackage of this checkout (plugins/cura/build.py)."""
-    subprocess.run([sys.executable, str(HERE.parent / "build.py"), "--out-dir", str(out_dir)],
+    subprocess.run([sys.executable, str(BUILD_SCRIPT), "--out-dir", str(out_dir)],
                    check=True, capture_output=True)
     return next(out_dir.glob("*.curapackage"))
 
@@ -712,7 +714,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cura", choices=("4.13", "5.0"), default="4.13")
     parser.add_argument("--root", type=Path, help="the chroot of .ci/cura5-chroot (5.0)")
     parser.add_argument("--printer-cfg", type=Path,
-                        default=HERE.parents[2].parent / "shared" / "corpus" / "printer.cfg")
+                        default=PROJECT.parent / "shared" / "corpus" / "printer.cfg")
     parser.add_argument("--keep", type=Path, help="copy logs, saves, screenshots to DIR")
     args = parser.parse_args(argv)
     if args.cura == "5.0" and args.root is None:
