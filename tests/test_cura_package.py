@@ -60,6 +60,18 @@ def test_package_vendors_every_core_module(package: Path) -> None:
             assert archive.read(name) == (core / relative).read_bytes()
 
 
+def test_package_ships_the_plugin_folder_and_no_test_equipment(package: Path) -> None:
+    plugin = PROJECT / "plugins" / "cura" / PLUGIN_ID
+    expected = {BASE + path.relative_to(plugin).as_posix() for path in plugin.rglob("*")
+                if path.suffix in (".py", ".json") and "__pycache__" not in path.parts}
+    expected.add(BASE + "README.md")
+    with zipfile.ZipFile(package) as archive:
+        shipped = {name for name in archive.namelist()[1:] if "/vendor/" not in name}
+    assert shipped == expected
+    assert not any("cura_harness" in name or "gui_check" in name or "uranium_host" in name
+                   for name in shipped)
+
+
 def test_rebuild_gives_the_same_bytes(package: Path, tmp_path: Path) -> None:
     assert build.build(tmp_path).read_bytes() == package.read_bytes()
 
