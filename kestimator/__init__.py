@@ -2,7 +2,7 @@
 
 The core (this package) uses only the standard library (plus tomli before Python 3.11).
 Klipper's look-ahead is re-implemented from Klipper3d/klipper (GPLv3, Kevin O'Connor and
-contributors); see kestimator/planner.py.
+contributors); see kestimator/toolhead.py.
 """
 
 __version__ = "0.1.0"

@@ -45,7 +45,7 @@ from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
 from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.learn import macro_times_for
-from kestimator.planner import Move
+from kestimator.toolhead import Move
 from kestimator.rewrite import check_gcode_file, inject_file
 
 EXIT_OK = 0

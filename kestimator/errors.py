@@ -1,7 +1,11 @@
-"""The one error type kestimator raises for bad input or failed I/O.
+"""The errors: kestimator's own for bad input or failed I/O, and Klipper's command errors.
 
-Every user-facing failure carries the file and, where known, the 1-based line, so the
-command line can print exactly one line and exit non-zero without a traceback.
+`KestimatorError` is the one error kestimator raises to its caller: every user-facing
+failure carries the file and, where known, the 1-based line, so the command line can print
+exactly one line and exit non-zero without a traceback. `CommandError`, `ParamError` and
+`MoveError` are what Klipper answers a command or move with (upstream's
+`printer.command_error`); the timeline catches them, reports the line and, as Klipper does,
+stops the print there (the pre-flight).
 """
 
 from __future__ import annotations
@@ -24,3 +28,18 @@ class KestimatorError(Exception):
         if self.path is not None:
             where = self.path + (":%d" % self.line if self.line is not None else "") + ": "
         return where + self.message
+
+
+class CommandError(Exception):
+    """Klipper would answer this command with an error and not run it (upstream's
+    `gcode.CommandError`, raised as `printer.command_error`)."""
+
+
+class ParamError(CommandError):
+    """A parameter error of Klipper's `gcmd.get*`: Klipper words it
+    "Error on '<command line>': <this text>"."""
+
+
+class MoveError(Exception):
+    """Klipper would reject this move (`Move.move_error`; the G-code layer adds file and
+    line)."""

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from typing import Final
 
-from kestimator.errors import KestimatorError
+from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
     Command,
@@ -29,13 +29,7 @@ from kestimator.gcode import (
     parse_plain_move_regex,
     parse_plain_move_scan,
 )
-from kestimator.interpreter import (
-    KIND_MACRO,
-    MAX_COMMAND_NAMES,
-    CommandError,
-    Interpreter,
-    ParamError,
-)
+from kestimator.interpreter import KIND_MACRO, MAX_COMMAND_NAMES, Interpreter
 from kestimator.limits import Limits
 from kestimator.macros import (
     ADD_TIME_SOURCE,
@@ -46,10 +40,9 @@ from kestimator.macros import (
     Parts,
     TimedPart,
 )
-from kestimator.planner import Move
 from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.timedlines import TimedLines
-from kestimator.toolhead import MoveError, ToolHead
+from kestimator.toolhead import Move, ToolHead
 
 # Commands that say which object the following moves belong to.
 OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
@@ -77,10 +70,6 @@ MAX_WARNINGS: Final = 100
 # objects late, peak RSS 146 MB instead of 210 MB on the 40 MB file.
 READ_BLOCK_BYTES: Final = 1 << 14
 MAX_LINE_BYTES: Final = 1 << 20
-# Pure CPython feeds lines through kestimator/fused.py: `Timeline.feed_lines` with the move
-# path inlined, generated from the same methods (kestimator/fusegen.py). A compiled build
-# and PyPy's JIT make those calls cheap themselves and run the methods as written.
-FUSED_FEED: Final = not SCAN_PLAIN_MOVES
 # Progress samples kept for placing M73 lines: at most this many (memory stays bounded);
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES: Final = 65536
@@ -517,7 +506,7 @@ class Timeline:
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
         """Process every line of `lines`, in order."""
-        interp = self.interp
+        gcode_move = self.interp.gcode_move
         lineno = self.lineno
         for raw in lines:
             lineno += 1
@@ -532,11 +521,11 @@ class Timeline:
             # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
             if self.first_command_line is None:
                 self.first_command_line = lineno
-            interp.tag = lineno
+            gcode_move.tag = lineno
             try:
-                interp.plain_move(x, y, z, e, f)
+                gcode_move.plain_move(x, y, z, e, f)
             except MoveError as exc:
-                interp.reset_last_position()
+                gcode_move.reset_last_position()
                 self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def _feed_other(self, raw: bytes) -> None:
@@ -572,7 +561,7 @@ class Timeline:
             self._object_command(cmd)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
-        self.interp.tag = self.lineno
+        self.interp.gcode_move.tag = self.lineno
         try:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
@@ -716,11 +705,11 @@ class Timeline:
             self._counted_until = total
         total = self._correct_motion(total)
         interp = self.interp
-        for name in interp.extra_steppers:
+        for name in interp.extruders.extra_steppers:
             self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
                       "step-generation flush delay (times after full stops may be short by "
                       "up to its pressure_advance_smooth_time)" % name)
-        if interp.moved_e_before_mode:
+        if interp.gcode_move.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")
         # Unknown commands may be macros of the printer (the pre-flight says when the
@@ -809,11 +798,7 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
                         macros=macros, note=note)
     try:
-        if FUSED_FEED:
-            from kestimator.fused import feed_lines as fused_feed_lines
-            fused_feed_lines(timeline, lines)
-        else:
-            timeline.feed_lines(lines)
+        timeline.feed_lines(lines)
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a

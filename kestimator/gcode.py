@@ -1,6 +1,7 @@
 """One G-code line to one command, exactly as Klipper's `klippy/gcode.py` splits it.
 
-No state lives here. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
+No state lives here. Also Klipper's parameter getters (`GCodeCommand.get_float`/`get_int`,
+with their range checks), as functions of a command's parameters. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
 the line, cuts it at the first ';', upper-cases it and splits it on runs of letters: the
 command is the first letter group with its number (`G1`, `M104`, `SET_VELOCITY_LIMIT`) and
 every later letter group is a parameter whose value is the text up to the next letter.
@@ -10,11 +11,14 @@ Extended commands (names that are not a letter and a number) take `KEY=value` pa
 
 from __future__ import annotations
 
+import math
 import re
 import shlex
 import sys
 import types
-from typing import TYPE_CHECKING, Final, NamedTuple
+from typing import TYPE_CHECKING, Final, NamedTuple, overload
+
+from kestimator.errors import CommandError, ParamError
 
 if TYPE_CHECKING:
     # 64-bit machine integers in the compiled build (plain ints when run as Python).
@@ -246,3 +250,59 @@ def extended_params(code: str) -> dict[str, str]:
             raise ValueError("Malformed command '%s'" % stripped)
         params[key.upper()] = value
     return params
+
+
+def command_params(cmd: Command) -> dict[str, str]:
+    """The parameters of a command: letter ones, or an extended command's `KEY=value`
+    pairs (a malformed one is Klipper's "Malformed command" error)."""
+    if cmd.params or not cmd.code:
+        return cmd.params
+    try:
+        return extended_params(cmd.code)
+    except ValueError as exc:
+        raise CommandError(str(exc)) from None
+
+
+@overload
+def get_float(params: dict[str, str], name: str, default: float, *,
+              minval: float | None = None, above: float | None = None,
+              below: float | None = None) -> float: ...
+
+
+@overload
+def get_float(params: dict[str, str], name: str, default: None = None, *,
+              minval: float | None = None, above: float | None = None,
+              below: float | None = None) -> float | None: ...
+
+
+def get_float(params: dict[str, str], name: str, default: float | None = None, *,
+              minval: float | None = None, above: float | None = None,
+              below: float | None = None) -> float | None:
+    """Klipper's `gcmd.get_float` with its range checks; NaN and inf are refused."""
+    raw = params.get(name)
+    if raw is None:
+        return default
+    try:
+        value = float(raw)
+    except ValueError:
+        raise ParamError("unable to parse %s" % raw) from None
+    if not math.isfinite(value):
+        raise ParamError("%s must be a finite number, not %r" % (name, raw))
+    if minval is not None and value < minval:
+        raise ParamError("%s must have minimum of %s" % (name, minval))
+    if above is not None and value <= above:
+        raise ParamError("%s must be above %s" % (name, above))
+    if below is not None and value >= below:
+        raise ParamError("%s must be below %s" % (name, below))
+    return value
+
+
+def get_int(params: dict[str, str], name: str) -> int:
+    """Klipper's `gcmd.get_int(name, 0)`."""
+    raw = params.get(name)
+    if raw is None:
+        return 0
+    try:
+        return int(raw)
+    except ValueError:
+        raise ParamError("unable to parse %s" % raw) from None

@@ -31,7 +31,7 @@ from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, ProgressCallback, estimate_file
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
-from kestimator.planner import Move
+from kestimator.toolhead import Move
 from kestimator.preflight import KIND_STOP, summary_lines
 from kestimator.rewrite import slicer_of_file
 from kestimator.slicers import SlicerInfo

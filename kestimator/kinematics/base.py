@@ -20,10 +20,10 @@ import math
 from collections.abc import Mapping
 from typing import TYPE_CHECKING
 
-from kestimator.errors import KestimatorError
+from kestimator.errors import KestimatorError, MoveError
 
 if TYPE_CHECKING:
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 Position = tuple[float, float, float, float]
 
@@ -47,10 +47,6 @@ def is_machine_section(name: str) -> bool:
 
 class MissingSectionError(KestimatorError):
     """The printer's config lacks a section the kinematics reads."""
-
-
-class MoveError(Exception):
-    """Klipper would reject this move (the G-code layer adds file and line)."""
 
 
 def move_error(move: Move, msg: str = "Move out of range") -> MoveError:

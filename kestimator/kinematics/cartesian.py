@@ -16,7 +16,7 @@ from kestimator.kinematics.base import Kinematics, MachineConfig, Position, look
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 UNHOMED = (1.0, -1.0)
 DUAL_CARRIAGE_NOTE = ("[dual_carriage]: SET_DUAL_CARRIAGE switches carriages, offsets and "

@@ -25,7 +25,7 @@ from kestimator.kinematics.base import (
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 # Slow moves once the ratio of tower to XY movement exceeds SLOW_RATIO
 SLOW_RATIO = 3.0

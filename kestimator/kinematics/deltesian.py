@@ -28,7 +28,7 @@ from kestimator.kinematics.base import (
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 SLOW_RATIO = 3.0
 MIN_ANGLE = 5.0

@@ -25,7 +25,7 @@ from kestimator.kinematics.base import (
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 
 def distance_to_center(p1: tuple[float, float], p2: tuple[float, float]) -> float:

@@ -27,7 +27,7 @@ from kestimator.kinematics.delta import trilateration
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 Vec3 = tuple[float, float, float]
 

@@ -12,7 +12,7 @@ from kestimator.kinematics.base import Kinematics
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
-    from kestimator.planner import Move
+    from kestimator.toolhead import Move
 
 
 class StandInKinematics(Kinematics):
