@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, MissingSectionError
 from kestimator.kinematics import (
     cartesian,
     corexy,
@@ -32,13 +33,7 @@ from kestimator.kinematics import (
     rotary_delta,
     winch,
 )
-from kestimator.kinematics.base import (
-    Kinematics,
-    MachineConfig,
-    MissingSectionError,
-    MoveError,
-    move_error,
-)
+from kestimator.kinematics.base import Kinematics, MoveError, move_error
 from kestimator.kinematics.standin import StandInKinematics
 
 if TYPE_CHECKING:
