@@ -39,8 +39,7 @@ from kestimator.kinematics.standin import StandInKinematics
 if TYPE_CHECKING:
     from kestimator.limits import Limits
 
-__all__ = ["KINEMATICS", "Kinematics", "MachineConfig", "MoveError", "load_kinematics",
-           "move_error"]
+__all__ = ["KINEMATICS", "Kinematics", "MoveError", "load_kinematics", "move_error"]
 
 # [printer] kinematics -> its module's load_kinematics(config, limits)
 _LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {
