@@ -21,7 +21,7 @@ import re
 from collections.abc import Mapping
 from typing import Any
 
-from kestimator.kinematics.base import MachineConfig
+from kestimator.config.machine import MachineConfig
 from kestimator.stepgen import DEFAULT_DAMPING_RATIO
 
 # What `SET_VELOCITY_LIMIT ACCEL_TO_DECEL` (and [printer] max_accel_to_decel) means depends

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from kestimator.config.fields import SourcedValues
+from kestimator.config.machine import MachineConfig, is_machine_section
 from kestimator.config.printer_cfg import (
     FLOAT_OPTIONS,
     MACRO_PREFIX,
@@ -32,7 +33,6 @@ from kestimator.config.printer_cfg import (
 )
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes, write_json_privately
-from kestimator.kinematics.base import MachineConfig, is_machine_section
 from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
 
 if TYPE_CHECKING:
@@ -47,7 +47,7 @@ API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction",
                    "input_shaper")
 """The Klipper sections kestimator reads (and [extruderN]), besides the kinematics' ones
-(``kinematics.base.is_machine_section``: [stepper_*], [dual_carriage], probes); of the others
+(``config.machine.is_machine_section``: [stepper_*], [dual_carriage], probes); of the others
 (macros included: their templates may hold anything) only the names are cached."""
 _EXTRUDER_RE = re.compile(r"extruder[1-9][0-9]?$")
 MAX_ANSWER_BYTES = 16 * 1024 * 1024

@@ -31,9 +31,9 @@ from kestimator.config.klipper_options import (
     PRINTER_OPTIONS,
     SECTION_OPTIONS,
 )
+from kestimator.config.machine import MachineConfig
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes
-from kestimator.kinematics.base import MachineConfig
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
     ExtruderLimits,

@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, MissingSectionError
 from kestimator.kinematics import (
     cartesian,
     corexy,
@@ -32,20 +33,13 @@ from kestimator.kinematics import (
     rotary_delta,
     winch,
 )
-from kestimator.kinematics.base import (
-    Kinematics,
-    MachineConfig,
-    MissingSectionError,
-    MoveError,
-    move_error,
-)
+from kestimator.kinematics.base import Kinematics, MoveError, move_error
 from kestimator.kinematics.standin import StandInKinematics
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
 
-__all__ = ["KINEMATICS", "Kinematics", "MachineConfig", "MoveError", "load_kinematics",
-           "move_error"]
+__all__ = ["KINEMATICS", "Kinematics", "MoveError", "load_kinematics", "move_error"]
 
 # [printer] kinematics -> its module's load_kinematics(config, limits)
 _LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {

@@ -12,7 +12,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from kestimator.kinematics.base import Kinematics, MachineConfig, Position, lookup_rail, move_error
+from kestimator.config.machine import MachineConfig, lookup_rail
+from kestimator.kinematics.base import Kinematics, Position, move_error
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits

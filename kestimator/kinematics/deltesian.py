@@ -17,12 +17,11 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
-    MachineConfig,
     MoveError,
     Position,
-    lookup_rail,
     move_error,
 )
 

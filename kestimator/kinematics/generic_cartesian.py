@@ -14,8 +14,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, Rail, rail_from_section
 from kestimator.errors import KestimatorError
-from kestimator.kinematics.base import Kinematics, MachineConfig, Rail, rail_from_section
+from kestimator.kinematics.base import Kinematics
 from kestimator.kinematics.cartesian import DUAL_CARRIAGE_NOTE, CartKinematics
 
 if TYPE_CHECKING:

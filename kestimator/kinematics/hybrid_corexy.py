@@ -8,7 +8,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from kestimator.kinematics.base import Kinematics, MachineConfig
+from kestimator.config.machine import MachineConfig
+from kestimator.kinematics.base import Kinematics
 from kestimator.kinematics.cartesian import CartKinematics
 
 if TYPE_CHECKING:

@@ -15,11 +15,10 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
-    MachineConfig,
     Position,
-    lookup_rail,
     move_error,
 )
 

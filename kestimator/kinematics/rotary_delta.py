@@ -16,11 +16,10 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
+from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
-    MachineConfig,
     Position,
-    lookup_rail,
     move_error,
 )
 from kestimator.kinematics.delta import trilateration

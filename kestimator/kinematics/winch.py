@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from kestimator.kinematics.base import Kinematics, MachineConfig
+from kestimator.config.machine import MachineConfig
+from kestimator.kinematics.base import Kinematics
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
