@@ -29,10 +29,16 @@ from setuptools.command.build_ext import build_ext
 HERE = os.path.dirname(os.path.abspath(__file__))
 COMPILED_MODULES = [
     "kestimator/gcode.py",
-    "kestimator/planner.py",
+    "kestimator/motion_queuing.py",
+    "kestimator/extruder.py",
     "kestimator/toolhead.py",
+    "kestimator/gcode_move.py",
+    "kestimator/gcode_arcs.py",
+    "kestimator/firmware_retraction.py",
+    "kestimator/input_shaper.py",
     "kestimator/interpreter.py",
     "kestimator/estimate.py",
+    "kestimator/config/machine.py",
 ] + sorted("kestimator/kinematics/" + name
            for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
            if name.endswith(".py"))

@@ -45,8 +45,8 @@ from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
 from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.learn import macro_times_for
-from kestimator.toolhead import Move
 from kestimator.rewrite import check_gcode_file, inject_file
+from kestimator.toolhead import Move
 
 EXIT_OK = 0
 EXIT_FAILURE = 1

@@ -1,12 +1,14 @@
 """One G-code line to one command, exactly as Klipper's `klippy/gcode.py` splits it.
 
-No state lives here. Also Klipper's parameter getters (`GCodeCommand.get_float`/`get_int`,
-with their range checks), as functions of a command's parameters. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
+No state lives here. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
 the line, cuts it at the first ';', upper-cases it and splits it on runs of letters: the
 command is the first letter group with its number (`G1`, `M104`, `SET_VELOCITY_LIMIT`) and
 every later letter group is a parameter whose value is the text up to the next letter.
 Extended commands (names that are not a letter and a number) take `KEY=value` pairs as
 `shlex` splits them. A line number `N123` before the command is skipped.
+
+Also Klipper's parameter getters (`GCodeCommand.get_float`/`get_int`, with their range
+checks), as functions of a command's parameters.
 """
 
 from __future__ import annotations

@@ -31,10 +31,10 @@ from kestimator.durations import format_duration
 from kestimator.estimate import Estimate, ProgressCallback, estimate_file
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
-from kestimator.toolhead import Move
 from kestimator.preflight import KIND_STOP, summary_lines
 from kestimator.rewrite import slicer_of_file
 from kestimator.slicers import SlicerInfo
+from kestimator.toolhead import Move
 
 SPEED_BIN_V = 10.0
 _M73_R_RE = re.compile(rb"^\s*M73\s+(?:[^;]*\s)?R(\d+(?:\.\d+)?)")

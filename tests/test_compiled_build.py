@@ -104,7 +104,7 @@ def test_the_wheel_holds_compiled_modules_and_says_compiled(compiled_python: str
                           capture_output=True, text=True, cwd="/", check=True)
     assert proc.stdout.strip().endswith("(compiled)")
     where = subprocess.run(
-        [compiled_python, "-c", "import kestimator.planner as p, kestimator.gcode as g;"
+        [compiled_python, "-c", "import kestimator.toolhead as p, kestimator.gcode as g;"
          "print(p.__file__); print(g.SCAN_PLAIN_MOVES)"],
         capture_output=True, text=True, cwd="/", check=True).stdout.split()
     assert where[0].endswith(sysconfig.get_config_var("EXT_SUFFIX"))

@@ -33,13 +33,13 @@ from kestimator.kinematics import (
     rotary_delta,
     winch,
 )
-from kestimator.kinematics.base import Kinematics, MoveError, move_error
+from kestimator.kinematics.base import Kinematics
 from kestimator.kinematics.standin import StandInKinematics
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
 
-__all__ = ["KINEMATICS", "Kinematics", "MoveError", "load_kinematics", "move_error"]
+__all__ = ["KINEMATICS", "Kinematics", "load_kinematics"]
 
 # [printer] kinematics -> its module's load_kinematics(config, limits)
 _LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {

@@ -1,27 +1,17 @@
-"""What every kinematics shares: the "Move out of range" error and the interface `ToolHead`
-calls. The machine description a kinematics is built from (`MachineConfig`, its sections read
-with Klipper's getters, and rails) is `kestimator.config.machine`.
-
-Re-implemented from mainline Klipper at commit 84104bbbd (GNU GPLv3): `klippy/toolhead.py`
-(`Move.move_error`).
+"""What every kinematics shares: the interface `ToolHead` calls (a move Klipper rejects
+raises `move.move_error()`, as upstream). The machine description a kinematics is built
+from (`MachineConfig`, its sections read with Klipper's getters, and rails) is
+`kestimator.config.machine`.
 """
 
 from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from kestimator.errors import MoveError
-
 if TYPE_CHECKING:
     from kestimator.toolhead import Move
 
 Position = tuple[float, float, float, float]
-
-
-def move_error(move: Move, msg: str = "Move out of range") -> MoveError:
-    """Klipper's `Move.move_error`: the message with the move's end position."""
-    ep = move.end_pos
-    return MoveError("%s: %.3f %.3f %.3f [%.3f]" % (msg, ep[0], ep[1], ep[2], ep[3]))
 
 
 class Kinematics:

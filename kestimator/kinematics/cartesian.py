@@ -13,7 +13,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from kestimator.config.machine import MachineConfig, lookup_rail
-from kestimator.kinematics.base import Kinematics, Position, move_error
+from kestimator.kinematics.base import Kinematics, Position
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
@@ -88,8 +88,8 @@ class CartKinematics(Kinematics):
                     and (end_pos[i] < self.limits[i][0]
                          or end_pos[i] > self.limits[i][1])):
                 if self.limits[i][0] > self.limits[i][1]:
-                    raise move_error(move, "Must home axis first")
-                raise move_error(move)
+                    raise move.move_error("Must home axis first")
+                raise move.move_error()
 
     def check_move(self, move: Move) -> None:
         """Range checks, and Z moves slowed to max_z_velocity/accel along Z."""

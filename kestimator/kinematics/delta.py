@@ -19,7 +19,6 @@ from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
     Position,
-    move_error,
 )
 
 if TYPE_CHECKING:
@@ -168,7 +167,7 @@ class DeltaKinematics(Kinematics):
             # Normal XY move
             return
         if self.need_home:
-            raise move_error(move, "Must home first")
+            raise move.move_error("Must home first")
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
             above_z_limit = end_z - self.limit_z
@@ -179,7 +178,7 @@ class DeltaKinematics(Kinematics):
             # Move out of range - verify not a homing move
             if ((end_x, end_y) != (self.home_position[0], self.home_position[1])
                     or end_z < self.min_z or end_z > self.home_position[2]):
-                raise move_error(move)
+                raise move.move_error()
             limit_xy2 = -1.0
         if move.axes_d_z:
             z_ratio = move.move_d / abs(move.axes_d_z)

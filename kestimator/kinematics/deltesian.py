@@ -18,12 +18,8 @@ import math
 from typing import TYPE_CHECKING
 
 from kestimator.config.machine import MachineConfig, lookup_rail
-from kestimator.kinematics.base import (
-    Kinematics,
-    MoveError,
-    Position,
-    move_error,
-)
+from kestimator.errors import MoveError
+from kestimator.kinematics.base import Kinematics, Position
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
@@ -145,11 +141,11 @@ class DeltesianKinematics(Kinematics):
             limits[2][1] = self._pillars_z_max(epos[0])
         for i in (i for i, v in enumerate(move.axes_d[:3]) if v):
             if not self.homed_axis[i]:
-                raise move_error(move, "Must home axis first")
+                raise move.move_error("Must home axis first")
             # Move out of range - verify not a homing move
             if epos[i] < limits[i][0] or epos[i] > limits[i][1]:
                 if not homing_move:
-                    raise move_error(move)
+                    raise move.move_error()
         if move.axes_d[2]:
             z_ratio = move.move_d / abs(move.axes_d[2])
             move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)

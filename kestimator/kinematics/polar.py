@@ -19,7 +19,6 @@ from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
     Position,
-    move_error,
 )
 
 if TYPE_CHECKING:
@@ -96,13 +95,13 @@ class PolarKinematics(Kinematics):
         xy2 = end_x**2 + end_y**2
         if xy2 > self.limit_xy2:
             if self.limit_xy2 < 0.0:
-                raise move_error(move, "Must home axis first")
-            raise move_error(move)
+                raise move.move_error("Must home axis first")
+            raise move.move_error()
         if move.axes_d_z:
             if end_z < self.limit_z[0] or end_z > self.limit_z[1]:
                 if self.limit_z[0] > self.limit_z[1]:
-                    raise move_error(move, "Must home axis first")
-                raise move_error(move)
+                    raise move.move_error("Must home axis first")
+                raise move.move_error()
             # Move with Z - update velocity and accel for slower Z axis
             z_ratio = move.move_d / abs(move.axes_d_z)
             move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)

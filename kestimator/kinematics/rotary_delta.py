@@ -20,7 +20,6 @@ from kestimator.config.machine import MachineConfig, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
     Position,
-    move_error,
 )
 from kestimator.kinematics.delta import trilateration
 
@@ -143,7 +142,7 @@ class RotaryDeltaKinematics(Kinematics):
             # Normal XY move
             return
         if self.need_home:
-            raise move_error(move, "Must home first")
+            raise move.move_error("Must home first")
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
             limit_xy2 = min(limit_xy2, (self.max_z - end_z)**2)
@@ -151,7 +150,7 @@ class RotaryDeltaKinematics(Kinematics):
             # Move out of range - verify not a homing move
             if ((end_x, end_y) != (self.home_position[0], self.home_position[1])
                     or end_z < self.min_z or end_z > self.home_position[2]):
-                raise move_error(move)
+                raise move.move_error()
             limit_xy2 = -1.0
         if move.axes_d_z:
             move.limit_speed(self.max_z_velocity, move.accel)
