@@ -37,6 +37,7 @@ COMPILED_MODULES = [
     "kestimator/firmware_retraction.py",
     "kestimator/input_shaper.py",
     "kestimator/interpreter.py",
+    "kestimator/segments.py",
     "kestimator/estimate.py",
     "kestimator/config/machine.py",
 ] + sorted("kestimator/kinematics/" + name

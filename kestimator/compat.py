@@ -42,10 +42,11 @@ from kestimator.cli_output import parts_to_json, printable
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
-from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
+from kestimator.estimate import Estimate, estimate_file, estimate_lines
 from kestimator.files import Terminated, cleanup_on_termination
 from kestimator.learn import macro_times_for
 from kestimator.rewrite import check_gcode_file, inject_file
+from kestimator.segments import NO_FEATURE
 from kestimator.toolhead import Move
 
 EXIT_OK = 0

@@ -1,10 +1,10 @@
 """One streaming pass over a G-code file: Klipper's time at every line that matters.
 
 Owns the timeline: reading the file line by line (lines end at LF, as Klipper reads them),
-layer markers, per-feature and per-object sums (objects from EXCLUDE_OBJECT_START/END, M486
-and `; printing object` labels), the `; ESTIMATOR_ADD_TIME` comment, warnings, and the
-`Estimate` result. The file is never held in memory: only the look-ahead queue (bounded by
-Klipper's own flush rule) and the recorded times (one per layer and per sample) are kept.
+layer markers, the `; ESTIMATOR_ADD_TIME` comment, warnings, and the `Estimate` result.
+Per-feature and per-object sums are `kestimator.segments`'. The file is never held in
+memory: only the look-ahead queue (bounded by Klipper's own flush rule) and the recorded
+times (one per layer and per sample) are kept.
 """
 
 from __future__ import annotations
@@ -13,9 +13,7 @@ import dataclasses
 import io
 import math
 import os
-import re
 from array import array
-from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from typing import Final
@@ -24,7 +22,6 @@ from kestimator.errors import CommandError, KestimatorError, MoveError, ParamErr
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
     Command,
-    extended_params,
     parse_line,
     parse_plain_move_regex,
     parse_plain_move_scan,
@@ -41,14 +38,10 @@ from kestimator.macros import (
     TimedPart,
 )
 from kestimator.preflight import KIND_STOP, Finding, Preflight
+from kestimator.segments import OBJECT_COMMANDS, Segments
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
 
-# Commands that say which object the following moves belong to.
-OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
-                             "EXCLUDE_OBJECT_END", "M486"))
-# M486's A parameter: the current object's name, to the end of the code.
-_M486_LABEL_RE = re.compile(r"^\s*M486\b.*?\sA(\S.*)$", re.IGNORECASE)
 # Comment markers that start a layer.
 LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
@@ -56,13 +49,6 @@ FEATURE_MARKERS: Final = (";TYPE:", "; FEATURE:")
 ADD_TIME_MARKER: Final = "ESTIMATOR_ADD_TIME"
 # Estimate.commands kind of commands Klipper does not know.
 KIND_UNKNOWN: Final = "unknown"
-# Feature name for moves before the first feature marker.
-NO_FEATURE: Final = "(none)"
-# Object name for moves outside every labelled object (start, travel between objects, end).
-NO_OBJECT: Final = "(no object)"
-# `; printing object NAME` / `; stop printing object NAME` (PrusaSlicer, SuperSlicer, Orca).
-OBJECT_COMMENT: Final = ";printing object"
-OBJECT_STOP_COMMENT: Final = ";stop printing object"
 # At most this many warnings are kept (each names its line); the rest are counted.
 MAX_WARNINGS: Final = 100
 # The file is read in blocks of this size; a line is held whole up to MAX_LINE_BYTES.
@@ -280,31 +266,8 @@ class Timeline:
         self.first_extrusion_t: float | None = None
         self.preflight = Preflight()
         self.interp.preflight = self.preflight
-        self.feature_names: list[str] = [NO_FEATURE]
-        self.feature_ids: dict[str, int] = {NO_FEATURE: 0}
-        # Objects by key (EXCLUDE_OBJECT NAME, M486 id or comment label) and their names.
-        self.object_keys: list[str] = [NO_OBJECT]
-        self.object_ids: dict[str, int] = {NO_OBJECT: 0}
-        self.object_names: dict[str, str] = {}
-        # Comment labels count until a command labels objects (EXCLUDE_OBJECT_*, M486):
-        # then Klipper's own labels win and the comments are ignored.
-        self._object_commands = False
-        self._queued_object = 0
-        # Time is summed per segment, one per (feature id, object id) seen, so the move
-        # loop pays one addition per move whatever is tracked.
-        self.segments: list[tuple[int, int]] = [(0, 0)]
-        self.segment_ids: dict[tuple[int, int], int] = {(0, 0): 0}
-        self.segment_time: list[float] = [0.0]
-        # Moves are tagged with their line; segment changes wait here (line, segment id)
-        # until the planner has flushed every move before them.
-        self._feature_changes: deque[tuple[int, int]] = deque()
-        self._feature = 0
-        self._queued_feature = 0
-        self._segment = 0
-        self._queued_segment = 0
-        # Where the time already given to a segment ends: the head at rest between batches
-        # (G4, flush delays, homing) goes to the segment of the last move before it.
-        self._counted_until = 0.0
+        # Time per feature and per object (kestimator.segments).
+        self.split = Segments(self.toolhead)
         self.layers = TimedLines()
         self.marks = TimedLines()
         self.mark_prefixes = mark_prefixes
@@ -338,12 +301,12 @@ class Timeline:
 
     # Callbacks from the toolhead
     def _on_moves(self, moves: list[Move], start_t: float) -> None:
-        segment_time = self.segment_time
-        changes = self._feature_changes
-        segment = self._segment
+        split = self.split
+        split.rest_until(start_t)
+        segment_time = split.segment_time
+        changes = split.changes
+        segment = split.segment
         t = start_t
-        if start_t > self._counted_until:
-            segment_time[segment] += start_t - self._counted_until
         filament = self.filament_mm
         next_sample_t = self._next_sample_t if self.sample else math.inf
         if self.first_extrusion_t is None:
@@ -359,8 +322,8 @@ class Timeline:
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
-        self._segment = segment
-        self._counted_until = t
+        split.segment = segment
+        split.counted_until = t
         self.filament_mm = filament
         self.n_moves += len(moves)
         if self.observer is not None:
@@ -398,12 +361,12 @@ class Timeline:
             part.covered += 1
             return
         before = toolhead.print_time
-        if before > self._counted_until:
-            self.segment_time[self._segment] += before - self._counted_until
+        split = self.split
+        split.rest_until(before)
         toolhead.add_time(seconds)
         # add_time stopped the head: every queued segment change has been applied.
-        self.segment_time[self._queued_segment] += toolhead.print_time - before
-        self._counted_until = toolhead.print_time
+        split.segment_time[split.queued_segment] += toolhead.print_time - before
+        split.counted_until = toolhead.print_time
         self._rest_until = toolhead.print_time
         part.seconds += seconds
         if prep:
@@ -433,7 +396,7 @@ class Timeline:
         for i in range(len(times)):
             times[i] = stretch(times[i])
         grow = (total + extra) / total
-        self.segment_time = [t * grow for t in self.segment_time]
+        self.split.scale(grow)
         part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
         part.count = 1
         part.seconds = extra
@@ -558,7 +521,7 @@ class Timeline:
         if self.first_command_line is None:
             self.first_command_line = self.lineno
         if cmd.name in OBJECT_COMMANDS:
-            self._object_command(cmd)
+            self.split.object_command(cmd, self.lineno)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
         self.interp.gcode_move.tag = self.lineno
@@ -591,98 +554,13 @@ class Timeline:
             return
         for marker in FEATURE_MARKERS:
             if text.startswith(marker):
-                self._set_feature(text[len(marker):].strip())
+                self.split.set_feature(text[len(marker):].strip(), self.lineno)
                 return
-        if "printing object" in text and self._object_comment(text):
+        if "printing object" in text and self.split.object_comment(text, self.lineno):
             return
         body = text.lstrip(";").strip()
         if body.startswith(ADD_TIME_MARKER):
             self._add_time(body[len(ADD_TIME_MARKER):].split())
-
-    def _set_feature(self, name: str) -> None:
-        fid = self.feature_ids.get(name)
-        if fid is None:
-            fid = self.feature_ids[name] = len(self.feature_names)
-            self.feature_names.append(name)
-        self._queued_feature = fid
-        self._set_segment()
-
-    def _set_object(self, key: str | None) -> None:
-        """Moves from this line on belong to object `key` (None: to no object)."""
-        if key is None:
-            oid = 0
-        else:
-            found = self.object_ids.get(key)
-            if found is None:
-                found = self.object_ids[key] = len(self.object_keys)
-                self.object_keys.append(key)
-            oid = found
-        if oid != self._queued_object:
-            self._queued_object = oid
-            self._set_segment()
-
-    def _set_segment(self) -> None:
-        key = (self._queued_feature, self._queued_object)
-        sid = self.segment_ids.get(key)
-        if sid is None:
-            sid = self.segment_ids[key] = len(self.segments)
-            self.segments.append(key)
-            self.segment_time.append(0.0)
-        toolhead = self.toolhead
-        if toolhead.lookahead.is_empty():
-            # Every move so far has been timed: rest until now belongs to the old segment.
-            if toolhead.print_time > self._counted_until:
-                self.segment_time[self._segment] += toolhead.print_time - self._counted_until
-                self._counted_until = toolhead.print_time
-            self._feature_changes.clear()
-            self._segment = sid
-        else:
-            self._feature_changes.append((self.lineno, sid))
-        self._queued_segment = sid
-
-    def _object_command(self, cmd: Command) -> None:
-        """EXCLUDE_OBJECT_START/END or M486: the object the following moves belong to."""
-        self._object_commands = True
-        name = cmd.name
-        if name == "M486":
-            if "S" in cmd.params:
-                try:
-                    index = int(float(cmd.params["S"]))
-                except ValueError:
-                    return
-                self._set_object(None if index < 0 else "M486 S%d" % index)
-            found = _M486_LABEL_RE.search(cmd.code)
-            label = found.group(1).strip() if found else ""
-            if label and self._queued_object:
-                self.object_names[self.object_keys[self._queued_object]] = label
-            return
-        if name == "EXCLUDE_OBJECT_END":
-            self._set_object(None)
-            return
-        if name == "EXCLUDE_OBJECT_START":
-            try:
-                params = extended_params(cmd.code)
-            except ValueError:
-                return  # Klipper rejects the line; execute() says so
-            object_name = params.get("NAME", "").strip().upper()
-            if object_name:
-                self._set_object(object_name)
-                self.object_names.setdefault(object_name, params["NAME"].strip())
-
-    def _object_comment(self, text: str) -> bool:
-        """`; printing object NAME` / `; stop printing object NAME`: True if it was one."""
-        body = ";" + text.lstrip(";").strip()
-        if body.startswith(OBJECT_STOP_COMMENT):
-            if not self._object_commands:
-                self._set_object(None)
-            return True
-        if body.startswith(OBJECT_COMMENT):
-            label = body[len(OBJECT_COMMENT):].strip()
-            if label and not self._object_commands:
-                self._set_object("; " + label)
-                self.object_names.setdefault("; " + label, label)
-            return True
-        return False
 
     def _add_time(self, words: list[str]) -> None:
         try:
@@ -700,9 +578,7 @@ class Timeline:
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
-        if total > self._counted_until:
-            self.segment_time[self._segment] += total - self._counted_until
-            self._counted_until = total
+        self.split.rest_until(total)
         total = self._correct_motion(total)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
@@ -738,20 +614,7 @@ class Timeline:
                     for kind, names in sorted(interp.command_kinds.items())}
         if interp.ignored:
             commands[KIND_UNKNOWN] = dict(sorted(interp.ignored.items()))
-        feature_time = [0.0] * len(self.feature_names)
-        object_time = [0.0] * len(self.object_keys)
-        for i, (fid, oid) in enumerate(self.segments):
-            seconds = self.segment_time[i]
-            feature_time[fid] += seconds
-            object_time[oid] += seconds
-        features = {name: feature_time[i] for i, name in enumerate(self.feature_names)
-                    if feature_time[i] > 0.0 or name != NO_FEATURE}
-        objects: dict[str, float] = {}
-        if len(self.object_keys) > 1:
-            for i, key in enumerate(self.object_keys):
-                name = self.object_names.get(key, key)
-                if object_time[i] > 0.0:
-                    objects[name] = objects.get(name, 0.0) + object_time[i]
+        features, objects = self.split.totals()
         return Estimate(
             path=self.path, total_s=total, layers=self.layers, features=features,
             n_moves=self.n_moves, n_lines=self.lineno,

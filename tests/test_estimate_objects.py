@@ -7,8 +7,9 @@ from pathlib import Path
 import pytest
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
-from kestimator.estimate import NO_OBJECT, estimate_file, estimate_text
+from kestimator.estimate import estimate_file, estimate_text
 from kestimator.limits import Limits
+from kestimator.segments import NO_OBJECT
 
 from .conftest import CORPUS_CFG
 
