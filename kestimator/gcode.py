@@ -1,4 +1,6 @@
-"""One G-code line to one command, exactly as Klipper's `klippy/gcode.py` splits it.
+"""Mirrors the line parsing of klippy/gcode.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+One G-code line to one command, exactly as Klipper's `klippy/gcode.py` splits it.
 
 No state lives here. Klipper (commit 84104bbbd, `GCodeDispatch._process_commands`) strips
 the line, cuts it at the first ';', upper-cases it and splits it on runs of letters: the

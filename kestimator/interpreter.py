@@ -1,9 +1,8 @@
-"""Klipper's G-code dispatch: which object runs each command, and what it does to commands
-it does not know.
+"""Mirrors the dispatch of klippy/gcode.py at Klipper commit 84104bbbd (GNU GPLv3).
 
-Mirrors the command side of klippy/gcode.py (`GCodeDispatch`: `register_command`,
-`cmd_default`) at Klipper commit 84104bbbd (GNU GPLv3), and sets the printer's objects up
-as klippy does from its config sections: `GCodeMove` (gcode_move.py),
+Klipper's G-code dispatch (`GCodeDispatch`: `register_command`, `cmd_default`): which
+object runs each command, and what happens to commands Klipper does not know. It also sets
+the printer's objects up as klippy does from its config sections: `GCodeMove` (gcode_move.py),
 `ToolHeadCommandHelper` (toolhead.py), `PrinterExtruders` (extruder.py), `InputShaper`
 (input_shaper.py), `ArcSupport` (gcode_arcs.py) with [gcode_arcs], `FirmwareRetraction`
 (firmware_retraction.py) with [firmware_retraction]. The few commands whose upstream

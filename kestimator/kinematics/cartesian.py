@@ -1,4 +1,6 @@
-"""Klipper's `cartesian` kinematics: per-axis ranges from [stepper_x/y/z], Z speed limits.
+"""Mirrors klippy/kinematics/cartesian.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `cartesian` kinematics: per-axis ranges from [stepper_x/y/z], Z speed limits.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/cartesian.py`
 (GNU GPLv3). corexy, corexz, hybrid_corexy and hybrid_corexz check moves the same way

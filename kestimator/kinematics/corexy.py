@@ -1,4 +1,6 @@
-"""Klipper's `corexy` kinematics.
+"""Mirrors klippy/kinematics/corexy.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `corexy` kinematics.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/corexy.py`
 (GNU GPLv3): the same rails, ranges and Z limits as cartesian (its `check_move`,

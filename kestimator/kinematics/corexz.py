@@ -1,4 +1,6 @@
-"""Klipper's `corexz` kinematics.
+"""Mirrors klippy/kinematics/corexz.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `corexz` kinematics.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/corexz.py`
 (GNU GPLv3): the same rails, ranges and Z limits as cartesian (its `check_move`,

@@ -1,4 +1,6 @@
-"""Klipper's `delta` kinematics: build radius and height, the slow-down radii, homing to the
+"""Mirrors klippy/kinematics/delta.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `delta` kinematics: build radius and height, the slow-down radii, homing to the
 top of the towers.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/delta.py` and

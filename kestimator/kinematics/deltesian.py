@@ -1,4 +1,6 @@
-"""Klipper's `deltesian` kinematics: two delta-style towers (stepper_left / stepper_right) move
+"""Mirrors klippy/kinematics/deltesian.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `deltesian` kinematics: two delta-style towers (stepper_left / stepper_right) move
 X and Z, a cartesian stepper_y moves Y.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/deltesian.py`

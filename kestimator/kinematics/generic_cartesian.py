@@ -1,4 +1,6 @@
-"""Klipper's `generic_cartesian` kinematics: [carriage <name>] rails (one primary per axis),
+"""Mirrors klippy/kinematics/generic_cartesian.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `generic_cartesian` kinematics: [carriage <name>] rails (one primary per axis),
 [stepper <name>] steppers that mix them, optional [dual_carriage <name>] and
 [extra_carriage <name>] sections.
 

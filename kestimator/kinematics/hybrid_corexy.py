@@ -1,4 +1,6 @@
-"""Klipper's `hybrid_corexy` (Markforged) kinematics.
+"""Mirrors klippy/kinematics/hybrid_corexy.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `hybrid_corexy` (Markforged) kinematics.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/hybrid_corexy.py`
 (GNU GPLv3): the same rails, ranges and Z limits as cartesian; [dual_carriage] is on X only.

@@ -1,4 +1,6 @@
-"""Klipper's `none` kinematics: no steppers, no limits, homing does nothing.
+"""Mirrors klippy/kinematics/none.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `none` kinematics: no steppers, no limits, homing does nothing.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/none.py`
 (GNU GPLv3): `check_move` accepts every move at the toolhead's own limits.

@@ -1,4 +1,6 @@
-"""Klipper's `polar` kinematics: a rotating bed (stepper_bed), an arm (stepper_arm) and Z.
+"""Mirrors klippy/kinematics/polar.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `polar` kinematics: a rotating bed (stepper_bed), an arm (stepper_arm) and Z.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/polar.py`
 (GNU GPLv3). The XY range is a disc of radius stepper_arm's position_max; Z has its rail's

@@ -1,4 +1,6 @@
-"""Klipper's `rotary_delta` kinematics: three rotating shoulders (stepper_a/b/c, in radians)
+"""Mirrors klippy/kinematics/rotary_delta.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `rotary_delta` kinematics: three rotating shoulders (stepper_a/b/c, in radians)
 with upper and lower arms to one effector.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/rotary_delta.py`

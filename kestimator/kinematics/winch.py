@@ -1,4 +1,6 @@
-"""Klipper's `winch` (cable winch) kinematics: no range checks and no speed limits.
+"""Mirrors klippy/kinematics/winch.py at Klipper commit 84104bbbd (GNU GPLv3).
+
+Klipper's `winch` (cable winch) kinematics: no range checks and no speed limits.
 
 Re-implemented from mainline Klipper at commit 84104bbbd, `klippy/kinematics/winch.py`
 (GNU GPLv3): its `check_move` does nothing (boundary checks and speed limits are not
