@@ -53,7 +53,7 @@ from kestimator.config.resolve import (
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import Terminated, cleanup_on_termination
+from kestimator.files import Terminated, cleanup_on_termination, write_bytes_atomically
 from kestimator.limits import Limits, json_value
 from kestimator.preflight import (
     EXIT_KLIPPER_STOPS,
@@ -62,12 +62,7 @@ from kestimator.preflight import (
     stderr_line,
     summary_lines,
 )
-from kestimator.rewrite import (
-    check_gcode_file,
-    inject_file,
-    slicer_of_file,
-    write_bytes_atomically,
-)
+from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
            "JSON_SCHEMA_VERSION",
