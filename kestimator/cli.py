@@ -54,7 +54,7 @@ from kestimator.config.resolve import (
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import Terminated, cleanup_on_termination, write_bytes_atomically
+from kestimator.files import Terminated, write_bytes_atomically
 from kestimator.preflight import (
     EXIT_KLIPPER_STOPS,
     SUMMARY_HEAD,
@@ -713,8 +713,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Standard output failing (closed, full) is reported on stderr as one line; the exit
     status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
+    Installs no signal handlers: the program's entry points do (`kestimator.entry`), so a
+    library caller keeps its own. A `Terminated` raised under them is 128 + the signal.
     """
-    cleanup_on_termination()
     real_stdout = sys.stdout
     sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
     written: list[str] = []

@@ -43,7 +43,7 @@ from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import NO_FEATURE, Estimate, estimate_file, estimate_lines
-from kestimator.files import Terminated, cleanup_on_termination
+from kestimator.files import Terminated
 from kestimator.learn import macro_times_for
 from kestimator.planner import Move
 from kestimator.rewrite import check_gcode_file, inject_file
@@ -254,8 +254,11 @@ def cmd_dump_config(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of `kestimator-compat`; returns the exit status."""
-    cleanup_on_termination()
+    """Entry point of `kestimator-compat`; returns the exit status.
+
+    Installs no signal handlers: the program's entry points do (`kestimator.entry`), so a
+    library caller keeps its own. A `Terminated` raised under them is 128 + the signal.
+    """
     parser = _build_parser()
     args = parser.parse_args(argv)
     out, err = sys.stdout, sys.stderr
@@ -291,4 +294,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kestimator.entry import run_program
+
+    sys.exit(run_program(main))

@@ -31,7 +31,7 @@ import os
 import stat
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 try:
     import fcntl
@@ -108,21 +108,40 @@ def _terminate(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
 
-def cleanup_on_termination() -> None:
-    """Turn SIGTERM and SIGHUP into `Terminated` (the command lines call this first), so a
-    run stopped by a service manager or a closed terminal removes its temporary file.
+def cleanup_on_termination() -> dict[int, Any]:
+    """Turn SIGTERM and SIGHUP into `Terminated`, so a run stopped by a service manager or a
+    closed terminal removes its temporary file; returns the handlers they had before.
 
-    The exit status for them is 128 + the signal number, as if killed.
+    For programs only: the console entry points install this (`kestimator.entry`), never
+    `kestimator.cli.main` or `kestimator.compat.main`, which a library caller (a test, the
+    Cura plugin) runs in its own process. The exit status for them is 128 + the signal
+    number, as if killed. Outside the main thread nothing is installed.
     """
     import signal
 
+    previous: dict[int, Any] = {}
     for name in ("SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
         if signum is not None:
             try:
-                signal.signal(signum, _terminate)
+                previous[signum] = signal.signal(signum, _terminate)
             except (ValueError, OSError):  # not the main thread
                 pass
+    return previous
+
+
+@contextlib.contextmanager
+def terminating_cleanly() -> Iterator[None]:
+    """`cleanup_on_termination` while the block runs, then the handlers that were there."""
+    import signal
+
+    previous = cleanup_on_termination()
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(signum, handler)
 
 
 def make_temp_file(prefix: str, suffix: str, directory: str) -> tuple[int, str]:
