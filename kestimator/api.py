@@ -72,23 +72,21 @@ __all__ = [
     "resolve_machine_limits",
 ]
 
-# Loaded on first use: name -> (module, attribute).
-_LAZY = {
-    "LimitRequest": ("kestimator.config.resolve", "LimitRequest"),
-    "ResolvedLimits": ("kestimator.config.resolve", "ResolvedLimits"),
-    "resolve_limits": ("kestimator.config.resolve", "resolve_limits"),
-    "macro_times_for": ("kestimator.learn", "macro_times_for"),
-}
+_RESOLVER_NAMES = frozenset(("LimitRequest", "ResolvedLimits", "resolve_limits"))
 
 
 def __getattr__(name: str) -> Any:
     """The resolver's names, imported when first asked for."""
-    if name not in _LAZY:
-        raise AttributeError("module %r has no attribute %r" % (__name__, name))
-    import importlib
+    if name in _RESOLVER_NAMES:
+        from kestimator.config import resolve
 
-    module, attribute = _LAZY[name]
-    value = getattr(importlib.import_module(module), attribute)
+        value = getattr(resolve, name)
+    elif name == "macro_times_for":
+        from kestimator import learn
+
+        value = learn.macro_times_for
+    else:
+        raise AttributeError("module %r has no attribute %r" % (__name__, name))
     globals()[name] = value
     return value
 
