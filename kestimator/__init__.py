@@ -1,6 +1,8 @@
 """kestimator: print-time estimates that equal what Klipper's motion planner computes.
 
 The core (this package) uses only the standard library (plus tomli before Python 3.11).
+Code outside the package (the Cura plugin, other front ends) imports it through
+`kestimator.api`; the console scripts start in `kestimator.entry`.
 Klipper's look-ahead is re-implemented from Klipper3d/klipper (GPLv3, Kevin O'Connor and
 contributors); see kestimator/toolhead.py.
 """

@@ -1,11 +1,11 @@
 """The `kestimator` command: a thin layer over the library API.
 
-Owns argument parsing, exit codes, one-line errors, the progress bar and the `rich`
-rendering of results. It computes nothing itself: estimates come from
-`kestimator.estimate`, limits from `kestimator.config`, slicer facts from
-`kestimator.slicers`; the `--json` document and the plain text are built in
-`kestimator.cli_output`. `rich` is imported only here, only when drawing, and only if it is
-installed: without it (or when stdout is not a terminal) the output is plain text.
+Owns argument parsing, the command functions, exit codes and one-line errors. It computes
+and draws nothing itself: estimates come from `kestimator.estimate`, limits from
+`kestimator.config`, slicer facts from `kestimator.slicers`; the `--json` documents and the
+plain text are built in `kestimator.cli_output`; the `rich` rendering, the limits table and
+the progress bar are `kestimator.cli_render`'s. Files are written by `kestimator.files`.
+`main` installs no signal handlers (the console entry points in `kestimator.entry` do).
 
 Exit codes (docs/CLI.md): 0 success; 1 the input could not be processed (one line on
 stderr names file and line); 2 the command line was wrong; 3 kestimator itself failed (a
@@ -26,71 +26,54 @@ from typing import Any
 from kestimator import __version__, build, learn
 from kestimator.cli_output import (
     JSON_SCHEMA_VERSION,
-    approximate_text,
-    difference_text,
     estimate_to_json,
-    feature_rows,
-    filament_text,
-    parts_rows,
+    limits_to_json,
     print_text,
     printable,
     printable_doc,
     set_slicer_estimate,
-    shown_warnings,
-    slicer_label,
-    untimed_detail,
-    untimed_summary,
     write_json,
+)
+from kestimator.cli_render import (
+    RICH_ENV,
+    ProgressBar,
+    is_terminal,
+    print_estimate_rich,
+    print_limits_rich,
+    print_limits_text,
+    progress_for,
+    rich_console,
 )
 from kestimator.config import resolve
 from kestimator.config.moonraker import DEFAULT_TIMEOUT_S
 from kestimator.config.resolve import (
     API_KEY_ENVIRONMENT,
-    GUESS_WARNING_START,
     LimitRequest,
     ResolvedLimits,
 )
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import Terminated, cleanup_on_termination
-from kestimator.limits import Limits, json_value
+from kestimator.files import Terminated, write_bytes_atomically
 from kestimator.preflight import (
     EXIT_KLIPPER_STOPS,
-    KIND_STOP,
     SUMMARY_HEAD,
     stderr_line,
     summary_lines,
 )
-from kestimator.rewrite import (
-    check_gcode_file,
-    inject_file,
-    slicer_of_file,
-    write_bytes_atomically,
-)
+from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
-           "JSON_SCHEMA_VERSION",
-           "estimate_to_json", "main"]
+           "JSON_SCHEMA_VERSION", "RICH_ENV",
+           "estimate_to_json", "limits_to_json", "main"]
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
 EXIT_INTERNAL = 3
-# A list setting (extruders, macros, sections) shows this many names in the limits table.
-LIST_SHOWN = 4
 # EXIT_KLIPPER_STOPS (4, kestimator.preflight): inject/check when Klipper will stop the print.
 # PrusaSlicer/OrcaSlicer run post-processing on a temporary copy and name the final file here.
 SLICER_OUTPUT_NAME_ENV = "SLIC3R_PP_OUTPUT_NAME"
-# "1" draws with rich even when stdout is not a terminal, "0" never (docs/CLI.md).
-RICH_ENV = "KESTIMATOR_RICH"
-# Files at least this large get a progress bar (when stderr is a terminal).
-PROGRESS_MIN_BYTES = 5 * 1024 * 1024
-BAR_WIDTH = 20
-# The slicer's estimate is drawn green within this many percent of Klipper's, red beyond
-# the second.
-DIFFERENCE_OK_PCT = 5.0
-DIFFERENCE_BAD_PCT = 20.0
 
 DESCRIPTION = ("Print-time estimates equal to what Klipper's motion planner computes, "
                "written back into your G-code.")
@@ -371,114 +354,11 @@ def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitReq
                         printer=args.printer)
 
 
-def _rich_console(stderr: bool = False) -> Any:
-    """A rich Console for stdout (or stderr), or None for plain text.
-
-    Rich is used when it is installed and the stream is a terminal; $KESTIMATOR_RICH=1
-    forces it (a pager, a test), $KESTIMATOR_RICH=0 turns it off.
-    """
-    wanted = os.environ.get(RICH_ENV, "").strip()
-    stream = sys.stderr if stderr else sys.stdout
-    if wanted == "0" or (wanted != "1" and not _is_terminal(stream)):
-        return None
-    try:
-        from rich.console import Console
-    except ImportError:
-        return None
-    return Console(file=stream, force_terminal=True if wanted == "1" else None,
-                   highlight=False, soft_wrap=False)
-
-
-def _is_terminal(stream: Any) -> bool:
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError):
-        return False
-
-
-class _ProgressBar:
-    """Bytes read, drawn on stderr with the time spent and the time left: with rich when
-    installed, else one rewritten line.
-
-    Shown only for files of at least PROGRESS_MIN_BYTES when stderr is a terminal; calling
-    it is then `progress(bytes_done)`. Used as a context manager, it clears itself.
-    """
-
-    def __init__(self, label: str, total_bytes: int) -> None:
-        self.label = label
-        self.total = max(total_bytes, 1)
-        self._rich: Any = None
-        self._task: Any = None
-        self._last_shown = ""
-        self._started = 0.0
-        self._width = 0
-
-    def __enter__(self) -> _ProgressBar:
-        import time
-        self._started = time.monotonic()
-        console = _rich_console(stderr=True)
-        if console is not None:
-            from rich.progress import (
-                BarColumn,
-                Progress,
-                TaskProgressColumn,
-                TextColumn,
-                TimeElapsedColumn,
-                TimeRemainingColumn,
-            )
-            self._rich = Progress(TextColumn("{task.description}"), BarColumn(),
-                                  TaskProgressColumn(), TimeElapsedColumn(),
-                                  TextColumn("elapsed,"), TimeRemainingColumn(),
-                                  TextColumn("left"), console=console, transient=True)
-            self._rich.start()
-            self._task = self._rich.add_task(self.label, total=self.total)
-        return self
-
-    def __call__(self, done: int) -> None:
-        if self._rich is not None:
-            self._rich.update(self._task, completed=min(done, self.total))
-            return
-        import time
-        fraction = min(1.0, done / self.total)
-        elapsed = time.monotonic() - self._started
-        left = elapsed * (1.0 - fraction) / fraction if fraction > 0 else None
-        text = "%s %3d %%  %s elapsed, %s left" % (
-            self.label, int(100 * fraction), _clock(elapsed),
-            "?" if left is None else _clock(left))
-        if text != self._last_shown:
-            self._last_shown = text
-            self._width = max(self._width, len(text))
-            sys.stderr.write("\r" + text.ljust(self._width))
-            sys.stderr.flush()
-
-    def __exit__(self, *exc: object) -> None:
-        if self._rich is not None:
-            self._rich.stop()
-        elif self._last_shown:
-            sys.stderr.write("\r%s\r" % (" " * self._width))
-            sys.stderr.flush()
-
-
-def _clock(seconds: float) -> str:
-    """`0:07` or `1:02:03`: a duration as a clock shows it."""
-    whole = int(seconds + 0.5)
-    hours, rest = divmod(whole, 3600)
-    minutes, secs = divmod(rest, 60)
-    return "%d:%02d:%02d" % (hours, minutes, secs) if hours else "%d:%02d" % (minutes, secs)
-
-
 def _progress(args: argparse.Namespace, label: str, passes: int = 1
-              ) -> contextlib.AbstractContextManager[_ProgressBar | None]:
-    """A progress bar for a large file on a terminal, else a context yielding None."""
-    if getattr(args, "json", False) or args.quiet or not _is_terminal(sys.stderr):
-        return contextlib.nullcontext()
-    try:
-        size = os.path.getsize(args.file)
-    except OSError:
-        return contextlib.nullcontext()
-    if size < PROGRESS_MIN_BYTES:
-        return contextlib.nullcontext()
-    return _ProgressBar("%s %s" % (label, os.path.basename(args.file)), size * passes)
+              ) -> contextlib.AbstractContextManager[ProgressBar | None]:
+    """A progress bar for the command's file (`progress_for`), unless --json or -q."""
+    return progress_for(args.file, label, passes,
+                        wanted=not (getattr(args, "json", False) or args.quiet))
 
 
 def _write_json(doc: dict[str, Any]) -> None:
@@ -510,110 +390,15 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     elif args.quiet:
         sys.stdout.write("%.3f\n" % doc["total_s"])
     else:
-        console = _rich_console()
+        console = rich_console()
         if console is None:
             print_text(printable_doc(doc), sys.stdout, layers=args.layers,
                        verbose=args.verbose)
         else:
-            _print_rich(printable_doc(doc), console, layers=args.layers,
+            print_estimate_rich(printable_doc(doc), console, layers=args.layers,
                         verbose=args.verbose)
     _say_guessed(resolved)
     return EXIT_OK
-
-
-def _print_rich(doc: dict[str, Any], console: Any, layers: bool = False,
-                verbose: bool = False) -> None:
-    """The optional layer table, then the summary, feature table, untimed commands and
-    warnings, drawn with rich (the summary last, so hundreds of layers do not push it off
-    the screen)."""
-    from rich import box
-    from rich.panel import Panel
-    from rich.table import Table
-    from rich.text import Text
-
-    if layers and doc["layers"]:
-        longest = max(layer["duration_s"] for layer in doc["layers"])
-        table = Table(title="Time per layer", title_justify="left", box=box.SIMPLE_HEAD)
-        for title in ("Layer", "Line", "Starts at", "Takes"):
-            table.add_column(title, justify="right")
-        table.add_column("", no_wrap=True)
-        for number, layer in enumerate(doc["layers"], 1):
-            table.add_row(str(number), str(layer["line"]), format_duration(layer["t"]),
-                          format_duration(layer["duration_s"]),
-                          Text(_bar(layer["duration_s"], longest), style="magenta"))
-        console.print(table)
-    total = doc["total_s"]
-    grid = Table.grid(padding=(0, 2))
-    grid.add_column(style="bold")
-    grid.add_column()
-    approximate = approximate_text(doc)
-    parts = parts_rows(doc)
-    grid.add_row("Total" if parts else "Klipper time",
-                 Text.assemble((format_duration(total),
-                                "bold yellow" if approximate else "bold green"),
-                               ("  %.3f s" % total, "dim"),
-                               ("  until the part is done" if parts else "", ""),
-                               ("  " + approximate if approximate else "", "yellow")))
-    for label, text in parts[1:]:
-        grid.add_row(label, Text(text))
-    slicer = doc["slicer"]
-    if slicer["estimate_s"] is None:
-        grid.add_row("Slicer", Text.assemble(slicer_label(doc),
-                                             ("  no estimate in the file", "dim")))
-    else:
-        pct = abs(slicer["difference_pct"] or 0.0)
-        style = "green" if pct < DIFFERENCE_OK_PCT else "yellow" if pct < DIFFERENCE_BAD_PCT \
-            else "red"
-        grid.add_row("Slicer", Text.assemble(format_duration(slicer["estimate_s"]),
-                                             ("  " + slicer_label(doc), "dim")))
-        grid.add_row("Difference", Text(difference_text(doc), style=style))
-    if doc["first_layer_s"] is not None:
-        grid.add_row("First layer", format_duration(doc["first_layer_s"]))
-    grid.add_row("Layers", str(doc["layer_count"]))
-    grid.add_row("Filament", Text(filament_text(doc).replace("cm3", "cm³")))
-    grid.add_row("Limits from", Text(doc["limits_source"]))
-    console.print(Panel(grid, title=Text(os.path.basename(doc["file"]), style="bold"),
-                        title_align="left", subtitle="kestimator " + __version__,
-                        subtitle_align="right", expand=False, border_style="blue"))
-    rows = feature_rows(doc)
-    if rows:
-        table = Table(title="Time per feature", title_justify="left", box=box.SIMPLE_HEAD)
-        table.add_column("Feature")
-        table.add_column("Time", justify="right")
-        table.add_column("Share", justify="right")
-        table.add_column("", no_wrap=True)
-        for name, t, share in rows:
-            table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
-                          Text(_bar(share, 100.0), style="cyan"))
-        console.print(table)
-    preflight = summary_lines(doc["preflight"])
-    if preflight:
-        stops = any(f["kind"] == KIND_STOP for f in doc["preflight"])
-        console.print(Text(printable(preflight[0]),
-                           style="bold red" if stops else "bold yellow"))
-        for line in preflight[1:]:
-            console.print(Text(printable(line)))
-    summary = untimed_summary(doc)
-    if summary is not None:
-        if verbose:
-            for text in untimed_detail(doc):
-                console.print(Text("Not counted, " + text, style="dim"))
-        else:
-            console.print(Text(summary, style="dim"))
-    for warning in shown_warnings(doc, verbose):
-        console.print(Text.assemble(("warning: ", "bold yellow"), warning))
-    if doc["warnings_dropped"]:
-        console.print(Text("warning: %d more warnings not shown" % doc["warnings_dropped"],
-                           style="yellow"))
-
-
-def _bar(value: float, full: float) -> str:
-    """A bar of block characters, BAR_WIDTH long when value == full."""
-    if full <= 0:
-        return ""
-    eighths = int(round(BAR_WIDTH * 8 * min(max(value / full, 0.0), 1.0)))
-    whole, part = divmod(eighths, 8)
-    return "█" * whole + (" ▏▎▍▌▋▊▉"[part] if part else "")
 
 
 def cmd_inject(args: argparse.Namespace) -> int:
@@ -709,146 +494,6 @@ def _check_time_options(args: argparse.Namespace) -> None:
                                   % name.replace("_", "-"))
 
 
-def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]:
-    """The documented `limits --json` object (schema version JSON_SCHEMA_VERSION)."""
-    slicer = resolved.slicer
-    settings = resolved.slicer_settings
-    return {
-        "schema": JSON_SCHEMA_VERSION,
-        "kestimator": __version__,
-        "file": path,
-        "slicer": None if slicer is None else {"name": slicer.name, "version": slicer.version},
-        "machine": resolved.machine,
-        "profile": resolved.profile,
-        "summary": resolved.summary,
-        "limits": {
-            field: {"value": json_value(getattr(resolved.limits, field)),
-                    "source": resolved.sources[field],
-                    "overridden": [{"value": json_value(c.value), "source": c.source}
-                                   for c in resolved.shadowed.get(field, ())]}
-            for field in Limits.field_names()},
-        "slicer_settings": {"origin": settings.origin or None,
-                            "accelerations": dict(settings.accelerations),
-                            "notes": list(settings.notes)},
-        "warnings": list(resolved.warnings),
-    }
-
-
-# The unit of each limit, as `kestimator limits` shows it.
-LIMIT_UNITS = {
-    "max_velocity": "mm/s", "max_accel": "mm/s²", "square_corner_velocity": "mm/s",
-    "max_z_velocity": "mm/s", "max_z_accel": "mm/s²", "nozzle_diameter": "mm",
-    "filament_diameter": "mm", "max_extrude_cross_section": "mm²",
-    "max_extrude_only_velocity": "mm/s", "max_extrude_only_accel": "mm/s²",
-    "max_extrude_only_distance": "mm", "instantaneous_corner_velocity": "mm/s",
-    "arc_resolution": "mm", "retract_length": "mm", "retract_speed": "mm/s",
-    "unretract_extra_length": "mm", "unretract_speed": "mm/s", "max_accel_to_decel": "mm/s²",
-}
-SLICER_SOURCE_PREFIX = "slicer:"
-
-
-# What the printer config holds besides limits (its section names and macro texts): in
-# `limits --json`, not in the table, where a list of names would widen every row.
-TABLE_HIDDEN_LIMITS = frozenset(("configured_sections", "gcode_macros"))
-
-
-def limit_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
-    """(setting, value, unit, source, what the slicer assumed) for every limit; the last is
-    empty unless the file's slicer settings proposed another value that lost."""
-    rows = []
-    for field, entry in doc["limits"].items():
-        if field in TABLE_HIDDEN_LIMITS:
-            continue
-        assumed = [c["value"] for c in entry["overridden"]
-                   if str(c["source"]).startswith(SLICER_SOURCE_PREFIX)]
-        rows.append((field, _shown(entry["value"]), LIMIT_UNITS.get(field, ""),
-                     str(entry["source"]),
-                     "" if not assumed or assumed[0] == entry["value"] else _shown(assumed[0])))
-    return rows
-
-
-def _limits_head(doc: dict[str, Any]) -> list[tuple[str, str]]:
-    slicer = doc["slicer"]
-    head = [("file", doc["file"] or "(no file)")]
-    if slicer is not None:
-        head.append(("slicer", slicer["name"] + (" " + slicer["version"]
-                                                 if slicer["version"] else "")))
-    head.append(("machine", doc["machine"] or "none (no printer.cfg or Moonraker)"))
-    head.append(("profile", doc["profile"] or "none"))
-    return head
-
-
-def _limits_tail(doc: dict[str, Any]) -> list[str]:
-    lines = []
-    accelerations = doc["slicer_settings"]["accelerations"]
-    if accelerations:
-        lines.append("accelerations the file sets itself (mm/s², not limits): " + ", ".join(
-            "%s %g" % (key, value) for key, value in accelerations.items()))
-    lines.extend("note: " + note for note in doc["slicer_settings"]["notes"])
-    lines.extend("warning: " + w for w in doc["warnings"]
-                 if not w.startswith(GUESS_WARNING_START))  # that one is said on stderr
-    return lines
-
-
-def _print_limits(doc: dict[str, Any], out: Any) -> None:
-    """The limits as a table: setting, value and unit, where it came from, and what the
-    slicer assumed where its settings in the file say something else."""
-    lines = ["  %-8s: %s" % pair for pair in _limits_head(doc)]
-    rows = limit_rows(doc)
-    any_assumed = any(row[4] for row in rows)
-    titles = ("setting", "value", "unit", "source", "slicer assumed")
-    widths = [max(len(titles[i]), *(len(row[i]) for row in rows)) for i in range(3)]
-    header = "  %-*s  %*s %-*s  %s" % (widths[0], titles[0], widths[1], titles[1], widths[2],
-                                       titles[2], titles[3])
-    lines.append(header + ("  | " + titles[4] if any_assumed else ""))
-    for name, value, unit, source, assumed in rows:
-        line = "  %-*s  %*s %-*s  %s" % (widths[0], name, widths[1], value, widths[2], unit,
-                                         source)
-        lines.append(line + ("  | slicer: %s" % assumed if assumed else ""))
-    lines.extend("  " + text for text in _limits_tail(doc))
-    out.write("\n".join(lines) + "\n")
-
-
-def _print_limits_rich(doc: dict[str, Any], console: Any) -> None:
-    """The same table drawn with rich."""
-    from rich import box
-    from rich.table import Table
-    from rich.text import Text
-
-    for label, text in _limits_head(doc):
-        console.print(Text.assemble(("%-8s " % label, "bold"), text))
-    rows = limit_rows(doc)
-    table = Table(box=box.SIMPLE_HEAD)
-    table.add_column("Setting")
-    table.add_column("Value", justify="right")
-    table.add_column("Unit")
-    table.add_column("Source", overflow="fold")
-    assumed = any(row[4] for row in rows)
-    if assumed:
-        table.add_column("Slicer assumed", justify="right", style="yellow")
-    for row in rows:
-        table.add_row(*(Text(cell) for cell in (row if assumed else row[:4])))
-    console.print(table)
-    for text in _limits_tail(doc):
-        console.print(Text(text, style="yellow" if text.startswith("warning") else "dim"))
-
-
-def _shown(value: object) -> str:
-    """A limit's value for people: 300, 0.64, true, mainline."""
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, float):
-        return "%g" % value
-    if isinstance(value, list):
-        names = [str(item.get("name")) if isinstance(item, dict)
-                 else str(item[0]) if isinstance(item, list) else str(item)
-                 for item in value]
-        if len(names) > LIST_SHOWN:
-            return "%s, ... (%d)" % (", ".join(names[:LIST_SHOWN]), len(names))
-        return ", ".join(names) or "none"
-    return str(value)
-
-
 def cmd_limits(args: argparse.Namespace) -> int:
     """`kestimator limits`."""
     if args.file is not None:
@@ -863,11 +508,11 @@ def cmd_limits(args: argparse.Namespace) -> int:
         json.dump(doc, sys.stdout, indent=1)
         sys.stdout.write("\n")
     else:
-        console = _rich_console()
+        console = rich_console()
         if console is None:
-            _print_limits(printable_doc(doc), sys.stdout)
+            print_limits_text(printable_doc(doc), sys.stdout)
         else:
-            _print_limits_rich(printable_doc(doc), console)
+            print_limits_rich(printable_doc(doc), console)
         for name, entry in doc["macros"].items():
             sys.stdout.write(printable("  macro %s: %g s (%s)" % (
                 name, entry["seconds"], entry["source"])) + "\n")
@@ -1044,7 +689,7 @@ class _GuardedStdout:
             raise StdoutError(getattr(exc, "strerror", None) or str(exc)) from None
 
     def isatty(self) -> bool:
-        return self._stream is not None and _is_terminal(self._stream)
+        return self._stream is not None and is_terminal(self._stream)
 
     def __getattr__(self, name: str) -> Any:
         if self._stream is None:
@@ -1068,8 +713,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     Standard output failing (closed, full) is reported on stderr as one line; the exit
     status still says what happened to the file: 0 if inject wrote it, 1 otherwise.
+    Installs no signal handlers: the program's entry points do (`kestimator.entry`), so a
+    library caller keeps its own. A `Terminated` raised under them is 128 + the signal.
     """
-    cleanup_on_termination()
     real_stdout = sys.stdout
     sys.stdout = _GuardedStdout(real_stdout)  # type: ignore[assignment]
     written: list[str] = []

@@ -1,11 +1,12 @@
-"""What `kestimator estimate` and `inject` report: the `--json` document and its plain text.
+"""What `kestimator estimate` and `inject` report: the `--json` documents and plain text.
 
-Owns the documented JSON object (docs/CLI.md, schema JSON_SCHEMA_VERSION), the plain-text
-summary printed when stdout is not a terminal or `rich` is missing, and the few figures
-the summary adds to an `Estimate`: the slicer's own filament numbers read from its
-comments, and the filament's volume and weight where its diameter and density are known.
+Owns the documented JSON objects (docs/CLI.md, schema JSON_SCHEMA_VERSION: the estimate's
+and `limits --json`'s), the plain-text summary printed when stdout is not a terminal or
+`rich` is missing, and the few figures the summary adds to an `Estimate`: the slicer's own
+filament numbers read from its comments, and the filament's volume and weight where its
+diameter and density are known.
 Standard library only: the slicer hooks and the zipapp run it without `rich`. The `rich`
-rendering of the same document lives in `kestimator.cli`.
+rendering of the same document lives in `kestimator.cli_render`.
 """
 
 from __future__ import annotations
@@ -17,10 +18,11 @@ from collections.abc import Iterator
 from typing import Any, TextIO
 
 from kestimator import __version__
-from kestimator.config.resolve import GUESS_WARNING_START
+from kestimator.config.resolve import GUESS_WARNING_START, ResolvedLimits
 from kestimator.durations import format_duration
 from kestimator.estimate import KIND_UNKNOWN, Estimate
 from kestimator.interpreter import KIND_MACRO
+from kestimator.limits import Limits, json_value
 from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
 from kestimator.textsearch import search
@@ -246,6 +248,31 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "parts": parts,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
+    }
+
+
+def limits_to_json(resolved: ResolvedLimits, path: str | None) -> dict[str, Any]:
+    """The documented `limits --json` object (schema version JSON_SCHEMA_VERSION)."""
+    slicer = resolved.slicer
+    settings = resolved.slicer_settings
+    return {
+        "schema": JSON_SCHEMA_VERSION,
+        "kestimator": __version__,
+        "file": path,
+        "slicer": None if slicer is None else {"name": slicer.name, "version": slicer.version},
+        "machine": resolved.machine,
+        "profile": resolved.profile,
+        "summary": resolved.summary,
+        "limits": {
+            field: {"value": json_value(getattr(resolved.limits, field)),
+                    "source": resolved.sources[field],
+                    "overridden": [{"value": json_value(c.value), "source": c.source}
+                                   for c in resolved.shadowed.get(field, ())]}
+            for field in Limits.field_names()},
+        "slicer_settings": {"origin": settings.origin or None,
+                            "accelerations": dict(settings.accelerations),
+                            "notes": list(settings.notes)},
+        "warnings": list(resolved.warnings),
     }
 
 

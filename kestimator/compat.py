@@ -21,6 +21,9 @@ moonraker/components/analysis.py, 0.11) has with the program it runs from
 - ``[--config_file FILE] --config_moonraker_url URL [--config_moonraker_api_key KEY] dump-config``
   prints a klipper_estimator config (JSON) from the limits resolved from Moonraker.
 
+What it runs of the core it takes from `kestimator.api`, as every front end outside the
+command line does; only the output helpers it shares with that (`kestimator.cli_output`),
+klipper_estimator's config format and `kestimator.files.Terminated` come from their modules.
 Limits come from `kestimator.config.resolve.resolve_limits`: the config file is a
 klipper_estimator config source, a URL the machine, and kestimator's profile (if any) as
 everywhere else. Exit codes: 0 success, 1 the input could not be processed, 2 a wrong
@@ -38,16 +41,23 @@ from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
 
 from kestimator import __version__
+from kestimator.api import (
+    NO_FEATURE,
+    Estimate,
+    KestimatorError,
+    LimitRequest,
+    Move,
+    ResolvedLimits,
+    check_gcode_file,
+    estimate_file,
+    estimate_lines,
+    inject_file,
+    macro_times_for,
+    resolve_limits,
+)
 from kestimator.cli_output import parts_to_json, printable
 from kestimator.config.klipper_estimator import dump_config
-from kestimator.config.resolve import LimitRequest, ResolvedLimits, resolve_limits
-from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_file, estimate_lines
-from kestimator.files import Terminated, cleanup_on_termination
-from kestimator.learn import macro_times_for
-from kestimator.rewrite import check_gcode_file, inject_file
-from kestimator.segments import NO_FEATURE
-from kestimator.toolhead import Move
+from kestimator.files import Terminated
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -255,8 +265,11 @@ def cmd_dump_config(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of `kestimator-compat`; returns the exit status."""
-    cleanup_on_termination()
+    """Entry point of `kestimator-compat`; returns the exit status.
+
+    Installs no signal handlers: the program's entry points do (`kestimator.entry`), so a
+    library caller keeps its own. A `Terminated` raised under them is 128 + the signal.
+    """
     parser = _build_parser()
     args = parser.parse_args(argv)
     out, err = sys.stdout, sys.stderr
@@ -292,4 +305,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from kestimator.entry import run_program
+
+    sys.exit(run_program(main))

@@ -1,17 +1,32 @@
-"""The console scripts' entry points (`kestimator`, `kestimator-compat`, `python -m kestimator`).
+"""The console scripts' entry points (`kestimator`, `kestimator-compat`, `python -m kestimator`,
+`python -m kestimator.compat`): what only a program, never a library caller, may do.
 
-Owns one thing: Ctrl-C while the program's modules are still loading. pip's generated script
-imports its target before calling it, so a KeyboardInterrupt during `import kestimator.cli`
-would print a traceback; these functions import the real `main` inside a guard and print one
-line instead. This module imports nothing but `sys`.
+Owns two things. Ctrl-C while the program's modules are still loading: pip's generated
+script imports its target before calling it, so a KeyboardInterrupt during `import
+kestimator.cli` would print a traceback; these functions import the real `main` inside a
+guard and print one line instead. And the process's signal handlers: `run_program` turns
+SIGTERM and SIGHUP into `kestimator.files.Terminated` while `main` runs (a stopped run
+removes its temporary file and exits 128 + the signal number), then puts back what was
+there. `kestimator.cli.main` and `kestimator.compat.main` install none themselves, so a
+library caller keeps its own. This module imports nothing at load but `sys` and `typing`.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 
 EXIT_INTERRUPTED = 1
 """As `kestimator.cli.main` and `kestimator.compat.main` exit on Ctrl-C."""
+
+
+def run_program(main: Callable[[], int]) -> int:
+    """`main()` as the program: SIGTERM/SIGHUP clean up and exit 128 + signal while it runs
+    (`kestimator.files.terminating_cleanly`); the handlers before are restored after."""
+    from kestimator.files import terminating_cleanly
+
+    with terminating_cleanly():
+        return main()
 
 
 def kestimator() -> int:
@@ -21,7 +36,7 @@ def kestimator() -> int:
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
         return EXIT_INTERRUPTED
-    return main()
+    return run_program(main)
 
 
 def kestimator_compat() -> int:
@@ -31,4 +46,4 @@ def kestimator_compat() -> int:
     except KeyboardInterrupt:
         sys.stderr.write("kestimator-compat: interrupted\n")
         return EXIT_INTERRUPTED
-    return main()
+    return run_program(main)

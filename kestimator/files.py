@@ -1,26 +1,59 @@
-"""Opening a user's file for reading without hanging or reading without end.
+"""Reading and replacing a user's files safely: the one place kestimator opens or writes them.
 
 Owns the rule for every file kestimator reads on the user's behalf (G-code, printer.cfg and
 its includes, profiles, klipper_estimator configs): it must be a regular file. A FIFO is
 opened without blocking (open() would wait for a writer forever) and refused; a device such
 as /dev/zero or /dev/urandom, which never ends, is refused; config files are read with a size
 cap, so a huge one is an error, not all of memory.
+
+Also owns every write of a user's file (`inject`'s output, `report`'s page, the file
+`kestimator-compat post-process` rewrites; the Cura plugin writes none itself, Cura saves):
+`output_target` resolves where an output really goes (a symlink is written through, its
+target replaced and the link kept; a character device or FIFO is written straight through;
+anything else not a regular file is refused, and so is a file the user may not write);
+`write_atomically` writes the content through a callable into a temporary file beside the
+destination, fsyncs it and swaps it in with one rename, keeping the replaced file's owner,
+group, mode and extended attributes (`keep_attributes`). On any error the destination is
+untouched and the temporary file is removed; a hard link's other names keep the old content
+(docs/CLI.md). `exclusive` makes two in-place rewrites of one file take turns. Temporary
+files are created with SIGTERM/SIGHUP held back (`make_temp_file`), and
+`cleanup_on_termination` (installed by the console entry points only, `kestimator.entry`)
+turns those signals into `Terminated`, so a stopped run leaves no temporary file behind.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import errno
 import json
 import os
 import stat
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
+
+try:
+    import fcntl
+except ImportError:  # Windows: no flock; the compare-before-replace check still holds
+    fcntl = None  # type: ignore[assignment]
 
 from kestimator.errors import KestimatorError
 
 # No printer.cfg, profile or klipper_estimator config is anywhere near this big.
 CONFIG_MAX_BYTES = 16 * 1024 * 1024
 NOT_REGULAR = ("is not a regular file (a device, FIFO or socket): give the %s as a file")
+# Temporary files are `.<name>.<random>.kestimator-tmp` beside the output, the name cut to fit
+# the directory's name limit (mkstemp's random part is 8 characters).
+TEMP_SUFFIX = ".kestimator-tmp"
+TEMP_RANDOM_CHARS = 8
+DEFAULT_NAME_MAX = 255
+# Extended attributes that must survive a rewrite (others, like security.selinux, are the
+# system's to set and are kept where the kernel lets us).
+KEPT_XATTR_NAMESPACES = ("user.", "system.posix_acl_")
+
+Write = Callable[[bytes], object]
+"""Where content goes: `out.write` of the temporary file (or of the device)."""
 
 
 def open_regular(path: str | os.PathLike[str], what: str = "G-code") -> BinaryIO:
@@ -75,21 +108,40 @@ def _terminate(signum: int, _frame: object) -> None:
     raise Terminated(signum)
 
 
-def cleanup_on_termination() -> None:
-    """Turn SIGTERM and SIGHUP into `Terminated` (the command lines call this first), so a
-    run stopped by a service manager or a closed terminal removes its temporary file.
+def cleanup_on_termination() -> dict[int, Any]:
+    """Turn SIGTERM and SIGHUP into `Terminated`, so a run stopped by a service manager or a
+    closed terminal removes its temporary file; returns the handlers they had before.
 
-    The exit status for them is 128 + the signal number, as if killed.
+    For programs only: the console entry points install this (`kestimator.entry`), never
+    `kestimator.cli.main` or `kestimator.compat.main`, which a library caller (a test, the
+    Cura plugin) runs in its own process. The exit status for them is 128 + the signal
+    number, as if killed. Outside the main thread nothing is installed.
     """
     import signal
 
+    previous: dict[int, Any] = {}
     for name in ("SIGTERM", "SIGHUP"):
         signum = getattr(signal, name, None)
         if signum is not None:
             try:
-                signal.signal(signum, _terminate)
+                previous[signum] = signal.signal(signum, _terminate)
             except (ValueError, OSError):  # not the main thread
                 pass
+    return previous
+
+
+@contextlib.contextmanager
+def terminating_cleanly() -> Iterator[None]:
+    """`cleanup_on_termination` while the block runs, then the handlers that were there."""
+    import signal
+
+    previous = cleanup_on_termination()
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            with contextlib.suppress(ValueError, OSError, TypeError):
+                signal.signal(signum, handler)
 
 
 def make_temp_file(prefix: str, suffix: str, directory: str) -> tuple[int, str]:
@@ -139,3 +191,266 @@ def write_json_privately(path: Path, document: object) -> None:
         with contextlib.suppress(OSError):
             os.unlink(temp)
         raise
+
+
+@dataclasses.dataclass(frozen=True)
+class OutputTarget:
+    """Where an output really goes: symlinks resolved, what is there now, and how to write.
+
+    `stream` is True for a character device or a FIFO: written straight through, never
+    replaced. Otherwise `path` is a regular file (or nothing yet) replaced atomically.
+    """
+
+    path: str
+    exists: bool
+    stream: bool
+    st: os.stat_result | None
+
+
+def output_target(dest: str) -> OutputTarget:
+    """Resolve `dest` for writing; refuse what may not or cannot be replaced (one line).
+
+    A symlink is followed (the link stays, its target gets the new content); a character
+    device or FIFO is written through; anything else that is not a regular file is refused,
+    and so is a regular file the user may not write (even in a directory they may write).
+    """
+    real = os.path.realpath(dest)
+    try:
+        st = os.stat(real)
+    except FileNotFoundError:
+        return OutputTarget(real, False, False, None)
+    except OSError as exc:
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              dest) from None
+    if stat.S_ISCHR(st.st_mode) or stat.S_ISFIFO(st.st_mode):
+        return OutputTarget(real, True, True, st)
+    if not stat.S_ISREG(st.st_mode):
+        raise KestimatorError("is not a regular file: it is never replaced", dest)
+    if not may_write(real, st):
+        raise KestimatorError("you may not write this file (its permissions say so): it "
+                              "was left as it is", dest)
+    return OutputTarget(real, True, False, st)
+
+
+def may_write(path: str, st: os.stat_result) -> bool:
+    """Whether the user may change the file: its write permission, not the directory's.
+
+    Root may write anything, so for root a file with no write bit at all counts as one the
+    user meant to keep (as `rm -i`/editors warn); others ask the kernel (ACLs included).
+    """
+    if hasattr(os, "geteuid") and os.geteuid() == 0:
+        return bool(st.st_mode & 0o222)
+    effective = os.access in os.supports_effective_ids
+    return os.access(path, os.W_OK, effective_ids=effective)
+
+
+def same_file(a: str, b: str) -> bool:
+    """True if `a` and `b` name one file (False if either cannot be looked at)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+@contextlib.contextmanager
+def exclusive(path: str) -> Iterator[None]:
+    """Hold an exclusive flock on the file `path` names while it is rewritten in place.
+
+    Two in-place runs on one file take turns: the second waits, then reads the first's
+    output (inject is idempotent, so the bytes come out the same). The lock belongs to
+    the inode, which os.replace swaps: after the wait, a path that names another file
+    now is locked afresh. Writers that take no lock (a slicer still saving) are caught by
+    the size/mtime/inode comparison just before the replace (`write_atomically`'s
+    `before_replace`).
+    """
+    locked = None
+    while fcntl is not None:
+        try:
+            f = open(path, "rb")
+        except OSError as exc:
+            raise KestimatorError("cannot read file: %s" % (exc.strerror or exc),
+                                  path) from None
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        except OSError:
+            f.close()  # no flock on this filesystem (some network mounts)
+            break
+        try:
+            same = os.stat(path).st_ino == os.fstat(f.fileno()).st_ino
+        except OSError:
+            same = False
+        if same:
+            locked = f
+            break
+        f.close()
+    try:
+        yield
+    finally:
+        if locked is not None:
+            locked.close()
+
+
+def temp_name_prefix(dest: str) -> str:
+    """``.<name>.`` for a temporary file beside `dest`, cut so that the whole temporary
+    name (random part and suffix added) fits the directory's name limit."""
+    directory = os.path.dirname(os.path.abspath(dest))
+    try:
+        name_max = os.pathconf(directory, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = DEFAULT_NAME_MAX
+    name = os.fsencode(os.path.basename(dest))
+    room = max(1, name_max - len(TEMP_SUFFIX) - TEMP_RANDOM_CHARS - 2)
+    return "." + os.fsdecode(name[:room]) + "."
+
+
+def write_atomically(target: OutputTarget, fill: Callable[[Write], object], *,
+                     shown: str | None = None, new_mode: int | None = None,
+                     before_sync: Callable[[str], object] | None = None,
+                     before_replace: Callable[[], object] | None = None) -> None:
+    """Write what `fill(write)` writes to `target`, never partially.
+
+    A character device or FIFO (`target.stream`) is written straight through (a FIFO
+    without a reader is refused at once instead of blocking). Otherwise the content goes
+    into a temporary file beside the destination; `before_sync(temp_name)` may add to it
+    once `fill` is done; it is fsynced; `before_replace()` may refuse (raise) at the last
+    moment; a destination that exists then keeps its owner, group, mode and extended
+    attributes (a new one gets `new_mode`, by default 0666 less the umask); one rename
+    swaps it in and the directory is synced. On any failure the temporary file is removed
+    and the destination left as it was. Errors are one-line `KestimatorError`s; those about
+    opening or writing name `shown` (default: the resolved path), those about the file
+    found there name the resolved path.
+    """
+    dest = target.path
+    name = dest if shown is None else shown
+    if target.stream:
+        _write_stream(dest, fill, name)
+        return
+    dest_dir = os.path.dirname(dest)
+    try:
+        fd, tmp = make_temp_file(temp_name_prefix(dest), TEMP_SUFFIX, dest_dir)
+    except OSError as exc:
+        raise KestimatorError("cannot write next to the output: %s"
+                              % (exc.strerror or exc), name) from None
+    try:
+        with os.fdopen(fd, "wb") as out:
+            fill(out.write)
+            out.flush()
+            if before_sync is not None:
+                before_sync(tmp)
+            os.fsync(out.fileno())
+        if before_replace is not None:
+            before_replace()
+        try:
+            now_dest = os.stat(dest)
+        except FileNotFoundError:
+            now_dest = None
+        if now_dest is not None:
+            if not stat.S_ISREG(now_dest.st_mode):
+                raise KestimatorError("is not a regular file: it is never replaced", dest)
+            keep_attributes(dest, now_dest, tmp)
+        else:
+            os.chmod(tmp, 0o666 & ~_umask() if new_mode is None else new_mode)
+        os.replace(tmp, dest)
+    except KestimatorError:
+        _remove_quietly(tmp)
+        raise
+    except OSError as exc:
+        _remove_quietly(tmp)
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              name) from None
+    except BaseException:
+        _remove_quietly(tmp)
+        raise
+    _fsync_dir(dest_dir)
+
+
+def write_bytes_atomically(dest: str, data: bytes) -> None:
+    """Write `data` to `dest` as `inject` writes its output (`output_target`'s rules, a
+    temporary file synced and renamed, attributes kept): never a partial file."""
+    if not dest:
+        raise KestimatorError("the output name is empty")
+    write_atomically(output_target(dest), lambda write: write(data), shown=dest)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _write_stream(dest: str, fill: Callable[[Write], object], shown: str) -> None:
+    """Write a character device or FIFO straight through; a FIFO without a reader is
+    refused at once instead of blocking."""
+    try:
+        fd = os.open(dest, os.O_WRONLY | getattr(os, "O_NONBLOCK", 0))
+    except OSError as exc:
+        if exc.errno == errno.ENXIO:
+            raise KestimatorError("the FIFO has no reader: nothing was written",
+                                  shown) from None
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              shown) from None
+    try:
+        if hasattr(os, "set_blocking"):
+            os.set_blocking(fd, True)
+        with os.fdopen(fd, "wb") as out:
+            fill(out.write)
+    except OSError as exc:
+        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                              shown) from None
+
+
+def keep_attributes(dest: str, st: os.stat_result, tmp: str) -> None:
+    """Give `tmp` the owner, group, mode and extended attributes of `dest` (its `st`).
+
+    Refuses (one line) when the owner or group cannot be kept: replacing the file would
+    hand it to the user running us, and its owner could lose access to it.
+    """
+    tmp_st = os.stat(tmp)
+    if (tmp_st.st_uid, tmp_st.st_gid) != (st.st_uid, st.st_gid):
+        try:
+            os.chown(tmp, st.st_uid, st.st_gid)
+        except OSError:
+            raise KestimatorError(
+                "cannot keep the file's owner and group (uid %d, gid %d) in a new copy: it "
+                "was left as it is" % (st.st_uid, st.st_gid), dest) from None
+    # After chown, which clears set-id bits.
+    os.chmod(tmp, stat.S_IMODE(st.st_mode))
+    _copy_xattrs(dest, tmp)
+
+
+def _copy_xattrs(dest: str, tmp: str) -> None:
+    if not hasattr(os, "listxattr"):
+        return
+    try:
+        names = os.listxattr(dest)
+    except OSError:
+        return
+    for name in names:
+        try:
+            os.setxattr(tmp, name, os.getxattr(dest, name))
+        except OSError as exc:
+            if name.startswith(KEPT_XATTR_NAMESPACES):
+                raise KestimatorError("cannot keep the extended attribute %s: %s; the file "
+                                      "was left as it is" % (name, exc.strerror or exc),
+                                      dest) from None
+
+
+def _remove_quietly(path: str) -> None:
+    try:
+        os.unlink(path)
+    except FileNotFoundError:
+        pass
+
+
+def _fsync_dir(path: str) -> None:
+    """Make the rename durable where the platform allows it (not on Windows)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

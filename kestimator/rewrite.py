@@ -1,8 +1,9 @@
 """`inject`: write Klipper's times back into a G-code file without losing a byte.
 
-Owns the second streaming pass and the atomic file swap. Pass 1 (`kestimator.estimate`)
-gives the total, progress samples and exact times at the lines that need them; pass 2
-copies every line byte for byte except the ones kestimator owns:
+Owns the second streaming pass (the G-code rewriting); the file it writes is replaced by
+`kestimator.files` (`write_atomically`), as every file kestimator writes is. Pass 1
+(`kestimator.estimate`) gives the total, progress samples and exact times at the lines that
+need them; pass 2 copies every line byte for byte except the ones kestimator owns:
 
 - every `M73` line is dropped and Klipper-true `M73 P<percent> R<minutes>` lines are
   written instead: `M73 P0 R<total>` right before the first command, one after every layer
@@ -20,23 +21,22 @@ copies every line byte for byte except the ones kestimator owns:
 Inserted lines take the line ending of the line they stand next to. A second run drops
 its own lines and writes them again, so it is byte-identical. The output goes to a
 temporary file in the destination's directory, is fsynced, and replaces the destination
-atomically; on any error the destination is untouched and the temporary file is removed.
-Two in-place runs on one file take turns under an exclusive flock on it, and a file that
-changed under us (size, mtime or inode) is never replaced (see `_exclusive`).
+atomically; on any error the destination is untouched and the temporary file is removed
+(`kestimator.files.write_atomically`). Two in-place runs on one file take turns under an
+exclusive flock on it (`kestimator.files.exclusive`), and a file that changed under us
+(size, mtime or inode) is never replaced (`_write_output`).
 
 Also owns the marker's exact format and its parsing (`marker_line`, `parse_marker`): only a
-line in that format is ours. The output is resolved by `output_target`: a symlink is
-written through (its target replaced, the link kept), a character device or FIFO written
-straight through, anything else not a regular file refused, and so is a file the user may
-not write; the replaced file keeps its owner, group, mode and extended attributes
-(`keep_attributes`). A hard link's other names keep the old content (docs/CLI.md).
+line in that format is ours. Where the output goes (a symlink written through, a device or
+FIFO written straight through, anything else not a regular file refused) and which
+attributes the replaced file keeps are `kestimator.files`' rules (`output_target`,
+`keep_attributes`). A hard link's other names keep the old content (docs/CLI.md).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
-import errno
 import heapq
 import math
 import os
@@ -44,13 +44,8 @@ import re
 import stat
 from array import array
 from bisect import bisect_right
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from typing import BinaryIO
-
-try:
-    import fcntl
-except ImportError:  # Windows: no flock; the compare-before-replace check still holds
-    fcntl = None  # type: ignore[assignment]
 
 from kestimator import __version__
 from kestimator.durations import format_duration
@@ -63,7 +58,15 @@ from kestimator.estimate import (
     iter_lines,
 )
 from kestimator.filekind import SNIFF_BYTES, what_is_not_gcode
-from kestimator.files import make_temp_file, open_regular
+from kestimator.files import (
+    OutputTarget,
+    Write,
+    exclusive,
+    open_regular,
+    output_target,
+    same_file,
+    write_atomically,
+)
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
@@ -92,14 +95,6 @@ BGCODE_MAGIC = b"GCDE"
 SECONDS_PER_MINUTE = 60.0
 PERCENT = 100.0
 _NO_LINE_LIMIT = 1 << 62
-# Temporary files are `.<name>.<random>.kestimator-tmp` beside the output, the name cut to fit
-# the directory's name limit (mkstemp's random part is 8 characters).
-TEMP_SUFFIX = ".kestimator-tmp"
-TEMP_RANDOM_CHARS = 8
-DEFAULT_NAME_MAX = 255
-# Extended attributes that must survive a rewrite (others, like security.selinux, are the
-# system's to set and are kept where the kernel lets us).
-KEPT_XATTR_NAMESPACES = ("user.", "system.posix_acl_")
 # Pass 2 reads the file in blocks of this size. 64 KiB: the same CPU as 1 MiB blocks under
 # CPython and PyPy; under PyPy, whose GC frees large objects late, peak RSS of pass 2 on
 # the 40 MB file 150 MB instead of 201 MB.
@@ -738,8 +733,8 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
         raise KestimatorError("the output name is empty", src)
     check_gcode_file(src)
     target = output_target(dest)
-    in_place = target.exists and _same_file(src, target.path)
-    with _exclusive(src) if in_place else contextlib.nullcontext():
+    in_place = target.exists and same_file(src, target.path)
+    with exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
                                                 heat_time, progress, macros, layer_info)
@@ -749,293 +744,30 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
                         slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
 
 
-@dataclasses.dataclass(frozen=True)
-class OutputTarget:
-    """Where an output really goes: symlinks resolved, what is there now, and how to write.
-
-    `stream` is True for a character device or a FIFO: written straight through, never
-    replaced. Otherwise `path` is a regular file (or nothing yet) replaced atomically.
-    """
-
-    path: str
-    exists: bool
-    stream: bool
-    st: os.stat_result | None
-
-
-def output_target(dest: str) -> OutputTarget:
-    """Resolve `dest` for writing; refuse what may not or cannot be replaced (one line).
-
-    A symlink is followed (the link stays, its target gets the new content); a character
-    device or FIFO is written through; anything else that is not a regular file is refused,
-    and so is a regular file the user may not write (even in a directory they may write).
-    """
-    real = os.path.realpath(dest)
-    try:
-        st = os.stat(real)
-    except FileNotFoundError:
-        return OutputTarget(real, False, False, None)
-    except OSError as exc:
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              dest) from None
-    if stat.S_ISCHR(st.st_mode) or stat.S_ISFIFO(st.st_mode):
-        return OutputTarget(real, True, True, st)
-    if not stat.S_ISREG(st.st_mode):
-        raise KestimatorError("is not a regular file: it is never replaced", dest)
-    if not may_write(real, st):
-        raise KestimatorError("you may not write this file (its permissions say so): it "
-                              "was left as it is", dest)
-    return OutputTarget(real, True, False, st)
-
-
-def may_write(path: str, st: os.stat_result) -> bool:
-    """Whether the user may change the file: its write permission, not the directory's.
-
-    Root may write anything, so for root a file with no write bit at all counts as one the
-    user meant to keep (as `rm -i`/editors warn); others ask the kernel (ACLs included).
-    """
-    if hasattr(os, "geteuid") and os.geteuid() == 0:
-        return bool(st.st_mode & 0o222)
-    effective = os.access in os.supports_effective_ids
-    return os.access(path, os.W_OK, effective_ids=effective)
-
-
-def _same_file(a: str, b: str) -> bool:
-    try:
-        return os.path.samefile(a, b)
-    except OSError:
-        return False
-
-
-@contextlib.contextmanager
-def _exclusive(path: str) -> Iterator[None]:
-    """Hold an exclusive flock on the file `path` names while it is rewritten in place.
-
-    Two in-place runs on one file take turns: the second waits, then reads the first's
-    output (inject is idempotent, so the bytes come out the same). The lock belongs to
-    the inode, which os.replace swaps: after the wait, a path that names another file
-    now is locked afresh. Writers that take no lock (a slicer still saving) are caught by
-    the size/mtime/inode comparison just before the replace.
-    """
-    locked = None
-    while fcntl is not None:
-        try:
-            f = open(path, "rb")
-        except OSError as exc:
-            raise KestimatorError("cannot read file: %s" % (exc.strerror or exc),
-                                  path) from None
-        try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
-        except OSError:
-            f.close()  # no flock on this filesystem (some network mounts)
-            break
-        try:
-            same = os.stat(path).st_ino == os.fstat(f.fileno()).st_ino
-        except OSError:
-            same = False
-        if same:
-            locked = f
-            break
-        f.close()
-    try:
-        yield
-    finally:
-        if locked is not None:
-            locked.close()
-
-
-def temp_name_prefix(dest: str) -> str:
-    """``.<name>.`` for a temporary file beside `dest`, cut so that the whole temporary
-    name (random part and suffix added) fits the directory's name limit."""
-    directory = os.path.dirname(os.path.abspath(dest))
-    try:
-        name_max = os.pathconf(directory, "PC_NAME_MAX")
-    except (OSError, ValueError, AttributeError):
-        name_max = DEFAULT_NAME_MAX
-    name = os.fsencode(os.path.basename(dest))
-    room = max(1, name_max - len(TEMP_SUFFIX) - TEMP_RANDOM_CHARS - 2)
-    return "." + os.fsdecode(name[:room]) + "."
-
-
 def _write_output(src: str, target: OutputTarget, rewriter: Rewriter,
                   before: os.stat_result, in_place: bool,
                   progress: ProgressCallback | None = None,
                   finish: Callable[[str], object] | None = None) -> None:
+    """Pass 2 from `src` into `target` through `kestimator.files.write_atomically`; an
+    in-place rewrite is refused at the last moment if the source changed meanwhile (size,
+    mtime or inode: a writer that takes no lock, such as a slicer still saving)."""
     copied = None
     if progress is not None:
         def copied(done: int) -> None:
             progress(before.st_size + done)
-    if target.stream:
-        _write_stream(src, target.path, rewriter, copied)
-        return
-    dest = target.path
-    dest_dir = os.path.dirname(dest)
-    try:
-        fd, tmp = make_temp_file(temp_name_prefix(dest), TEMP_SUFFIX, dest_dir)
-    except OSError as exc:
-        raise KestimatorError("cannot write next to the output: %s"
-                              % (exc.strerror or exc), dest) from None
-    try:
-        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
-            rewriter.copy_stream(inp, out.write, copied)
-            out.flush()
-            if finish is not None:
-                finish(tmp)
-            os.fsync(out.fileno())
-        if in_place:
-            now = os.stat(src)
-            if (now.st_size, now.st_mtime_ns, now.st_ino) != (
-                    before.st_size, before.st_mtime_ns, before.st_ino):
-                raise KestimatorError("the file changed while it was being processed; "
-                                      "it was left as it is now", src)
-        try:
-            now_dest = os.stat(dest)
-        except FileNotFoundError:
-            now_dest = None
-        if now_dest is not None:
-            if not stat.S_ISREG(now_dest.st_mode):
-                raise KestimatorError("is not a regular file: it is never replaced", dest)
-            keep_attributes(dest, now_dest, tmp)
-        else:
-            # A new file: the source's mode, and writable by its owner (who created it).
-            os.chmod(tmp, stat.S_IMODE(before.st_mode) | stat.S_IWUSR)
-        os.replace(tmp, dest)
-    except KestimatorError:
-        _remove_quietly(tmp)
-        raise
-    except OSError as exc:
-        _remove_quietly(tmp)
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              dest) from None
-    except BaseException:
-        _remove_quietly(tmp)
-        raise
-    _fsync_dir(dest_dir)
 
+    def fill(write: Write) -> None:
+        with open(src, "rb") as inp:
+            rewriter.copy_stream(inp, write, copied)
 
-def write_bytes_atomically(dest: str, data: bytes) -> None:
-    """Write `data` to `dest` as `inject` writes its output (`output_target`'s rules, a
-    temporary file synced and renamed, attributes kept): never a partial file."""
-    if not dest:
-        raise KestimatorError("the output name is empty")
-    target = output_target(dest)
-    if target.stream:
-        try:
-            with open(target.path, "wb") as out:
-                out.write(data)
-        except OSError as exc:
-            raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                                  dest) from None
-        return
-    path = target.path
-    directory = os.path.dirname(path)
-    try:
-        fd, tmp = make_temp_file(temp_name_prefix(path), TEMP_SUFFIX, directory)
-    except OSError as exc:
-        raise KestimatorError("cannot write next to the output: %s"
-                              % (exc.strerror or exc), dest) from None
-    try:
-        with os.fdopen(fd, "wb") as out:
-            out.write(data)
-            out.flush()
-            os.fsync(out.fileno())
-        if target.st is not None:
-            keep_attributes(path, target.st, tmp)
-        else:
-            os.chmod(tmp, 0o666 & ~_umask())
-        os.replace(tmp, path)
-    except KestimatorError:
-        _remove_quietly(tmp)
-        raise
-    except OSError as exc:
-        _remove_quietly(tmp)
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              dest) from None
-    except BaseException:
-        _remove_quietly(tmp)
-        raise
-    _fsync_dir(directory)
+    def unchanged() -> None:
+        now = os.stat(src)
+        if (now.st_size, now.st_mtime_ns, now.st_ino) != (
+                before.st_size, before.st_mtime_ns, before.st_ino):
+            raise KestimatorError("the file changed while it was being processed; "
+                                  "it was left as it is now", src)
 
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def _write_stream(src: str, dest: str, rewriter: Rewriter,
-                  copied: Callable[[int], None] | None) -> None:
-    """Write a character device or FIFO straight through; a FIFO without a reader is
-    refused at once instead of blocking."""
-    try:
-        fd = os.open(dest, os.O_WRONLY | getattr(os, "O_NONBLOCK", 0))
-    except OSError as exc:
-        if exc.errno == errno.ENXIO:
-            raise KestimatorError("the FIFO has no reader: nothing was written", dest) from None
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              dest) from None
-    try:
-        if hasattr(os, "set_blocking"):
-            os.set_blocking(fd, True)
-        with os.fdopen(fd, "wb") as out, open(src, "rb") as inp:
-            rewriter.copy_stream(inp, out.write, copied)
-    except OSError as exc:
-        raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
-                              dest) from None
-
-
-def keep_attributes(dest: str, st: os.stat_result, tmp: str) -> None:
-    """Give `tmp` the owner, group, mode and extended attributes of `dest` (its `st`).
-
-    Refuses (one line) when the owner or group cannot be kept: replacing the file would
-    hand it to the user running us, and its owner could lose access to it.
-    """
-    tmp_st = os.stat(tmp)
-    if (tmp_st.st_uid, tmp_st.st_gid) != (st.st_uid, st.st_gid):
-        try:
-            os.chown(tmp, st.st_uid, st.st_gid)
-        except OSError:
-            raise KestimatorError(
-                "cannot keep the file's owner and group (uid %d, gid %d) in a new copy: it "
-                "was left as it is" % (st.st_uid, st.st_gid), dest) from None
-    # After chown, which clears set-id bits.
-    os.chmod(tmp, stat.S_IMODE(st.st_mode))
-    _copy_xattrs(dest, tmp)
-
-
-def _copy_xattrs(dest: str, tmp: str) -> None:
-    if not hasattr(os, "listxattr"):
-        return
-    try:
-        names = os.listxattr(dest)
-    except OSError:
-        return
-    for name in names:
-        try:
-            os.setxattr(tmp, name, os.getxattr(dest, name))
-        except OSError as exc:
-            if name.startswith(KEPT_XATTR_NAMESPACES):
-                raise KestimatorError("cannot keep the extended attribute %s: %s; the file "
-                                      "was left as it is" % (name, exc.strerror or exc),
-                                      dest) from None
-
-
-def _remove_quietly(path: str) -> None:
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass
-
-
-def _fsync_dir(path: str) -> None:
-    """Make the rename durable where the platform allows it (not on Windows)."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
+    write_atomically(target, fill,
+                     # A new file: the source's mode, and writable by its owner (who made it).
+                     new_mode=stat.S_IMODE(before.st_mode) | stat.S_IWUSR,
+                     before_sync=finish, before_replace=unchanged if in_place else None)

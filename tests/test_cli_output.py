@@ -13,7 +13,7 @@ from typing import Any
 
 import pytest
 
-from kestimator import __version__, cli
+from kestimator import __version__, cli, cli_render
 from kestimator.cli_output import read_slicer_filament
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
@@ -295,12 +295,12 @@ def test_a_bug_is_one_line_exit_3_and_a_traceback_only_with_debug(
 def test_progress_bar_on_a_terminal_for_large_files_only(
         monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str],
         corpus_root: Path) -> None:
-    monkeypatch.setattr(cli, "_is_terminal", lambda stream: stream is sys.stderr)
+    monkeypatch.setattr(cli_render, "is_terminal", lambda stream: stream is sys.stderr)
     monkeypatch.setenv(cli.RICH_ENV, "0")
     argv = ["estimate", str(NUT), "--printer-cfg", str(CORPUS_CFG)]
     assert cli.main(argv) == 0
     assert capsys.readouterr().err == ""  # 139 kB is not large
-    monkeypatch.setattr(cli, "PROGRESS_MIN_BYTES", 1000)
+    monkeypatch.setattr(cli_render, "PROGRESS_MIN_BYTES", 1000)
     assert cli.main(argv) == 0
     err = capsys.readouterr().err
     assert "\rtiming ps25_nut_accelA_small.gcode 100 %" in err and err.endswith("\r")

@@ -393,3 +393,27 @@ def test_a_profile_with_a_bad_byte_or_deep_nesting_is_one_line_exit_1(
                str(source))
     assert run.returncode == 1, run.stderr
     assert expected in run.stderr and len(run.stderr.splitlines()) == 1, run.stderr
+
+
+# One implementation of replacing a user's file
+
+REPLACING_CALLS = frozenset(("replace", "rename", "mkstemp", "NamedTemporaryFile"))
+
+
+def test_only_kestimator_files_replaces_or_creates_temporary_files() -> None:
+    """inject, report and compat all replace a file through kestimator.files: no other
+    module of the package renames one into place or makes a temporary file."""
+    import ast
+
+    offenders = []
+    for path in sorted((PROJECT / "kestimator").rglob("*.py")):
+        relative = path.relative_to(PROJECT).as_posix()
+        if relative == "kestimator/files.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and \
+                    node.func.attr in REPLACING_CALLS and isinstance(node.func.value, ast.Name) \
+                    and node.func.value.id in ("os", "tempfile", "shutil"):
+                offenders.append("%s:%d: %s.%s" % (relative, node.lineno, node.func.value.id,
+                                                   node.func.attr))
+    assert not offenders

@@ -42,3 +42,78 @@ def test_a_signal_during_temp_file_creation_leaves_no_file(
         for s, handler in previous.items():
             signal.signal(s, handler)
     assert os.listdir(tmp_path) == []
+
+
+_HANDLED = [s for s in (getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
+            if s is not None]
+
+
+def _handlers() -> dict[int, object]:
+    return {s: signal.getsignal(s) for s in _HANDLED}
+
+
+@pytest.mark.parametrize("argv", [["estimate", "no-such-file.gcode"], ["limits", "--json",
+                                                                       "--no-profile"]])
+def test_cli_main_in_process_leaves_the_callers_signal_handlers(
+        argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    """A library caller (a test, the Cura plugin) keeps its handlers: only the program's
+    entry points (kestimator.entry) install kestimator's."""
+    from kestimator import cli
+
+    def mine(signum: int, frame: object) -> None:
+        raise AssertionError("not called")
+
+    before = _handlers()
+    try:
+        for s in _HANDLED:
+            signal.signal(s, mine)
+        cli.main(argv)
+        assert _handlers() == {s: mine for s in _HANDLED}
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)  # type: ignore[arg-type]
+    assert _handlers() == before
+    capsys.readouterr()
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["estimate", "no-such-file.gcode"]])
+def test_compat_main_in_process_leaves_the_callers_signal_handlers(
+        argv: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from kestimator import compat
+
+    before = _handlers()
+    compat.main(argv)
+    assert _handlers() == before
+    capsys.readouterr()
+
+
+def test_the_entry_points_install_the_handlers_only_while_main_runs() -> None:
+    from kestimator import entry, files
+
+    before = _handlers()
+    during: dict[int, object] = {}
+
+    def main() -> int:
+        during.update(_handlers())
+        return 7
+
+    assert entry.run_program(main) == 7
+    assert during == {s: files._terminate for s in _HANDLED}
+    assert _handlers() == before
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGTERM"), reason="POSIX signals")
+def test_a_sigterm_under_the_entry_point_is_128_plus_the_signal() -> None:
+    from kestimator import entry
+
+    def main() -> int:
+        from kestimator.files import Terminated
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):
+                sys.getrecursionlimit()
+        except Terminated as exc:
+            return 128 + exc.signum
+        return 0
+
+    assert entry.run_program(main) == 128 + signal.SIGTERM

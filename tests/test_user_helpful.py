@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from kestimator import cli
+from kestimator import cli, cli_render
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.rewrite import inject_file
 
@@ -179,7 +179,7 @@ def test_every_progress_bar_shows_elapsed_and_time_left(
     err = io.StringIO()
     monkeypatch.setattr(sys, "stderr", err)
     monkeypatch.setenv(cli.RICH_ENV, "0")
-    with cli._ProgressBar("timing big.gcode", 1000) as bar:
+    with cli_render.ProgressBar("timing big.gcode", 1000) as bar:
         bar(500)
         bar(1000)
     shown = [part for part in err.getvalue().split("\r") if part.strip()]
@@ -192,13 +192,13 @@ def test_report_shows_the_same_progress_bar(tmp_path: Path, monkeypatch: pytest.
                                             corpus_root: Path) -> None:
     seen: list[str] = []
 
-    class Recorder(cli._ProgressBar):
+    class Recorder(cli_render.ProgressBar):
         def __call__(self, done: int) -> None:
             seen.append(self.label)
 
-    monkeypatch.setattr(cli, "PROGRESS_MIN_BYTES", 0)
-    monkeypatch.setattr(cli, "_is_terminal", lambda stream: True)
-    monkeypatch.setattr(cli, "_ProgressBar", Recorder)
+    monkeypatch.setattr(cli_render, "PROGRESS_MIN_BYTES", 0)
+    monkeypatch.setattr(cli_render, "is_terminal", lambda stream: True)
+    monkeypatch.setattr(cli_render, "ProgressBar", Recorder)
     assert cli.main(["report", str(NUT), "-o", str(tmp_path / "r.html"), "--printer-cfg",
                      str(CORPUS_CFG)]) == 0
     assert seen and seen[-1] == "timing " + NUT.name

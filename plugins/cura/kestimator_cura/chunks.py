@@ -20,12 +20,19 @@ import dataclasses
 import io
 from collections.abc import Iterator, Sequence
 
-from kestimator.estimate import Estimate
-from kestimator.limits import Limits
-from kestimator.macros import MacroTimes
-from kestimator.rewrite import MARKER_PREFIX, InjectPlan, Rewriter, parse_marker, plan_lines
-from kestimator.slicers import SlicerInfo, detect
-from kestimator.slicers.base import DETECT_WINDOW_BYTES
+from kestimator.api import (
+    DETECT_WINDOW_BYTES,
+    MARKER_PREFIX,
+    Estimate,
+    InjectPlan,
+    Limits,
+    MacroTimes,
+    Rewriter,
+    SlicerInfo,
+    detect_slicer,
+    parse_marker,
+    plan_lines,
+)
 
 # Cura decodes the engine's bytes as UTF-8 with "replace"; surrogateescape round-trips
 # whatever a post-processing script may have put in, byte for byte.
@@ -114,7 +121,7 @@ def _head_and_tail(chunks: Sequence[str]) -> tuple[bytes, bytes]:
 
 def detect_chunks(chunks: Sequence[str]) -> SlicerInfo:
     """Which slicer wrote the chunks and its own estimate (Cura's ``;TIME:``)."""
-    return detect(*_head_and_tail(chunks))
+    return detect_slicer(*_head_and_tail(chunks))
 
 
 def file_ends(chunks: Sequence[str]) -> tuple[bytes, bytes]:

@@ -32,7 +32,7 @@ from UM.Job import Job
 from UM.Logger import Logger
 from UM.Message import Message
 
-from kestimator.errors import KestimatorError
+from kestimator.api import KestimatorError
 
 from .chunks import is_processed, same_chunks
 from .klipper_time import Outcome, compute, klipper_feature_times

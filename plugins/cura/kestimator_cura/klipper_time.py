@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping, Sequence
 
-from kestimator.durations import format_duration
+from kestimator.api import format_duration
 
 from .chunks import ChunkPlan, file_ends, plan_chunks, rewrite_chunks, same_chunks
 from .machine import ChosenLimits, LimitsChoice, choose_limits

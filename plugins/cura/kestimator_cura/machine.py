@@ -11,11 +11,14 @@ the setting values off the global stack into a plain dict and passes them here.
   printer, and the source says so.
 - ``printer_cfg`` / ``moonraker``: the core's resolver decides every value from the real
   machine, exactly as ``kestimator estimate --no-profile --printer-cfg/--moonraker`` does
-  (the Moonraker API key comes from ``MOONRAKER_API_KEY`` in ``environ``: the Cura-facing
-  layer puts the key from the plugin's preferences there when one is set).
-  The resolver imports the core's profile reader, which needs ``tomli`` on Python 3.10 (Cura
-  5.0 to 5.6 bundle 3.10 without it); there the printer.cfg or Moonraker values are read
-  directly, which under these options gives the same limits.
+  (``kestimator.api.resolve_machine_limits``; the Moonraker API key comes from
+  ``MOONRAKER_API_KEY`` in ``environ``: the Cura-facing layer puts the key from the plugin's
+  preferences there when one is set). Should the resolver not import in some Cura's Python
+  (it once needed ``tomli`` on Python 3.10, which Cura 5.0 to 5.6 bundle without it), the
+  printer.cfg or Moonraker values are read directly, which under these options gives the
+  same limits.
+
+Like every module of the plugin, this one imports the core only through ``kestimator.api``.
 """
 
 from __future__ import annotations
@@ -24,14 +27,19 @@ import dataclasses
 import os
 from collections.abc import Mapping
 
-from kestimator.config.moonraker import moonraker_values
-from kestimator.config.printer_cfg import limits_from_printer_cfg
-from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
-from kestimator.macros import MacroTimes
-from kestimator.slicers import adapter_for
-from kestimator.slicers.base import FileEnds
-from kestimator.slicers.settings import SlicerConfig, SlicerValue
+from kestimator.api import (
+    FileEnds,
+    KestimatorError,
+    Limits,
+    MacroTimes,
+    SlicerConfig,
+    SlicerValue,
+    adapter_for,
+    learned_macro_times,
+    limits_from_printer_cfg,
+    moonraker_values,
+    resolve_machine_limits,
+)
 
 SOURCE_MACHINE = "machine"
 SOURCE_PRINTER_CFG = "printer_cfg"
@@ -133,20 +141,13 @@ def limits_from_klipper(choice: LimitsChoice,
     if choice.source == SOURCE_MOONRAKER and not choice.moonraker_url:
         raise KestimatorError("no Moonraker URL set in the plugin's settings")
     try:
-        from kestimator.config.resolve import LimitRequest, resolve_limits
+        resolved = resolve_machine_limits(
+            printer_cfg=choice.printer_cfg if choice.source == SOURCE_PRINTER_CFG else None,
+            moonraker_url=choice.moonraker_url if choice.source == SOURCE_MOONRAKER else None,
+            environ=environ)
     except ImportError:
         return limits_from_klipper_directly(choice, environ)
-    request = LimitRequest(
-        printer_cfg=choice.printer_cfg if choice.source == SOURCE_PRINTER_CFG else None,
-        moonraker_url=choice.moonraker_url if choice.source == SOURCE_MOONRAKER else None,
-        use_profile=False, read_slicer_environment=False, environ=environ)
-    resolved = resolve_limits(request)
-    macros = None
-    if choice.source == SOURCE_MOONRAKER:
-        from kestimator import learn
-        learned = learn.learned_for(resolved)
-        if learned is not None:
-            macros = learned.macro_times()
+    macros = learned_macro_times(resolved) if choice.source == SOURCE_MOONRAKER else None
     return ChosenLimits(resolved.limits, resolved.summary, tuple(resolved.warnings), macros,
                         resolved.marker_source)
 
