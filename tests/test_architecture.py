@@ -29,12 +29,23 @@ def _modules() -> dict[str, Path]:
     return {_module_name(p): p for p in sorted(PACKAGE.rglob("*.py"))}
 
 
+def _exempt_block(node: ast.AST) -> bool:
+    """`if TYPE_CHECKING:` (never runs) or `if __name__ == "__main__":` (runs only as a
+    program, when nothing imports the module)."""
+    if not isinstance(node, ast.If):
+        return False
+    test = node.test
+    if isinstance(test, ast.Name):
+        return test.id == "TYPE_CHECKING"
+    return (isinstance(test, ast.Compare) and isinstance(test.left, ast.Name)
+            and test.left.id == "__name__")
+
+
 def runtime_imports(path: Path, known: set[str]) -> set[str]:
-    """The package modules `path` imports when it runs (not those under TYPE_CHECKING)."""
+    """The package modules `path` imports when it is imported (not those under
+    TYPE_CHECKING or a `__main__` guard)."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
-    typing_only = {id(inner) for node in ast.walk(tree)
-                   if isinstance(node, ast.If) and isinstance(node.test, ast.Name)
-                   and node.test.id == "TYPE_CHECKING"
+    typing_only = {id(inner) for node in ast.walk(tree) if _exempt_block(node)
                    for stmt in node.body for inner in ast.walk(stmt)}
     found: set[str] = set()
     for node in ast.walk(tree):
