@@ -541,9 +541,9 @@ class Timeline:
                   self.lineno, key)
         stop = self.preflight.command_error(self.lineno, message.replace("\n", " "))
         if stop is not None:
-            def at_stop(t: float, stop: Finding = stop) -> None:
-                stop.t = t
-            self.toolhead.register_lookahead_callback(at_stop)
+            # A bound method, not a closure with `stop` as default: mypy for Python 3.9
+            # (the mypyc build there) refuses that default's narrowed type.
+            self.toolhead.register_lookahead_callback(stop.set_time)
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):

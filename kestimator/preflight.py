@@ -63,6 +63,10 @@ class Finding:
     # Only for the stop: seconds at which every move before `line` has finished.
     t: float | None = None
 
+    def set_time(self, t: float) -> None:
+        """The stop's time: every move before its line has finished at `t` seconds."""
+        self.t = t
+
     def to_json(self) -> dict[str, object]:
         """``{severity, line, message, kind, count}`` (and ``t`` for the stop)."""
         doc: dict[str, object] = {"severity": self.severity, "line": self.line,

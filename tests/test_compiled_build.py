@@ -19,7 +19,6 @@ import shutil
 import subprocess
 import sys
 import sysconfig
-import venv
 from pathlib import Path
 
 import pytest
@@ -68,12 +67,13 @@ def _copy_sources(target: Path) -> Path:
     return target
 
 
-def _pip_wheel(src: Path, out: Path, env_extra: dict[str, str]) -> tuple[Path, str]:
+def _pip_wheel(src: Path, out: Path, env_extra: dict[str, str],
+               python: str = sys.executable) -> tuple[Path, str]:
     # As `pip install .` does: build isolation, setuptools and mypy from the package index.
     env = dict(os.environ, **env_extra)
     env.pop("PYTHONPATH", None)
     proc = subprocess.run(
-        [sys.executable, "-m", "pip", "wheel", "-v", "--no-deps", "-w", str(out), str(src)],
+        [python, "-m", "pip", "wheel", "-v", "--no-deps", "-w", str(out), str(src)],
         env=env, cwd=src, capture_output=True, text=True, timeout=BUILD_TIMEOUT_S)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-4000:]
     wheels = sorted(out.glob("kestimator-*.whl"))
@@ -81,22 +81,60 @@ def _pip_wheel(src: Path, out: Path, env_extra: dict[str, str]) -> tuple[Path, s
     return wheels[0], proc.stdout + proc.stderr
 
 
+def _compiled_venv(root: Path, python: str, version: tuple[int, int]) -> str:
+    """Build the compiled wheel with `python` (CPython `version`), install it into a fresh
+    venv of that python without mypy; that venv's python."""
+    wheel, log = _pip_wheel(_copy_sources(root / "src"), root / "wheels",
+                            {"KESTIMATOR_BUILD": "compiled"}, python)
+    assert [line.strip() for line in log.splitlines() if "kestimator build:" in line] == [
+        line.strip() for line in log.splitlines() if COMPILED_LINE in line][:1]
+    assert "-cp%d%d-" % version in wheel.name
+    env_dir = root / "venv"
+    subprocess.run([python, "-m", "venv", str(env_dir)], check=True, capture_output=True,
+                   timeout=BUILD_TIMEOUT_S)
+    venv_python = str(env_dir / "bin" / "python")
+    subprocess.run([venv_python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
+                   check=True, capture_output=True, timeout=BUILD_TIMEOUT_S)
+    return venv_python
+
+
 @pytest.fixture(scope="module")
 def compiled_python(tmp_path_factory: pytest.TempPathFactory) -> str:
     """The python of a fresh venv holding the compiled wheel (and not mypy)."""
     _require_build_tools()
-    root = tmp_path_factory.mktemp("compiled")
-    wheel, log = _pip_wheel(_copy_sources(root / "src"), root / "wheels",
-                            {"KESTIMATOR_BUILD": "compiled"})
-    assert [line.strip() for line in log.splitlines() if "kestimator build:" in line] == [
-        line.strip() for line in log.splitlines() if COMPILED_LINE in line][:1]
-    assert "-cp%d%d-" % sys.version_info[:2] in wheel.name
-    env_dir = root / "venv"
-    venv.create(env_dir, with_pip=True)
-    python = str(env_dir / "bin" / "python")
-    subprocess.run([python, "-m", "pip", "install", "-q", "--no-deps", str(wheel)],
-                   check=True, capture_output=True, timeout=BUILD_TIMEOUT_S)
-    return python
+    return _compiled_venv(tmp_path_factory.mktemp("compiled"), sys.executable,
+                          (sys.version_info[0], sys.version_info[1]))
+
+
+def oldest_python() -> str | None:
+    """A CPython 3.9 (the oldest we support, Raspberry Pi OS Bullseye's): $KESTIMATOR_PYTHON39,
+    `python3.9` on PATH, or pyenv's, as this project's machines have it."""
+    candidates = [os.environ.get("KESTIMATOR_PYTHON39", ""), shutil.which("python3.9") or ""]
+    candidates += sorted(str(p) for p in Path.home().glob(".pyenv/versions/3.9*/bin/python3.9"))
+    for candidate in candidates:
+        if not candidate or not os.access(candidate, os.X_OK):
+            continue
+        probe = subprocess.run(
+            [candidate, "-c", "import sys, sysconfig, os; sys.exit(not ("
+             "sys.implementation.name == 'cpython' and sys.version_info[:2] == (3, 9) and "
+             "os.path.exists(os.path.join(sysconfig.get_paths()['include'], 'Python.h'))))"],
+            capture_output=True)
+        if probe.returncode == 0:
+            return candidate
+    return None
+
+
+@pytest.fixture(scope="module")
+def compiled_python39(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """A venv of CPython 3.9 holding the wheel compiled there."""
+    _require_build_tools()
+    python = oldest_python()
+    if python is None:
+        if IN_CI:
+            pytest.fail("no CPython 3.9 with its headers to build the compiled wheel on "
+                        "(set KESTIMATOR_PYTHON39)")
+        pytest.skip("no CPython 3.9 with its headers")
+    return _compiled_venv(tmp_path_factory.mktemp("compiled39"), python, (3, 9))
 
 
 def test_the_wheel_holds_compiled_modules_and_says_compiled(compiled_python: str) -> None:
@@ -126,6 +164,21 @@ def test_compiled_estimate_equals_pure_field_by_field_on_corpus_and_programs(
     pure = digests(sys.executable, paths)
     assert compiled[0] == '{"build": "compiled"}' and pure[0] == '{"build": "pure Python"}'
     assert len(compiled) == len(pure) == len(paths) + 1
+    for path, a, b in zip(paths, compiled[1:], pure[1:]):
+        assert a == b, path.name
+
+
+def test_the_wheel_compiles_on_python_3_9_and_gives_the_same_fields(
+        compiled_python39: str, tmp_path: Path) -> None:
+    # mypy for 3.9 refused code 3.10+ accepted, and the build fell back to pure Python with
+    # no word but under `pip -v` (issue 29 item 15): the 3.9 build must compile and agree.
+    version = subprocess.run([compiled_python39, "-m", "kestimator", "--version"],
+                             capture_output=True, text=True, cwd="/", check=True).stdout
+    assert version.strip().endswith("(compiled)")
+    paths = compared_files()[:6] + generated_programs(tmp_path)
+    compiled = digests(compiled_python39, paths, on_path=False)
+    pure = digests(sys.executable, paths)
+    assert compiled[0] == '{"build": "compiled"}'
     for path, a, b in zip(paths, compiled[1:], pure[1:]):
         assert a == b, path.name
 
