@@ -288,6 +288,8 @@ class Timeline:
         # its commands that change motion are named where they run.
         for message in self.toolhead.kin.warnings:
             self.warn(message, None, "kinematics:" + message)
+        if self.toolhead.kin.unchecked is not None:
+            self.preflight.moves_unchecked(self.toolhead.kin.unchecked)
         self._kin_commands = self.toolhead.kin.commands
         learned = self.macros.before_first_extrusion
         if learned is not None:

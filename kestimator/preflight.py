@@ -7,6 +7,10 @@ Owns the findings the one streaming pass collects (`Preflight`) and their wordin
   print at the first command error: a move out of range, a parameter it cannot parse, an
   extrusion over `max_extrude_cross_section`, relative G2/G3, ... Nothing after that line
   prints. The message is Klipper's own text. Later errors are counted in the same finding.
+- ``unchecked`` (severity ``warning``): Klipper will range-check this file's moves, but
+  kestimator could not (a kinematics mainline does not ship, or the printer's [printer] /
+  [stepper_*] sections are not known): a move Klipper refuses would not be found, so the
+  pre-flight cannot say Klipper runs every command.
 - ``skipped`` (severity ``warning``): commands Klipper answers with ``Unknown command`` and
   skips while the print goes on: G2/G3 without ``[gcode_arcs]``, G10/G11 without
   ``[firmware_retraction]``, M-codes of modules the printer does not have, macros the
@@ -31,6 +35,7 @@ SEVERITY_ERROR = "error"
 SEVERITY_WARNING = "warning"
 KIND_STOP = "stop"
 KIND_SKIPPED = "skipped"
+KIND_UNCHECKED = "unchecked"
 # Skipped commands listed one finding per name, at most; the rest share one finding.
 MAX_SKIPPED_NAMES = 1000
 # Commands that need a section, and the section (extras/gcode_arcs.py,
@@ -85,6 +90,13 @@ class Preflight:
         self.skipped: dict[str, Finding] = {}
         # Skipped commands whose name came after MAX_SKIPPED_NAMES others: one finding.
         self.skipped_unlisted: Finding | None = None
+        # Why moves were not range-checked, if they were not.
+        self.unchecked: Finding | None = None
+
+    def moves_unchecked(self, why: str) -> None:
+        """Moves are not range-checked as Klipper checks them; `why` says why."""
+        if self.unchecked is None:
+            self.unchecked = Finding(SEVERITY_WARNING, KIND_UNCHECKED, None, why)
 
     def command_error(self, line: int, message: str) -> Finding | None:
         """Klipper answers this line with an error; the new stop finding, if it is the first."""
@@ -118,8 +130,11 @@ class Preflight:
         self.skipped[name] = Finding(SEVERITY_WARNING, KIND_SKIPPED, line, message)
 
     def findings(self) -> list[Finding]:
-        """The stop first, then skipped commands in the order first seen."""
+        """The stop first, then unchecked moves, then skipped commands in the order first
+        seen."""
         found = [self.stop] if self.stop is not None else []
+        if self.unchecked is not None:
+            found.append(self.unchecked)
         found += sorted(self.skipped.values(), key=lambda f: f.line or 0)
         if self.skipped_unlisted is not None:
             found.append(self.skipped_unlisted)
@@ -132,12 +147,15 @@ def summary_lines(findings: list[dict[str, object]]) -> list[str]:
         return []
     stops = [f for f in findings if f["kind"] == KIND_STOP]
     skipped = [f for f in findings if f["kind"] == KIND_SKIPPED]
+    unchecked = [f for f in findings if f["kind"] == KIND_UNCHECKED]
     head = []
     if stops:
         when = stops[0].get("t")
         head.append("Klipper will stop the print at line %s%s" % (
             stops[0]["line"], "" if when is None
             else ", %s in" % format_duration(float(str(when)))))
+    if unchecked:
+        head.append("moves not range-checked")
     if skipped:
         head.append("%d command%s skipped" % (
             sum(int(str(f["count"])) for f in skipped), "" if len(skipped) == 1 and
@@ -150,8 +168,8 @@ def summary_lines(findings: list[dict[str, object]]) -> list[str]:
             suffix = (" (%d more line%s)" % (more, "" if more == 1 else "s")
                       if finding["kind"] == KIND_SKIPPED else
                       " (%d more error%s after it)" % (more, "" if more == 1 else "s"))
-        lines.append("  line %s: %s%s" % (finding["line"], _printable(str(finding["message"])),
-                                          suffix))
+        where = "" if finding["line"] is None else "line %s: " % finding["line"]
+        lines.append("  %s%s%s" % (where, _printable(str(finding["message"])), suffix))
     return lines
 
 

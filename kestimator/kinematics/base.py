@@ -22,6 +22,8 @@ class Kinematics:
     def __init__(self) -> None:
         self.warnings: list[str] = []
         """What this kinematics does that kestimator does not model (said once per file)."""
+        self.unchecked: str | None = None
+        """Why moves are not range-checked as Klipper checks them (None: they are)."""
         self.commands: dict[str, str] = {}
         """G-code commands the kinematics adds that change motion and are not modelled:
         command -> why (the interpreter warns where they run)."""

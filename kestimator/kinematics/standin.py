@@ -29,6 +29,7 @@ class StandInKinematics(Kinematics):
         self.max_z_accel = limits.max_z_accel
         if warning is not None:
             self.warnings.append(warning)
+            self.unchecked = warning
 
     def check_move(self, move: Move) -> None:
         """Z moves limited as the kinematics limits them."""
