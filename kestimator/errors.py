@@ -43,3 +43,9 @@ class ParamError(CommandError):
 class MoveError(Exception):
     """Klipper would reject this move (`Move.move_error`; the G-code layer adds file and
     line)."""
+
+
+def fixed(value: float, decimals: int = 3) -> str:
+    """`"%.3f" % value`, the same on every build: PyPy's %-formatting writes a number of
+    1e50 or more as "1e+50", `format` writes every digit on CPython and PyPy alike."""
+    return format(value, ".%df" % decimals)

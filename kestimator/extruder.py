@@ -16,7 +16,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from kestimator.errors import CommandError, MoveError, ParamError
+from kestimator.errors import CommandError, MoveError, ParamError, fixed
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.limits import ExtruderLimits, Limits
 from kestimator.stepgen import MAX_SMOOTH_TIME_T, pressure_advance_window
@@ -67,9 +67,9 @@ class PrinterExtruder:
             # Extrude only move (or retraction move) - limit accel and velocity
             if abs(axis_d) > self.max_e_dist:
                 raise MoveError(
-                    "Extrude only move too long (%.3fmm vs %.3fmm)\nSee the "
+                    "Extrude only move too long (%smm vs %smm)\nSee the "
                     "'max_extrude_only_distance' config option for details"
-                    % (axis_d, self.max_e_dist))
+                    % (fixed(axis_d), fixed(self.max_e_dist)))
             inv_extrude_r = 1.0 / abs(axis_r)
             move.limit_speed(self.max_e_velocity * inv_extrude_r,
                              self.max_e_accel * inv_extrude_r)
@@ -79,9 +79,9 @@ class PrinterExtruder:
                 return
             area = axis_r * self.filament_area
             raise MoveError(
-                "Move exceeds maximum extrusion (%.3fmm^2 vs %.3fmm^2)\nSee the "
+                "Move exceeds maximum extrusion (%smm^2 vs %smm^2)\nSee the "
                 "'max_extrude_cross_section' config option for details"
-                % (area, self.max_extrude_ratio * self.filament_area))
+                % (fixed(area), fixed(self.max_extrude_ratio * self.filament_area)))
 
 
 class PrinterExtruders:

@@ -8,6 +8,7 @@ the length rounded to 5 decimals and the speed to whole mm/min as the script's t
 
 from __future__ import annotations
 
+from kestimator.errors import fixed
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.gcode_move import GCodeMove
 from kestimator.limits import Limits
@@ -55,7 +56,7 @@ class FirmwareRetraction:
         gcode_move = self.gcode_move
         state = gcode_move.save_state()
         gcode_move.absolute_coord = False
-        e = float("%.5f" % length) * gcode_move.extrude_factor
+        e = float(fixed(length, 5)) * gcode_move.extrude_factor
         gcode_move.last_position[3] += e
         gcode_move.speed = float("%d" % (speed * 60)) * gcode_move.speed_factor
         try:

@@ -7,7 +7,7 @@ decides the pause after a full stop, and a new shaper stops step generation firs
 
 from __future__ import annotations
 
-from kestimator.errors import CommandError
+from kestimator.errors import CommandError, fixed
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.limits import Limits
 from kestimator.stepgen import (
@@ -56,8 +56,8 @@ class InputShaper:
                 raise CommandError("Unsupported shaper type: %s" % new_type)
             new_damping = get_float(params, "DAMPING_RATIO_" + up, damping, minval=0.0)
             if new_damping > SHAPER_MAX_DAMPING[name]:
-                raise CommandError("Too high value of damping_ratio=%.3f for shaper %s on "
-                                   "axis %s" % (new_damping, new_type, up))
+                raise CommandError("Too high value of damping_ratio=%s for shaper %s on "
+                                   "axis %s" % (fixed(new_damping), new_type, up))
             new_freq = get_float(params, "SHAPER_FREQ_" + up, freq, minval=0.0)
             try:
                 shaper_pulses(new_type.lower(), new_freq, new_damping)

@@ -68,7 +68,7 @@ class ExtruderLimits:
     @property
     def filament_area(self) -> float:
         """Cross-section of the filament in mm^2."""
-        return math.pi * (self.filament_diameter * 0.5) ** 2
+        return math.pi * math.pow(self.filament_diameter * 0.5, 2.0)
 
     @property
     def max_extrude_ratio(self) -> float:
@@ -82,8 +82,8 @@ class ExtruderLimits:
         v = {key: values[key] for key in EXTRUDER_FIELDS if key in values}
         nozzle_d = float(v.get("nozzle_diameter", cls.nozzle_diameter))
         filament_d = float(v.get("filament_diameter", cls.filament_diameter))
-        def_cross_section = 4.0 * nozzle_d**2
-        def_extrude_ratio = def_cross_section / (math.pi * (filament_d * 0.5) ** 2)
+        def_cross_section = 4.0 * math.pow(nozzle_d, 2.0)
+        def_extrude_ratio = def_cross_section / (math.pi * math.pow(filament_d * 0.5, 2.0))
         v.setdefault("max_extrude_cross_section", def_cross_section)
         if not v.get("max_extrude_only_velocity"):
             v["max_extrude_only_velocity"] = max_velocity * def_extrude_ratio
@@ -201,7 +201,7 @@ class Limits:
     @property
     def filament_area(self) -> float:
         """Cross-section of the filament in mm^2."""
-        return math.pi * (self.filament_diameter * 0.5) ** 2
+        return math.pi * math.pow(self.filament_diameter * 0.5, 2.0)
 
     @property
     def max_extrude_ratio(self) -> float:
@@ -231,8 +231,8 @@ class Limits:
         v.setdefault("max_z_accel", v["max_accel"])
         nozzle_d = float(v.get("nozzle_diameter", cls.nozzle_diameter))
         filament_d = float(v.get("filament_diameter", cls.filament_diameter))
-        def_cross_section = 4.0 * nozzle_d**2
-        def_extrude_ratio = def_cross_section / (math.pi * (filament_d * 0.5) ** 2)
+        def_cross_section = 4.0 * math.pow(nozzle_d, 2.0)
+        def_extrude_ratio = def_cross_section / (math.pi * math.pow(filament_d * 0.5, 2.0))
         v.setdefault("max_extrude_cross_section", def_cross_section)
         if not v.get("max_extrude_only_velocity"):
             v["max_extrude_only_velocity"] = float(v["max_velocity"]) * def_extrude_ratio

@@ -24,6 +24,8 @@ from __future__ import annotations
 import math
 import re
 
+from kestimator.errors import fixed
+
 # motion_queuing.SDS_CHECK_TIME: the step+dir+step filter's scan window.
 SDS_CHECK_TIME_T = 0.001
 # shaper_defs.DEFAULT_DAMPING_RATIO and SHAPER_VIBRATION_REDUCTION.
@@ -50,17 +52,17 @@ def shaper_name(shaper_type: str) -> str:
 
 
 def _zv(freq: float, damping: float) -> tuple[list[float], list[float]]:
-    df = math.sqrt(1.0 - damping**2)
+    df = math.sqrt(1.0 - math.pow(damping, 2.0))
     k = math.exp(-damping * math.pi / df)
     t_d = 1.0 / (freq * df)
     return [1.0, k], [0.0, 0.5 * t_d]
 
 
 def _zvd(freq: float, damping: float) -> tuple[list[float], list[float]]:
-    df = math.sqrt(1.0 - damping**2)
+    df = math.sqrt(1.0 - math.pow(damping, 2.0))
     k = math.exp(-damping * math.pi / df)
     t_d = 1.0 / (freq * df)
-    return [1.0, 2.0 * k, k**2], [0.0, 0.5 * t_d, t_d]
+    return [1.0, 2.0 * k, math.pow(k, 2.0)], [0.0, 0.5 * t_d, t_d]
 
 
 def _solve_least_squares(rows: list[list[float]], rhs: list[float]) -> list[float] | None:
@@ -87,8 +89,8 @@ def _mzv_coeffs(n: int, t: float) -> tuple[list[float], list[float]]:
     if n < 3:
         raise ShaperError("Too small n=%d, must be at least 3" % n)
     if n <= 2 * t + 1 + 1e-7:
-        raise ShaperError("Too large t=%.6f for n=%d, must be less than %.6f"
-                          % (t, n, 0.5 * (n - 1)))
+        raise ShaperError("Too large t=%s for n=%d, must be less than %s"
+                          % (fixed(t, 6), n, fixed(0.5 * (n - 1), 6)))
     tau = t * (n - 2.0) / (n - 2.0 * t - 1.0)
     times = [i * t / (n - 1.0) for i in range(n)]
     rows = [[1.0] * n]
@@ -100,9 +102,9 @@ def _mzv_coeffs(n: int, t: float) -> tuple[list[float], list[float]]:
         rhs.extend((0.0, 0.0))
     amps = _solve_least_squares(rows, rhs)
     if amps is None:
-        raise ShaperError("Ill-formed shaper with n=%d, t=%.6f" % (n, t))
+        raise ShaperError("Ill-formed shaper with n=%d, t=%s" % (n, fixed(t, 6)))
     if any(a < -0.00001 for a in amps):
-        raise ShaperError("Negative-valued shaper with n=%d, t=%.6f" % (n, t))
+        raise ShaperError("Negative-valued shaper with n=%d, t=%s" % (n, fixed(t, 6)))
     return amps, times
 
 
@@ -114,7 +116,7 @@ def _mzv(freq: float, damping: float, n: float = 3, t: float = 0.0,
     elif tau:
         t = tau * (n_i - 1.0) / (n_i + 2.0 * tau - 2.0)
     amps, times = _mzv_coeffs(n_i, t)
-    df = math.sqrt(1.0 - damping**2)
+    df = math.sqrt(1.0 - math.pow(damping, 2.0))
     k = math.exp(-2.0 * t * damping * math.pi / ((n_i - 1.0) * df))
     t_d = 1.0 / (freq * df)
     kp = k
@@ -127,7 +129,7 @@ def _mzv(freq: float, damping: float, n: float = 3, t: float = 0.0,
 
 def _ei(freq: float, damping: float) -> tuple[list[float], list[float]]:
     v_tol = 1.0 / SHAPER_VIBRATION_REDUCTION
-    df = math.sqrt(1.0 - damping**2)
+    df = math.sqrt(1.0 - math.pow(damping, 2.0))
     t_d = 1.0 / (freq * df)
     dr = damping
     a1 = (0.24968 + 0.24961 * v_tol) + ((0.80008 + 1.23328 * v_tol)

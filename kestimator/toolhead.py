@@ -27,7 +27,7 @@ from collections.abc import Callable
 from math import sqrt
 from typing import Final
 
-from kestimator.errors import MoveError
+from kestimator.errors import MoveError, fixed
 from kestimator.extruder import PrinterExtruder
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.kinematics import load_kinematics
@@ -182,8 +182,8 @@ class Move:
 
     def move_error(self, msg: str = "Move out of range") -> MoveError:
         """The error Klipper raises for this move: the message with its end position."""
-        return MoveError("%s: %.3f %.3f %.3f [%.3f]"
-                         % (msg, self.end_x, self.end_y, self.end_z, self.end_e))
+        return MoveError("%s: %s %s %s [%s]" % (msg, fixed(self.end_x), fixed(self.end_y),
+                                                fixed(self.end_z), fixed(self.end_e)))
 
     def calc_junction(self, prev_move: Move) -> None:
         """Maximum start speed from the corner with `prev_move` (junction deviation)."""
@@ -541,7 +541,9 @@ class ToolHead:
             last_move.timing_callbacks.append(callback)
 
     def _calc_junction_deviation(self) -> None:
-        scv2 = self.square_corner_velocity**2
+        # upstream: square_corner_velocity**2 (math.pow: the same bits, and an overflow
+        # is OverflowError on PyPy as on CPython, where ** gives PyPy inf)
+        scv2 = math.pow(self.square_corner_velocity, 2.0)
         self.junction_deviation = scv2 * _JD_FACTOR / self.max_accel
         self.mcr_pseudo_accel = self.max_accel * (1.0 - self.min_cruise_ratio)
 

@@ -81,6 +81,20 @@ _OTHER_LINES = (
     "G1 X1 Y2 ; comment", "G1 F1500 X3 Y3 E0.1", "G2 X5 Y5 I1 J1", "M84", ";TIME_ELAPSED:1",
     "G1 X1.0000000000000000001 Y-0.00000000000000001", "G1 X1e3", "G1 F0.0001 X2")
 N_RANDOM_PROGRAMS = 40
+# Values at the ends of what a float holds: where PyPy and CPython once parted (a `**` that
+# overflows is an error on CPython and inf on PyPy; PyPy's "%.3f" of 1e50 and above is
+# "1e+50"). The builds must agree on these too: same fields, or the same error.
+_EXTREME_LINES = (
+    "SET_VELOCITY_LIMIT SQUARE_CORNER_VELOCITY=1e300", "SET_VELOCITY_LIMIT ACCEL=1e-300",
+    "SET_VELOCITY_LIMIT VELOCITY=1e300", "SET_VELOCITY_LIMIT VELOCITY=1e-300",
+    "M204 S1e300", "M204 S1e-300", "G1 X1e60", "G1 Y-1e60 Z1e55", "G1 E1e55", "G1 E-1e60",
+    "G1 X1e200 F1e300", "G1 F1e-300 X2", "G92 X1e300", "G92 E-1e300", "M220 S1e300",
+    "M220 S1e-300", "M221 S1e300", "M221 S1e-300", "G4 P1e300", "G4 P1e20",
+    "SET_RETRACTION RETRACT_LENGTH=1e60 RETRACT_SPEED=1e300", "G10", "G11",
+    "SET_GCODE_OFFSET Z=1e300 MOVE=1", "G2 X1e60 Y5 I1e60 J0", "G2 X5 Y5 I1e-300 J1e-300",
+    "; ESTIMATOR_ADD_TIME 1e300", "G1 X1e300 Y1e300", "G1 X1.7976931348623157e308",
+    "SET_VELOCITY_LIMIT MINIMUM_CRUISE_RATIO=0.999999999999")
+N_EXTREME_PROGRAMS = 40
 
 
 def _random_program(rng: random.Random) -> str:
@@ -100,10 +114,27 @@ def _random_program(rng: random.Random) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _extreme_program(rng: random.Random) -> str:
+    lines = ["G28", "M83"]
+    for _ in range(rng.randint(3, 40)):
+        if rng.random() < 0.2:
+            lines.append(rng.choice(_EXTREME_LINES))
+            continue
+        words = ["G1"] + ["%s%s" % (axis, round(rng.uniform(-50.0, 250.0), 3))
+                          for axis in "XYZE" if rng.random() < 0.6]
+        if rng.random() < 0.3:
+            words.append("F%d" % rng.choice((60, 1200, 9000)))
+        lines.append(" ".join(words))
+    return "\n".join(lines) + "\n"
+
+
 def generated_programs(folder: Path) -> list[Path]:
-    """The state-changing program and seeded random ones, written into `folder`."""
+    """The state-changing program, seeded random ones and seeded ones with extreme values,
+    written into `folder`."""
     rng = random.Random(15)
     texts = [STATE_CHANGING_PROGRAM] + [_random_program(rng) for _ in range(N_RANDOM_PROGRAMS)]
+    extreme = random.Random(7)
+    texts += [_extreme_program(extreme) for _ in range(N_EXTREME_PROGRAMS)]
     paths = []
     for i, text in enumerate(texts):
         path = folder / ("program%02d.gcode" % i)
