@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import sys
@@ -314,6 +315,9 @@ def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    if args.macros.warnings:  # a damaged learned store: said, never silently dropped
+        resolved = dataclasses.replace(resolved,
+                                       warnings=resolved.warnings + args.macros.warnings)
     args.resolved = resolved
     return resolved
 

@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import math
 import os
 import re
 import urllib.parse
@@ -64,6 +65,8 @@ _TOOL_RE = re.compile(r"T\d+$")
 STORE_FORMAT = 1
 COMPLETED = "completed"
 MAX_FILE_BYTES = 1 << 31
+# The largest value the store keeps (seconds; a ratio for the motion correction).
+MAX_VALUE = 1e7
 _DATE_STORED = "%Y-%m-%dT%H:%M:%SZ"
 
 
@@ -150,6 +153,41 @@ def robust(values: Sequence[float]) -> tuple[LearnedValue | None, list[int]]:
     return LearnedValue(centre, spread, len(kept), len(rejected)), rejected
 
 
+def value_problem(value: LearnedValue, ratio: bool = False) -> str | None:
+    """Why the store would not keep `value` (None: usable). `learn` checks with this before
+    storing and the loader when reading, so learn never stores what would be ignored.
+
+    `ratio`: the motion correction (actual / planned, only above 1); else seconds (0 or more).
+    """
+    if not all(isinstance(n, float) and math.isfinite(n) for n in (value.value, value.spread)):
+        return "not a finite number"
+    if ratio and value.value <= 1.0:
+        return "%.4g is not above 1" % value.value
+    if value.value < 0.0:
+        return "%.3g s is negative" % value.value
+    if value.value >= MAX_VALUE:
+        return "%.3g is too large" % value.value
+    if value.spread < 0.0:
+        return "its spread %.3g is negative" % value.spread
+    if value.jobs < MIN_JOBS:
+        return "%d jobs are fewer than %d" % (value.jobs, MIN_JOBS)
+    if value.rejected < 0:
+        return "a negative count of rejected jobs"
+    return None
+
+
+def _kept(value: LearnedValue | None, what: str, why_negative: str, notes: list[str],
+          ratio: bool = False) -> LearnedValue | None:
+    """`value` if the store would keep it; else None and a note saying why not."""
+    problem = None if value is None else value_problem(value, ratio)
+    if problem is None:
+        return value
+    if value is not None and value.value < 0.0:
+        problem += " (%s)" % why_negative
+    notes.append("%s not stored: %s" % (what, problem))
+    return None
+
+
 @dataclasses.dataclass(frozen=True)
 class JobTiming:
     """One completed job and Klipper's times for its file."""
@@ -185,12 +223,16 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
     prep, rejected = robust(prep_values)
     notes += ["job %s (%s): time before the first extrusion %.0f s is an outlier (a pause?)"
               % (timings[i].job_id, timings[i].filename, prep_values[i]) for i in rejected]
+    prep = _kept(prep, "time %s" % LEARNED_PREP_LABEL,
+                 "total_duration - print_duration is shorter than Klipper's own motion "
+                 "before the first extrusion: the printer adds no time there", notes)
     plain = [t for t in timings if not t.frames and not t.tool_changes and t.motion_after_s > 0]
     ratio, _ = robust([t.print_duration / t.motion_after_s for t in plain]) if plain \
         else (None, [])
     factor = 1.0
     if ratio is not None and (ratio.value - 1.0 <= max(MIN_SLOWDOWN_R, 2 * ratio.spread)):
         ratio = None
+    ratio = _kept(ratio, "motion correction", "", notes, ratio=True)
     if ratio is not None:
         factor = ratio.value
     per_run: dict[str, LearnedValue] = {}
@@ -201,6 +243,9 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
         learned, rejected = robust(values)
         notes += ["job %s (%s): %.2f s per run of %s is an outlier" % (
             usable[i].job_id, usable[i].filename, values[i], name) for i in rejected]
+        learned = _kept(learned, "time per run of %s" % name,
+                        "print_duration is shorter than Klipper's motion after the first "
+                        "extrusion", notes)
         if learned is not None:
             per_run[name] = learned
     return LearnedTimes(url=url, learned_at=learned_at, before_first_extrusion_s=prep,
@@ -345,16 +390,24 @@ def moonraker_url_of(resolved: ResolvedLimits) -> str | None:
 
 def learned_for(resolved: ResolvedLimits) -> LearnedTimes | None:
     """What was learned for the Moonraker the limits came from, if anything."""
+    return learned_with_warnings(resolved)[0]
+
+
+def learned_with_warnings(resolved: ResolvedLimits
+                          ) -> tuple[LearnedTimes | None, tuple[str, ...]]:
+    """What was learned for the Moonraker the limits came from, and what of it is not used
+    (see `load_with_warnings`)."""
     url = moonraker_url_of(resolved)
-    return None if url is None else load(url)
+    return (None, ()) if url is None else load_with_warnings(url)
 
 
 def macro_times_for(resolved: ResolvedLimits, use_learned: bool = True) -> MacroTimes:
-    """The profile's macro times, with what was learned for this printer over them."""
-    learned = learned_for(resolved) if use_learned else None
+    """The profile's macro times, with what was learned for this printer over them
+    (``warnings``: what of the learned store is not used, for the caller to show)."""
+    learned, warnings = learned_with_warnings(resolved) if use_learned else (None, ())
     if learned is None:
-        return MacroTimes(macros=dict(resolved.macro_times))
-    return learned.macro_times(resolved.macro_times)
+        return MacroTimes(macros=dict(resolved.macro_times), warnings=warnings)
+    return dataclasses.replace(learned.macro_times(resolved.macro_times), warnings=warnings)
 
 
 def store_path(url: str, directory: Path) -> Path:
@@ -372,32 +425,82 @@ def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
     return path
 
 
-def _value(raw: object) -> LearnedValue | None:
+def _value(raw: object, ratio: bool = False) -> LearnedValue | None:
+    """One stored value; ValueError (why) for one the store would not keep."""
     if raw is None:
         return None
     if not isinstance(raw, dict):
         raise ValueError("not an object")
+    numbers = [raw.get(key) for key in ("value", "spread", "jobs", "rejected")]
+    if any(isinstance(n, bool) or not isinstance(n, (int, float)) for n in numbers) or not all(
+            isinstance(n, int) for n in numbers[2:]):
+        raise ValueError("not {value, spread, jobs, rejected} numbers")
     value = LearnedValue(float(raw["value"]), float(raw["spread"]), int(raw["jobs"]),
                          int(raw["rejected"]))
-    if not (0.0 <= value.value < 1e7 and value.jobs >= MIN_JOBS):
-        raise ValueError("out of range")
+    problem = value_problem(value, ratio)
+    if problem is not None:
+        raise ValueError(problem)
     return value
 
 
 def load(url: str, directory: Path | None = None) -> LearnedTimes | None:
     """The stored learned times of the Moonraker at `url`, None if none (or unusable)."""
+    return load_with_warnings(url, directory)[0]
+
+
+def load_with_warnings(url: str, directory: Path | None = None
+                       ) -> tuple[LearnedTimes | None, tuple[str, ...]]:
+    """The stored learned times of the Moonraker at `url` (None if there are none or the
+    file is unusable) and one warning per value, or for the whole file, not used.
+
+    A value the store would not keep is dropped on its own: the others are still used."""
     directory = directory if directory is not None else default_cache_dir(os.environ)
     url = normalise_url(url)
+    path = store_path(url, directory)
+    redo = "run kestimator learn again"
     try:
-        document = json.loads(store_path(url, directory).read_text(encoding="utf-8"))
-        if document.get("format") != STORE_FORMAT or document.get("url") != url:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None, ()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+        return None, ("learned times in %s not used: %s" % (path, why),)
+    try:
+        document = json.loads(text)
+        if not isinstance(document, dict):
+            raise ValueError("not a JSON object")
+        if document.get("format") != STORE_FORMAT:
+            raise ValueError("format %s, not %d" % (_shown(document.get("format")),
+                                                   STORE_FORMAT))
+        if document.get("url") != url:
+            raise ValueError("written for another URL")
+        learned_at = document["learned_at"]
+        raw_per_run = document.get("per_run_s") or {}
+        jobs_read = document.get("jobs_read", 0)
+        notes = document.get("notes") or []
+        if not (isinstance(learned_at, str) and isinstance(raw_per_run, dict)
+                and isinstance(jobs_read, int) and isinstance(notes, list)):
+            raise ValueError("learned_at, per_run_s, jobs_read or notes of the wrong type")
+    except (ValueError, KeyError, RecursionError) as exc:
+        why = "not JSON" if isinstance(exc, (json.JSONDecodeError, RecursionError)) else (
+            "no %s" % exc if isinstance(exc, KeyError) else str(exc))
+        return None, ("learned times in %s not used: %s (%s)" % (path, why, redo),)
+    warnings: list[str] = []
+
+    def kept(name: str, raw: object, ratio: bool = False) -> LearnedValue | None:
+        try:
+            return _value(raw, ratio)
+        except ValueError as exc:
+            warnings.append("learned %s in %s not used: %s (%s)" % (name, path, exc, redo))
             return None
-        per_run = {str(name): _value(raw) for name, raw in document["per_run_s"].items()}
-        return LearnedTimes(
-            url=url, learned_at=str(document["learned_at"]),
-            before_first_extrusion_s=_value(document["before_first_extrusion_s"]),
-            per_run_s={name: v for name, v in per_run.items() if v is not None},
-            motion_ratio=_value(document["motion_ratio"]),
-            jobs_read=int(document["jobs_read"]), notes=tuple(document["notes"]))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+
+    prep = kept("time " + LEARNED_PREP_LABEL, document.get("before_first_extrusion_s"))
+    per_run = {str(name): kept("time per run of " + _shown(name), raw)
+               for name, raw in raw_per_run.items()}
+    ratio = kept("motion correction", document.get("motion_ratio"), ratio=True)
+    learned = LearnedTimes(
+        url=url, learned_at=learned_at, before_first_extrusion_s=prep,
+        per_run_s={name: v for name, v in per_run.items() if v is not None},
+        motion_ratio=ratio, jobs_read=jobs_read,
+        notes=tuple(note for note in notes if isinstance(note, str)))
+    return learned, tuple(warnings)
