@@ -35,12 +35,13 @@ from typing import Any
 
 from kestimator.config.moonraker import (
     API_KEY_HEADER,
-    DEFAULT_TIMEOUT_S,
     MAX_ANSWER_BYTES,
+    Deadline,
     cache_path,
     clean_api_key,
     default_cache_dir,
     normalise_url,
+    read_bounded,
 )
 from kestimator.config.resolve import ResolvedLimits
 from kestimator.errors import KestimatorError
@@ -65,6 +66,11 @@ _TOOL_RE = re.compile(r"T\d+$")
 STORE_FORMAT = 1
 COMPLETED = "completed"
 MAX_FILE_BYTES = 1 << 31
+MAX_HISTORY_BYTES = MAX_ANSWER_BYTES
+# One deadline for the whole of `kestimator learn` (history, downloads, timing), seconds.
+DEFAULT_DEADLINE_S = 600.0
+# A socket read waits at most this long (within the deadline).
+READ_TIMEOUT_S = 30.0
 # The largest value the store keeps (seconds; a ratio for the motion correction).
 MAX_VALUE = 1e7
 _DATE_STORED = "%Y-%m-%dT%H:%M:%SZ"
@@ -253,10 +259,15 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
                         notes=tuple(notes))
 
 
-class _Client:
-    """GET requests to one Moonraker: no proxy, no redirects, the key in its header only."""
+class _TimeUpError(KestimatorError):
+    """The deadline of the whole `learn` passed (worded by `learn_from_moonraker`)."""
 
-    def __init__(self, url: str, api_key: str | None, timeout_s: float) -> None:
+
+class _Client:
+    """GET requests to one Moonraker: no proxy, no redirects, the key in its header only,
+    every connection cut when the one deadline of the whole `learn` passes."""
+
+    def __init__(self, url: str, api_key: str | None, deadline: Deadline) -> None:
         import urllib.request
 
         class NoRedirect(urllib.request.HTTPRedirectHandler):
@@ -267,20 +278,26 @@ class _Client:
         self.url = url
         # Whitespace (CR/LF) stripped, control characters refused without showing the key.
         self.api_key = clean_api_key(api_key)
-        self.timeout_s = timeout_s
+        self.deadline = deadline
         self.opener = urllib.request.build_opener(urllib.request.ProxyHandler({}),
-                                                  NoRedirect())
+                                                  NoRedirect(), *deadline.handlers())
+
+    def check_time(self) -> None:
+        if self.deadline.expired:
+            raise _TimeUpError("deadline")
 
     def open(self, path: str) -> Any:
         import http.client
         import urllib.error
         import urllib.request
 
+        self.check_time()
         request = urllib.request.Request(self.url + path)
         if self.api_key:
             request.add_header(API_KEY_HEADER, self.api_key)
         try:
-            return self.opener.open(request, timeout=self.timeout_s)
+            return self.opener.open(request, timeout=max(0.01, min(
+                READ_TIMEOUT_S, self.deadline.remaining())))
         except urllib.error.HTTPError as exc:
             exc.close()
             if exc.code in (401, 403):
@@ -288,13 +305,31 @@ class _Client:
                                       f"({exc.code}): give its API key with --api-key") from None
             raise KestimatorError(f"Moonraker at {self.url} answered {exc.code} to "
                                   f"{path.split('?')[0]}") from None
-        except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
+        except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as exc:
+            self.check_time()
             why = getattr(exc, "reason", None) or exc
             raise KestimatorError(f"Moonraker at {self.url} did not answer ({why})") from None
 
+    def read(self, response: Any, limit: int) -> bytes:
+        """At most `limit` + 1 bytes of `response`, within the deadline."""
+        import http.client
+
+        try:
+            body = read_bounded(response, self.deadline, limit)
+        except (http.client.HTTPException, OSError, ValueError) as exc:
+            self.check_time()
+            raise KestimatorError(f"Moonraker at {self.url} broke off its answer ({exc})"
+                                  ) from None
+        self.check_time()  # a body cut by the deadline ends early: never taken as whole
+        return body
+
     def jobs(self, limit: int) -> list[dict[str, Any]]:
+        """The newest `limit` jobs (however many the server sends)."""
         with self.open(f"{HISTORY_PATH}?limit={limit}&order=desc") as response:
-            body = response.read(MAX_ANSWER_BYTES + 1)
+            body = self.read(response, MAX_HISTORY_BYTES)
+        if len(body) > MAX_HISTORY_BYTES:
+            raise KestimatorError(f"Moonraker at {self.url} answered more than "
+                                  f"{MAX_HISTORY_BYTES} bytes for its job history")
         try:
             jobs = json.loads(body)["result"]["jobs"]
         except (ValueError, KeyError, TypeError):
@@ -302,7 +337,7 @@ class _Client:
                                   "history (result.jobs)") from None
         if not isinstance(jobs, list):
             raise KestimatorError(f"Moonraker at {self.url}: result.jobs is not a list")
-        return [job for job in jobs if isinstance(job, dict)]
+        return [job for job in jobs[:limit] if isinstance(job, dict)]
 
     def download(self, filename: str, directory: str) -> str:
         path = os.path.join(directory, "job.gcode")
@@ -310,7 +345,7 @@ class _Client:
                 open(path, "wb") as out:
             done = 0
             while True:
-                block = response.read(1 << 20)
+                block = self.read(response, 1 << 20)
                 if not block:
                     break
                 done += len(block)
@@ -347,20 +382,47 @@ def _now_text() -> str:
 
 
 def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
-                         timeout_s: float = DEFAULT_TIMEOUT_S,
+                         deadline_s: float = DEFAULT_DEADLINE_S,
                          max_jobs: int = MAX_HISTORY_JOBS,
-                         now: Callable[[], str] = _now_text) -> LearnedTimes:
-    """Read the history, time each completed job's file with `limits`, learn."""
-    import tempfile
+                         now: Callable[[], str] = _now_text,
+                         started: float | None = None) -> LearnedTimes:
+    """Read the history, time each completed job's file with `limits`, learn.
+
+    At most `max_jobs` jobs are read whatever the server sends; `deadline_s` bounds the whole
+    (every request, every download and the timing), counted from `started` (a
+    ``time.monotonic()``; default: now): when it passes, KestimatorError.
+    """
+    import time
 
     url = normalise_url(url)
-    client = _Client(url, api_key, max(timeout_s, 30.0))
+    spent = 0.0 if started is None else time.monotonic() - started
+    deadline = Deadline(deadline_s - spent)
+    try:
+        client = _Client(url, api_key, deadline)
+        return _learn(client, limits, max(1, max_jobs), now)
+    except _TimeUpError:
+        raise KestimatorError(f"learn did not finish within {deadline_s:g} s (Moonraker at "
+                              f"{url} answered too slowly, or too much to time): nothing "
+                              "stored; give more time with --timeout") from None
+    finally:
+        deadline.cancel()
+
+
+def _learn(client: _Client, limits: Limits, max_jobs: int,
+           now: Callable[[], str]) -> LearnedTimes:
+    import tempfile
+
     jobs = client.jobs(max_jobs)
     notes: list[str] = []
     timings: list[JobTiming] = []
     estimates: dict[str, Estimate] = {}
+
+    def in_time(_bytes_read: int) -> None:
+        client.check_time()
+
     with tempfile.TemporaryDirectory(prefix="kestimator-learn-") as directory:
         for job in jobs:
+            client.check_time()
             label = "job %s (%s)" % (_shown(job.get("job_id")), _shown(job.get("filename")))
             problem = _job_problem(job)
             if problem is not None:
@@ -370,14 +432,18 @@ def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
             est = estimates.get(filename)
             if est is None:
                 try:
-                    est = estimate_file(client.download(filename, directory), limits)
+                    est = estimate_file(client.download(filename, directory), limits,
+                                        progress=in_time)
+                except _TimeUpError:
+                    raise
                 except KestimatorError as exc:
                     notes.append("%s: not used, %s" % (label, _shown(exc.message)))
                     continue
                 estimates[filename] = est
             timings.append(timing_of(dict(job, job_id=_shown(job.get("job_id")),
                                           filename=_shown(filename)), est))
-    return learn_from(timings, url, now(), len(jobs), notes)
+    client.check_time()
+    return learn_from(timings, client.url, now(), len(jobs), notes)
 
 
 def moonraker_url_of(resolved: ResolvedLimits) -> str | None:

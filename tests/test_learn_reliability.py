@@ -1,20 +1,30 @@
-"""`kestimator learn` against bad stores (issue 29, item 3).
+"""`kestimator learn` against bad answers and bad stores (issue 29, items 2 and 3).
 
-Learn never stores a value the loader would reject, and the loader drops a bad value alone
-and says so.
+One deadline bounds the whole command (a server dripping the history or a file cannot hold
+it), kestimator keeps --jobs N itself, learn never stores a value the loader would reject,
+the loader drops a bad value alone and says so. Every server is on 127.0.0.1
+and stops itself (tests/history_moonraker.py).
 """
 
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
 
 from kestimator import cli, learn
+from kestimator.config.resolve import LimitRequest, resolve_limits
+from kestimator.errors import KestimatorError
 from kestimator.learn import JobTiming, LearnedTimes, LearnedValue, learn_from
+from tests.conftest import CORPUS, CORPUS_CFG
+from tests.history_moonraker import HistoryMoonraker, completed_job
 
 URL = "http://voron.local:7125"
+NUT = CORPUS / "gcode" / "prusaslicer" / "ps25_nut_accelA_small.gcode"
+# A run may take its deadline plus scheduling slack on a loaded machine, never more.
+SLACK_S = 4.0
 
 
 @pytest.fixture
@@ -24,6 +34,21 @@ def home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     monkeypatch.delenv("MOONRAKER_API_KEY", raising=False)
     return tmp_path
+
+
+def _limits():  # type: ignore[no-untyped-def]
+    return resolve_limits(LimitRequest(printer_cfg=str(CORPUS_CFG), use_profile=False)).limits
+
+
+def _learn_cli(url: str, *extra: str) -> tuple[int, str, str, float]:
+    import contextlib
+    import io
+
+    out, err = io.StringIO(), io.StringIO()
+    started = time.monotonic()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        status = cli.main(["learn", "--moonraker", url, "--no-profile", *extra])
+    return status, out.getvalue(), err.getvalue(), time.monotonic() - started
 
 
 def _timing(n: int, prep: float, print_s: float, motion_after: float) -> JobTiming:
@@ -98,3 +123,50 @@ def test_limits_json_shows_the_valid_learned_value_and_the_warning(
     assert doc["learned"]["before_first_extrusion_s"] is None
     assert any("learned time before the first extrusion" in w and "not used" in w
                for w in doc["warnings"]), doc["warnings"]
+
+
+# Item 2: one deadline for the whole command; --jobs N kept by kestimator.
+
+@pytest.mark.parametrize("drip", ["history", "files"])
+def test_one_deadline_bounds_the_whole_learn(home: Path, drip: str) -> None:
+    jobs = [completed_job(1, NUT.name, 700.0, 400.0)]
+    with HistoryMoonraker(jobs, {NUT.name: NUT.read_bytes()}, drip=(drip,)) as server:
+        status, out, err, took = _learn_cli(server.url, "--timeout", "1.5")
+    assert took < 1.5 + SLACK_S, took
+    assert status == 1 and out == ""
+    assert err.count("\n") == 1 and "did not finish within 1.5 s" in err, err
+    assert "internal error" not in err
+    assert not list((home / "cache" / "kestimator").glob("learned-*"))
+
+
+def test_the_timeout_option_is_documented_and_checked(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        cli.main(["learn", "--help"])
+    assert "--timeout S" in capsys.readouterr().out
+    doc = (Path(__file__).parent.parent / "docs" / "CLI.md").read_text()
+    assert "--timeout S" in doc
+    for bad in (["--timeout", "0"], ["--timeout", "nan"], ["--jobs", "0"]):
+        assert cli.main(["learn", "--moonraker", "http://127.0.0.1:9", "--no-profile",
+                         *bad]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "must be" in err
+
+
+def test_only_the_newest_n_jobs_are_read_whatever_the_server_sends() -> None:
+    jobs = [completed_job(n, "f%d.gcode" % n, 700.0, 400.0) for n in range(2000)]
+    with HistoryMoonraker(jobs) as server:
+        learned = learn.learn_from_moonraker(server.url, _limits(), max_jobs=3,
+                                             deadline_s=10.0)
+        downloads = server.downloads()
+    assert learned.jobs_read == 3
+    assert downloads == ["f0.gcode", "f1.gcode", "f2.gcode"]
+
+
+def test_a_history_answer_too_large_is_one_line(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(learn, "MAX_HISTORY_BYTES", 1000)
+    jobs = [completed_job(n, "f%d.gcode" % n, 700.0, 400.0) for n in range(50)]
+    with HistoryMoonraker(jobs) as server, pytest.raises(KestimatorError) as info:
+        learn.learn_from_moonraker(server.url, _limits(), deadline_s=10.0)
+    assert "answered more than 1000 bytes" in str(info.value)
+    assert server.url in str(info.value)
