@@ -561,6 +561,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
     if url is None:
         raise KestimatorError("learn reads a printer's job history from Moonraker: give "
                               "--moonraker URL (or name it in the profile)")
+    learn.check_store(url)  # before any download: a cache that cannot be written fails now
     learned = learn.learn_from_moonraker(
         url, resolved.limits, resolved.moonraker_api_key, max_jobs=args.jobs,
         deadline_s=args.timeout, started=started)

@@ -46,7 +46,7 @@ from kestimator.config.moonraker import (
 from kestimator.config.resolve import ResolvedLimits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import write_json_privately
+from kestimator.files import make_temp_file, write_json_privately
 from kestimator.limits import Limits
 from kestimator.macros import LEARNED_PREP_LABEL, TOOL_CHANGE, MacroTime, MacroTimes
 
@@ -332,7 +332,7 @@ class _Client:
                                   f"{MAX_HISTORY_BYTES} bytes for its job history")
         try:
             jobs = json.loads(body)["result"]["jobs"]
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, IndexError, RecursionError):
             raise KestimatorError(f"Moonraker at {self.url} did not answer with its job "
                                   "history (result.jobs)") from None
         if not isinstance(jobs, list):
@@ -373,8 +373,13 @@ def _job_problem(job: Mapping[str, Any]) -> str | None:
 
 def _shown(value: object) -> str:
     """A value from a server, safe to print: printable ASCII, at most 60 characters."""
-    text = "".join(c if " " <= c <= "~" else "?" for c in str(value))
-    return text[:60]
+    if isinstance(value, (dict, list)):  # never str() of a nested answer: its depth, its size
+        return "<%s>" % type(value).__name__
+    try:
+        text = value[:60] if isinstance(value, str) else str(value)[:60]
+    except ValueError:  # an int too long to show
+        text = "<number>"
+    return "".join(c if " " <= c <= "~" else "?" for c in text)
 
 
 def _now_text() -> str:
@@ -482,12 +487,36 @@ def store_path(url: str, directory: Path) -> Path:
     return settings.with_name(settings.name.replace("moonraker-", "learned-", 1))
 
 
+def check_store(url: str, directory: Path | None = None) -> Path:
+    """The store of `url`, once its directory is known to take a file: made (0700) if
+    missing and a file created in it and removed. `learn` calls this before downloading
+    anything. KestimatorError (one line) if it cannot be written."""
+    directory = directory if directory is not None else default_cache_dir(os.environ)
+    path = store_path(url, directory)
+    try:
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        handle, temp = make_temp_file(".learn-check-", ".tmp", str(path.parent))
+        os.close(handle)
+        os.unlink(temp)
+    except OSError as exc:
+        raise KestimatorError(_unwritable(path, exc)) from None
+    return path
+
+
+def _unwritable(path: Path, exc: OSError) -> str:
+    return ("cannot store the learned times in %s: %s (set $XDG_CACHE_HOME to a directory "
+            "you may write)" % (path.parent, exc.strerror or exc))
+
+
 def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
-    """Write the learned times atomically; the file's path."""
+    """Write the learned times atomically; the file's path (KestimatorError if it cannot)."""
     directory = directory if directory is not None else default_cache_dir(os.environ)
     path = store_path(learned.url, directory)
     document = {"format": STORE_FORMAT, **dataclasses.asdict(learned)}
-    write_json_privately(path, document)
+    try:
+        write_json_privately(path, document)
+    except OSError as exc:
+        raise KestimatorError(_unwritable(path, exc)) from None
     return path
 
 

@@ -1,8 +1,9 @@
-"""`kestimator learn` against bad answers and bad stores (issue 29, items 2 and 3).
+"""`kestimator learn` against bad answers and bad stores (issue 29, items 2, 3 and 8).
 
 One deadline bounds the whole command (a server dripping the history or a file cannot hold
 it), kestimator keeps --jobs N itself, learn never stores a value the loader would reject,
-the loader drops a bad value alone and says so. Every server is on 127.0.0.1
+the loader drops a bad value alone and says so, a deeply nested answer is one line naming
+the server, and an unwritable cache fails before any download. Every server is on 127.0.0.1
 and stops itself (tests/history_moonraker.py).
 """
 
@@ -170,3 +171,25 @@ def test_a_history_answer_too_large_is_one_line(monkeypatch: pytest.MonkeyPatch)
         learn.learn_from_moonraker(server.url, _limits(), deadline_s=10.0)
     assert "answered more than 1000 bytes" in str(info.value)
     assert server.url in str(info.value)
+
+
+# Item 8: a nested answer and an unwritable cache are one line each.
+
+def test_a_deeply_nested_history_is_one_line_naming_the_server(home: Path) -> None:
+    body = b"[" * 100_000 + b"]" * 100_000
+    with HistoryMoonraker([], history_body=body) as server:
+        status, _out, err, _took = _learn_cli(server.url)
+    assert status == 1 and err.count("\n") == 1, err
+    assert "internal error" not in err and server.url in err
+    assert "did not answer with its job history" in err
+
+
+def test_an_unwritable_cache_fails_before_any_download(home: Path) -> None:
+    (home / "cache").write_text("a file where the cache directory should be")
+    jobs = [completed_job(1, NUT.name, 700.0, 400.0)]
+    with HistoryMoonraker(jobs, {NUT.name: NUT.read_bytes()}) as server:
+        status, _out, err, _took = _learn_cli(server.url)
+        downloads = server.downloads()
+    assert status == 1 and err.count("\n") == 1, err
+    assert "cannot store the learned times in" in err and "internal error" not in err
+    assert downloads == []
