@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import os
 import sys
@@ -236,7 +237,12 @@ def _build_parser() -> argparse.ArgumentParser:
                     % learn.MIN_JOBS)
     _add_limit_options(lrn, with_times=False)
     lrn.add_argument("--jobs", type=int, default=learn.MAX_HISTORY_JOBS, metavar="N",
-                     help="read the newest N jobs (default %d)" % learn.MAX_HISTORY_JOBS)
+                     help="read the newest N jobs (default %d; more from the server are "
+                          "ignored)" % learn.MAX_HISTORY_JOBS)
+    lrn.add_argument("--timeout", type=float, default=learn.DEFAULT_DEADLINE_S, metavar="S",
+                     help="give up, storing nothing, when learning (the history, every "
+                          "download and its timing) takes longer than S seconds in all "
+                          "(default %g)" % learn.DEFAULT_DEADLINE_S)
     _add_debug_option(lrn)
     return parser
 
@@ -314,6 +320,9 @@ def _resolve(args: argparse.Namespace, gcode_path: str | None) -> ResolvedLimits
         if getattr(args, name, 0.0) is None:
             setattr(args, name, from_profile if from_profile is not None else 0.0)
     args.macros = learn.macro_times_for(resolved, not getattr(args, "no_learned", False))
+    if args.macros.warnings:  # a damaged learned store: said, never silently dropped
+        resolved = dataclasses.replace(resolved,
+                                       warnings=resolved.warnings + args.macros.warnings)
     args.resolved = resolved
     return resolved
 
@@ -538,13 +547,24 @@ def _learned_json(learned: learn.LearnedTimes) -> dict[str, Any]:
 
 def cmd_learn(args: argparse.Namespace) -> int:
     """`kestimator learn`."""
+    import math
+    import time
+
+    started = time.monotonic()
+    if args.jobs < 1:
+        raise UsageError("--jobs must be 1 or more, not %d" % args.jobs)
+    if not (math.isfinite(args.timeout) and args.timeout > 0):
+        raise UsageError("--timeout must be a number of seconds above 0, not %s"
+                         % args.timeout)
     resolved = resolve.resolve_limits(_limit_request(args, None))
     url = learn.moonraker_url_of(resolved)
     if url is None:
         raise KestimatorError("learn reads a printer's job history from Moonraker: give "
                               "--moonraker URL (or name it in the profile)")
-    learned = learn.learn_from_moonraker(url, resolved.limits, resolved.moonraker_api_key,
-                                         max_jobs=max(1, args.jobs))
+    learn.check_store(url)  # before any download: a cache that cannot be written fails now
+    learned = learn.learn_from_moonraker(
+        url, resolved.limits, resolved.moonraker_api_key, max_jobs=args.jobs,
+        deadline_s=args.timeout, started=started)
     path = learn.save(learned)
     sys.stdout.write(printable("Learned from %s: %d jobs read (%s), stored in %s" % (
         url, learned.jobs_read, learned.learned_at, path)) + "\n")

@@ -25,6 +25,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import math
 import os
 import re
 import urllib.parse
@@ -34,17 +35,18 @@ from typing import Any
 
 from kestimator.config.moonraker import (
     API_KEY_HEADER,
-    DEFAULT_TIMEOUT_S,
     MAX_ANSWER_BYTES,
+    Deadline,
     cache_path,
     clean_api_key,
     default_cache_dir,
     normalise_url,
+    read_bounded,
 )
 from kestimator.config.resolve import ResolvedLimits
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import write_json_privately
+from kestimator.files import make_temp_file, write_json_privately
 from kestimator.limits import Limits
 from kestimator.macros import LEARNED_PREP_LABEL, TOOL_CHANGE, MacroTime, MacroTimes
 
@@ -64,6 +66,13 @@ _TOOL_RE = re.compile(r"T\d+$")
 STORE_FORMAT = 1
 COMPLETED = "completed"
 MAX_FILE_BYTES = 1 << 31
+MAX_HISTORY_BYTES = MAX_ANSWER_BYTES
+# One deadline for the whole of `kestimator learn` (history, downloads, timing), seconds.
+DEFAULT_DEADLINE_S = 600.0
+# A socket read waits at most this long (within the deadline).
+READ_TIMEOUT_S = 30.0
+# The largest value the store keeps (seconds; a ratio for the motion correction).
+MAX_VALUE = 1e7
 _DATE_STORED = "%Y-%m-%dT%H:%M:%SZ"
 
 
@@ -150,6 +159,41 @@ def robust(values: Sequence[float]) -> tuple[LearnedValue | None, list[int]]:
     return LearnedValue(centre, spread, len(kept), len(rejected)), rejected
 
 
+def value_problem(value: LearnedValue, ratio: bool = False) -> str | None:
+    """Why the store would not keep `value` (None: usable). `learn` checks with this before
+    storing and the loader when reading, so learn never stores what would be ignored.
+
+    `ratio`: the motion correction (actual / planned, only above 1); else seconds (0 or more).
+    """
+    if not all(isinstance(n, float) and math.isfinite(n) for n in (value.value, value.spread)):
+        return "not a finite number"
+    if ratio and value.value <= 1.0:
+        return "%.4g is not above 1" % value.value
+    if value.value < 0.0:
+        return "%.3g s is negative" % value.value
+    if value.value >= MAX_VALUE:
+        return "%.3g is too large" % value.value
+    if value.spread < 0.0:
+        return "its spread %.3g is negative" % value.spread
+    if value.jobs < MIN_JOBS:
+        return "%d jobs are fewer than %d" % (value.jobs, MIN_JOBS)
+    if value.rejected < 0:
+        return "a negative count of rejected jobs"
+    return None
+
+
+def _kept(value: LearnedValue | None, what: str, why_negative: str, notes: list[str],
+          ratio: bool = False) -> LearnedValue | None:
+    """`value` if the store would keep it; else None and a note saying why not."""
+    problem = None if value is None else value_problem(value, ratio)
+    if problem is None:
+        return value
+    if value is not None and value.value < 0.0:
+        problem += " (%s)" % why_negative
+    notes.append("%s not stored: %s" % (what, problem))
+    return None
+
+
 @dataclasses.dataclass(frozen=True)
 class JobTiming:
     """One completed job and Klipper's times for its file."""
@@ -185,12 +229,16 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
     prep, rejected = robust(prep_values)
     notes += ["job %s (%s): time before the first extrusion %.0f s is an outlier (a pause?)"
               % (timings[i].job_id, timings[i].filename, prep_values[i]) for i in rejected]
+    prep = _kept(prep, "time %s" % LEARNED_PREP_LABEL,
+                 "total_duration - print_duration is shorter than Klipper's own motion "
+                 "before the first extrusion: the printer adds no time there", notes)
     plain = [t for t in timings if not t.frames and not t.tool_changes and t.motion_after_s > 0]
     ratio, _ = robust([t.print_duration / t.motion_after_s for t in plain]) if plain \
         else (None, [])
     factor = 1.0
     if ratio is not None and (ratio.value - 1.0 <= max(MIN_SLOWDOWN_R, 2 * ratio.spread)):
         ratio = None
+    ratio = _kept(ratio, "motion correction", "", notes, ratio=True)
     if ratio is not None:
         factor = ratio.value
     per_run: dict[str, LearnedValue] = {}
@@ -201,6 +249,9 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
         learned, rejected = robust(values)
         notes += ["job %s (%s): %.2f s per run of %s is an outlier" % (
             usable[i].job_id, usable[i].filename, values[i], name) for i in rejected]
+        learned = _kept(learned, "time per run of %s" % name,
+                        "print_duration is shorter than Klipper's motion after the first "
+                        "extrusion", notes)
         if learned is not None:
             per_run[name] = learned
     return LearnedTimes(url=url, learned_at=learned_at, before_first_extrusion_s=prep,
@@ -208,10 +259,15 @@ def learn_from(timings: Sequence[JobTiming], url: str, learned_at: str, jobs_rea
                         notes=tuple(notes))
 
 
-class _Client:
-    """GET requests to one Moonraker: no proxy, no redirects, the key in its header only."""
+class _TimeUpError(KestimatorError):
+    """The deadline of the whole `learn` passed (worded by `learn_from_moonraker`)."""
 
-    def __init__(self, url: str, api_key: str | None, timeout_s: float) -> None:
+
+class _Client:
+    """GET requests to one Moonraker: no proxy, no redirects, the key in its header only,
+    every connection cut when the one deadline of the whole `learn` passes."""
+
+    def __init__(self, url: str, api_key: str | None, deadline: Deadline) -> None:
         import urllib.request
 
         class NoRedirect(urllib.request.HTTPRedirectHandler):
@@ -222,20 +278,26 @@ class _Client:
         self.url = url
         # Whitespace (CR/LF) stripped, control characters refused without showing the key.
         self.api_key = clean_api_key(api_key)
-        self.timeout_s = timeout_s
+        self.deadline = deadline
         self.opener = urllib.request.build_opener(urllib.request.ProxyHandler({}),
-                                                  NoRedirect())
+                                                  NoRedirect(), *deadline.handlers())
+
+    def check_time(self) -> None:
+        if self.deadline.expired:
+            raise _TimeUpError("deadline")
 
     def open(self, path: str) -> Any:
         import http.client
         import urllib.error
         import urllib.request
 
+        self.check_time()
         request = urllib.request.Request(self.url + path)
         if self.api_key:
             request.add_header(API_KEY_HEADER, self.api_key)
         try:
-            return self.opener.open(request, timeout=self.timeout_s)
+            return self.opener.open(request, timeout=max(0.01, min(
+                READ_TIMEOUT_S, self.deadline.remaining())))
         except urllib.error.HTTPError as exc:
             exc.close()
             if exc.code in (401, 403):
@@ -243,21 +305,39 @@ class _Client:
                                       f"({exc.code}): give its API key with --api-key") from None
             raise KestimatorError(f"Moonraker at {self.url} answered {exc.code} to "
                                   f"{path.split('?')[0]}") from None
-        except (urllib.error.URLError, http.client.HTTPException, OSError) as exc:
+        except (urllib.error.URLError, http.client.HTTPException, OSError, ValueError) as exc:
+            self.check_time()
             why = getattr(exc, "reason", None) or exc
             raise KestimatorError(f"Moonraker at {self.url} did not answer ({why})") from None
 
+    def read(self, response: Any, limit: int) -> bytes:
+        """At most `limit` + 1 bytes of `response`, within the deadline."""
+        import http.client
+
+        try:
+            body = read_bounded(response, self.deadline, limit)
+        except (http.client.HTTPException, OSError, ValueError) as exc:
+            self.check_time()
+            raise KestimatorError(f"Moonraker at {self.url} broke off its answer ({exc})"
+                                  ) from None
+        self.check_time()  # a body cut by the deadline ends early: never taken as whole
+        return body
+
     def jobs(self, limit: int) -> list[dict[str, Any]]:
+        """The newest `limit` jobs (however many the server sends)."""
         with self.open(f"{HISTORY_PATH}?limit={limit}&order=desc") as response:
-            body = response.read(MAX_ANSWER_BYTES + 1)
+            body = self.read(response, MAX_HISTORY_BYTES)
+        if len(body) > MAX_HISTORY_BYTES:
+            raise KestimatorError(f"Moonraker at {self.url} answered more than "
+                                  f"{MAX_HISTORY_BYTES} bytes for its job history")
         try:
             jobs = json.loads(body)["result"]["jobs"]
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, IndexError, RecursionError):
             raise KestimatorError(f"Moonraker at {self.url} did not answer with its job "
                                   "history (result.jobs)") from None
         if not isinstance(jobs, list):
             raise KestimatorError(f"Moonraker at {self.url}: result.jobs is not a list")
-        return [job for job in jobs if isinstance(job, dict)]
+        return [job for job in jobs[:limit] if isinstance(job, dict)]
 
     def download(self, filename: str, directory: str) -> str:
         path = os.path.join(directory, "job.gcode")
@@ -265,7 +345,7 @@ class _Client:
                 open(path, "wb") as out:
             done = 0
             while True:
-                block = response.read(1 << 20)
+                block = self.read(response, 1 << 20)
                 if not block:
                     break
                 done += len(block)
@@ -293,8 +373,13 @@ def _job_problem(job: Mapping[str, Any]) -> str | None:
 
 def _shown(value: object) -> str:
     """A value from a server, safe to print: printable ASCII, at most 60 characters."""
-    text = "".join(c if " " <= c <= "~" else "?" for c in str(value))
-    return text[:60]
+    if isinstance(value, (dict, list)):  # never str() of a nested answer: its depth, its size
+        return "<%s>" % type(value).__name__
+    try:
+        text = value[:60] if isinstance(value, str) else str(value)[:60]
+    except ValueError:  # an int too long to show
+        text = "<number>"
+    return "".join(c if " " <= c <= "~" else "?" for c in text)
 
 
 def _now_text() -> str:
@@ -302,20 +387,47 @@ def _now_text() -> str:
 
 
 def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
-                         timeout_s: float = DEFAULT_TIMEOUT_S,
+                         deadline_s: float = DEFAULT_DEADLINE_S,
                          max_jobs: int = MAX_HISTORY_JOBS,
-                         now: Callable[[], str] = _now_text) -> LearnedTimes:
-    """Read the history, time each completed job's file with `limits`, learn."""
-    import tempfile
+                         now: Callable[[], str] = _now_text,
+                         started: float | None = None) -> LearnedTimes:
+    """Read the history, time each completed job's file with `limits`, learn.
+
+    At most `max_jobs` jobs are read whatever the server sends; `deadline_s` bounds the whole
+    (every request, every download and the timing), counted from `started` (a
+    ``time.monotonic()``; default: now): when it passes, KestimatorError.
+    """
+    import time
 
     url = normalise_url(url)
-    client = _Client(url, api_key, max(timeout_s, 30.0))
+    spent = 0.0 if started is None else time.monotonic() - started
+    deadline = Deadline(deadline_s - spent)
+    try:
+        client = _Client(url, api_key, deadline)
+        return _learn(client, limits, max(1, max_jobs), now)
+    except _TimeUpError:
+        raise KestimatorError(f"learn did not finish within {deadline_s:g} s (Moonraker at "
+                              f"{url} answered too slowly, or too much to time): nothing "
+                              "stored; give more time with --timeout") from None
+    finally:
+        deadline.cancel()
+
+
+def _learn(client: _Client, limits: Limits, max_jobs: int,
+           now: Callable[[], str]) -> LearnedTimes:
+    import tempfile
+
     jobs = client.jobs(max_jobs)
     notes: list[str] = []
     timings: list[JobTiming] = []
     estimates: dict[str, Estimate] = {}
+
+    def in_time(_bytes_read: int) -> None:
+        client.check_time()
+
     with tempfile.TemporaryDirectory(prefix="kestimator-learn-") as directory:
         for job in jobs:
+            client.check_time()
             label = "job %s (%s)" % (_shown(job.get("job_id")), _shown(job.get("filename")))
             problem = _job_problem(job)
             if problem is not None:
@@ -325,14 +437,18 @@ def learn_from_moonraker(url: str, limits: Limits, api_key: str | None = None,
             est = estimates.get(filename)
             if est is None:
                 try:
-                    est = estimate_file(client.download(filename, directory), limits)
+                    est = estimate_file(client.download(filename, directory), limits,
+                                        progress=in_time)
+                except _TimeUpError:
+                    raise
                 except KestimatorError as exc:
                     notes.append("%s: not used, %s" % (label, _shown(exc.message)))
                     continue
                 estimates[filename] = est
             timings.append(timing_of(dict(job, job_id=_shown(job.get("job_id")),
                                           filename=_shown(filename)), est))
-    return learn_from(timings, url, now(), len(jobs), notes)
+    client.check_time()
+    return learn_from(timings, client.url, now(), len(jobs), notes)
 
 
 def moonraker_url_of(resolved: ResolvedLimits) -> str | None:
@@ -345,16 +461,24 @@ def moonraker_url_of(resolved: ResolvedLimits) -> str | None:
 
 def learned_for(resolved: ResolvedLimits) -> LearnedTimes | None:
     """What was learned for the Moonraker the limits came from, if anything."""
+    return learned_with_warnings(resolved)[0]
+
+
+def learned_with_warnings(resolved: ResolvedLimits
+                          ) -> tuple[LearnedTimes | None, tuple[str, ...]]:
+    """What was learned for the Moonraker the limits came from, and what of it is not used
+    (see `load_with_warnings`)."""
     url = moonraker_url_of(resolved)
-    return None if url is None else load(url)
+    return (None, ()) if url is None else load_with_warnings(url)
 
 
 def macro_times_for(resolved: ResolvedLimits, use_learned: bool = True) -> MacroTimes:
-    """The profile's macro times, with what was learned for this printer over them."""
-    learned = learned_for(resolved) if use_learned else None
+    """The profile's macro times, with what was learned for this printer over them
+    (``warnings``: what of the learned store is not used, for the caller to show)."""
+    learned, warnings = learned_with_warnings(resolved) if use_learned else (None, ())
     if learned is None:
-        return MacroTimes(macros=dict(resolved.macro_times))
-    return learned.macro_times(resolved.macro_times)
+        return MacroTimes(macros=dict(resolved.macro_times), warnings=warnings)
+    return dataclasses.replace(learned.macro_times(resolved.macro_times), warnings=warnings)
 
 
 def store_path(url: str, directory: Path) -> Path:
@@ -363,41 +487,115 @@ def store_path(url: str, directory: Path) -> Path:
     return settings.with_name(settings.name.replace("moonraker-", "learned-", 1))
 
 
-def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
-    """Write the learned times atomically; the file's path."""
+def check_store(url: str, directory: Path | None = None) -> Path:
+    """The store of `url`, once its directory is known to take a file: made (0700) if
+    missing and a file created in it and removed. `learn` calls this before downloading
+    anything. KestimatorError (one line) if it cannot be written."""
     directory = directory if directory is not None else default_cache_dir(os.environ)
-    path = store_path(learned.url, directory)
-    document = {"format": STORE_FORMAT, **dataclasses.asdict(learned)}
-    write_json_privately(path, document)
+    path = store_path(url, directory)
+    try:
+        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        handle, temp = make_temp_file(".learn-check-", ".tmp", str(path.parent))
+        os.close(handle)
+        os.unlink(temp)
+    except OSError as exc:
+        raise KestimatorError(_unwritable(path, exc)) from None
     return path
 
 
-def _value(raw: object) -> LearnedValue | None:
+def _unwritable(path: Path, exc: OSError) -> str:
+    return ("cannot store the learned times in %s: %s (set $XDG_CACHE_HOME to a directory "
+            "you may write)" % (path.parent, exc.strerror or exc))
+
+
+def save(learned: LearnedTimes, directory: Path | None = None) -> Path:
+    """Write the learned times atomically; the file's path (KestimatorError if it cannot)."""
+    directory = directory if directory is not None else default_cache_dir(os.environ)
+    path = store_path(learned.url, directory)
+    document = {"format": STORE_FORMAT, **dataclasses.asdict(learned)}
+    try:
+        write_json_privately(path, document)
+    except OSError as exc:
+        raise KestimatorError(_unwritable(path, exc)) from None
+    return path
+
+
+def _value(raw: object, ratio: bool = False) -> LearnedValue | None:
+    """One stored value; ValueError (why) for one the store would not keep."""
     if raw is None:
         return None
     if not isinstance(raw, dict):
         raise ValueError("not an object")
+    numbers = [raw.get(key) for key in ("value", "spread", "jobs", "rejected")]
+    if any(isinstance(n, bool) or not isinstance(n, (int, float)) for n in numbers) or not all(
+            isinstance(n, int) for n in numbers[2:]):
+        raise ValueError("not {value, spread, jobs, rejected} numbers")
     value = LearnedValue(float(raw["value"]), float(raw["spread"]), int(raw["jobs"]),
                          int(raw["rejected"]))
-    if not (0.0 <= value.value < 1e7 and value.jobs >= MIN_JOBS):
-        raise ValueError("out of range")
+    problem = value_problem(value, ratio)
+    if problem is not None:
+        raise ValueError(problem)
     return value
 
 
 def load(url: str, directory: Path | None = None) -> LearnedTimes | None:
     """The stored learned times of the Moonraker at `url`, None if none (or unusable)."""
+    return load_with_warnings(url, directory)[0]
+
+
+def load_with_warnings(url: str, directory: Path | None = None
+                       ) -> tuple[LearnedTimes | None, tuple[str, ...]]:
+    """The stored learned times of the Moonraker at `url` (None if there are none or the
+    file is unusable) and one warning per value, or for the whole file, not used.
+
+    A value the store would not keep is dropped on its own: the others are still used."""
     directory = directory if directory is not None else default_cache_dir(os.environ)
     url = normalise_url(url)
+    path = store_path(url, directory)
+    redo = "run kestimator learn again"
     try:
-        document = json.loads(store_path(url, directory).read_text(encoding="utf-8"))
-        if document.get("format") != STORE_FORMAT or document.get("url") != url:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        return None, ()
+    except (OSError, ValueError) as exc:
+        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else "not UTF-8 text"
+        return None, ("learned times in %s not used: %s" % (path, why),)
+    try:
+        document = json.loads(text)
+        if not isinstance(document, dict):
+            raise ValueError("not a JSON object")
+        if document.get("format") != STORE_FORMAT:
+            raise ValueError("format %s, not %d" % (_shown(document.get("format")),
+                                                   STORE_FORMAT))
+        if document.get("url") != url:
+            raise ValueError("written for another URL")
+        learned_at = document["learned_at"]
+        raw_per_run = document.get("per_run_s") or {}
+        jobs_read = document.get("jobs_read", 0)
+        notes = document.get("notes") or []
+        if not (isinstance(learned_at, str) and isinstance(raw_per_run, dict)
+                and isinstance(jobs_read, int) and isinstance(notes, list)):
+            raise ValueError("learned_at, per_run_s, jobs_read or notes of the wrong type")
+    except (ValueError, KeyError, RecursionError) as exc:
+        why = "not JSON" if isinstance(exc, (json.JSONDecodeError, RecursionError)) else (
+            "no %s" % exc if isinstance(exc, KeyError) else str(exc))
+        return None, ("learned times in %s not used: %s (%s)" % (path, why, redo),)
+    warnings: list[str] = []
+
+    def kept(name: str, raw: object, ratio: bool = False) -> LearnedValue | None:
+        try:
+            return _value(raw, ratio)
+        except ValueError as exc:
+            warnings.append("learned %s in %s not used: %s (%s)" % (name, path, exc, redo))
             return None
-        per_run = {str(name): _value(raw) for name, raw in document["per_run_s"].items()}
-        return LearnedTimes(
-            url=url, learned_at=str(document["learned_at"]),
-            before_first_extrusion_s=_value(document["before_first_extrusion_s"]),
-            per_run_s={name: v for name, v in per_run.items() if v is not None},
-            motion_ratio=_value(document["motion_ratio"]),
-            jobs_read=int(document["jobs_read"]), notes=tuple(document["notes"]))
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
+
+    prep = kept("time " + LEARNED_PREP_LABEL, document.get("before_first_extrusion_s"))
+    per_run = {str(name): kept("time per run of " + _shown(name), raw)
+               for name, raw in raw_per_run.items()}
+    ratio = kept("motion correction", document.get("motion_ratio"), ratio=True)
+    learned = LearnedTimes(
+        url=url, learned_at=learned_at, before_first_extrusion_s=prep,
+        per_run_s={name: v for name, v in per_run.items() if v is not None},
+        motion_ratio=ratio, jobs_read=jobs_read,
+        notes=tuple(note for note in notes if isinstance(note, str)))
+    return learned, tuple(warnings)

@@ -46,6 +46,9 @@ class MacroTimes:
     motion_ratio: MacroTime | None = None
     """Learned: the printer's motion after the first extrusion takes this many times the
     planner's (``seconds`` holds the ratio; only above 1)."""
+    warnings: tuple[str, ...] = ()
+    """What of the learned times was not used and why (a damaged store), for the front
+    end to show."""
 
     def time_of(self, name: str) -> MacroTime | None:
         """The time of one run of the command `name`, if known (a tool change T<n> takes

@@ -76,7 +76,10 @@ def test_the_store_round_trips_and_refuses_what_it_did_not_write(tmp_path: Path)
     document = json.loads(path.read_text())
     document["before_first_extrusion_s"]["value"] = "lots"
     path.write_text(json.dumps(document))
-    assert learn.load(URL, tmp_path) is None
+    # The damaged value alone is dropped, and said (tests/test_learn_reliability.py).
+    loaded, warnings = learn.load_with_warnings(URL, tmp_path)
+    assert loaded is not None and loaded.before_first_extrusion_s is None
+    assert len(warnings) == 1 and "not used" in warnings[0]
 
 
 def test_what_a_server_sends_is_shown_filtered() -> None:

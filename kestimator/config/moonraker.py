@@ -212,11 +212,12 @@ def fetch_settings(url: str, api_key: str | None = None,
     return _settings_from_answer(body, url)
 
 
-def _read_bounded(response: Any, deadline: _Deadline) -> bytes:
-    """The body, at most MAX_ANSWER_BYTES + 1 bytes, read until the deadline."""
+def _read_bounded(response: Any, deadline: _Deadline, limit: int = MAX_ANSWER_BYTES) -> bytes:
+    """The body, at most `limit` + 1 bytes, read until the deadline (the caller checks
+    ``deadline.expired``: a body cut off by it ends early)."""
     parts: list[bytes] = []
     size = 0
-    while size <= MAX_ANSWER_BYTES and not deadline.expired:
+    while size <= limit and not deadline.expired:
         chunk = response.read1(READ_CHUNK_BYTES) if hasattr(response, "read1") else \
             response.read(READ_CHUNK_BYTES)
         if not chunk:
@@ -226,6 +227,9 @@ def _read_bounded(response: Any, deadline: _Deadline) -> bytes:
     return b"".join(parts)
 
 
+read_bounded = _read_bounded
+
+
 class _Deadline:
     """One deadline for a whole HTTP request: when it passes, the connection's socket is
     shut down from a timer thread, so a blocked read returns at once (a per-read socket
@@ -233,8 +237,10 @@ class _Deadline:
 
     def __init__(self, seconds: float) -> None:
         import threading
+        import time
 
         self.expired = False
+        self._end = time.monotonic() + max(seconds, 0.0)
         self._sockets: list[Any] = []
         self._lock = threading.Lock()
         self._timer = threading.Timer(max(seconds, 0.0), self._expire)
@@ -254,6 +260,12 @@ class _Deadline:
 
     def cancel(self) -> None:
         self._timer.cancel()
+
+    def remaining(self) -> float:
+        """Seconds left (0 once passed)."""
+        import time
+
+        return 0.0 if self.expired else max(0.0, self._end - time.monotonic())
 
     def watch(self, sock: Any) -> None:
         with self._lock:
@@ -292,6 +304,11 @@ class _Deadline:
                 return self.do_open(SecureConnection, req)
 
         return [Handler(), SecureHandler()]
+
+
+Deadline = _Deadline
+"""One deadline shared by several requests (``kestimator learn``): each connection made
+through its `handlers` is cut when it passes."""
 
 
 def _error_message(exc: Any) -> str:
