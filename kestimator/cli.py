@@ -31,6 +31,7 @@ from kestimator.cli_output import (
     print_text,
     printable,
     printable_doc,
+    quiet_stdout,
     set_slicer_estimate,
     write_json,
 )
@@ -697,17 +698,6 @@ class _GuardedStdout:
         return getattr(self._stream, name)
 
 
-def _quiet_stdout() -> None:
-    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
-    (what is still buffered goes nowhere)."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 1)
-        os.close(devnull)
-    except OSError:
-        pass
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status.
 
@@ -724,7 +714,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.flush()
         return status
     except StdoutError as exc:
-        _quiet_stdout()
+        quiet_stdout()
         if written:
             sys.stderr.write("kestimator: %s was written; its summary could not be shown: "
                              "standard output: %s\n" % (printable(written[0]), exc))
@@ -732,7 +722,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write("kestimator: error: cannot write to standard output: %s\n" % exc)
         return EXIT_FAILURE
     except BrokenPipeError:
-        _quiet_stdout()
+        quiet_stdout()
         return EXIT_OK
     except Terminated as exc:
         # Temporary files are gone (the writers unwind); 128 + signal, as if killed.
@@ -777,7 +767,7 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
         return EXIT_FAILURE
     except BrokenPipeError:
         # The reader went away (`kestimator estimate --json | head`): not our failure.
-        _quiet_stdout()
+        quiet_stdout()
         return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from collections.abc import Iterator
 from typing import Any, TextIO
@@ -73,6 +74,18 @@ def printable(text: str) -> str:
     Everything kestimator prints that came from a file, a server or a path goes through
     this."""
     return _UNSAFE_RE.sub(_escaped, text)
+
+
+def quiet_stdout() -> None:
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
+    (what is still buffered goes nowhere): after a broken pipe (`... | head`), where the
+    reader went away on purpose."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
 
 
 def printable_doc(value: Any) -> Any:

@@ -55,7 +55,7 @@ from kestimator.api import (
     macro_times_for,
     resolve_limits,
 )
-from kestimator.cli_output import parts_to_json, printable
+from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.files import Terminated
 
@@ -273,18 +273,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     out, err = sys.stdout, sys.stderr
-    if args.version:
-        out.write(VERSION_LINE + "\n")
-        return EXIT_OK
-    if args.command is None:
+    if args.command is None and not args.version:
         parser.print_help(err)
         return EXIT_USAGE
     try:
-        if args.command == "estimate":
-            return cmd_estimate(args, out, err, sys.stdin.buffer)
-        if args.command == "post-process":
-            return cmd_post_process(args, out, err)
-        return cmd_dump_config(args, out, err)
+        if args.version:
+            out.write(VERSION_LINE + "\n")
+            status = EXIT_OK
+        elif args.command == "estimate":
+            status = cmd_estimate(args, out, err, sys.stdin.buffer)
+        elif args.command == "post-process":
+            status = cmd_post_process(args, out, err)
+        else:
+            status = cmd_dump_config(args, out, err)
+        # Here, not at the interpreter's exit, so a reader that went away is caught below.
+        out.flush()
+        return status
+    except BrokenPipeError:
+        # The reader went away (`kestimator-compat estimate F | head`): not our failure, as
+        # `kestimator` says (its main). A post-process run has replaced its file by then.
+        quiet_stdout()
+        return EXIT_OK
     except KestimatorError as exc:
         err.write("kestimator-compat: error: %s\n" % _printable(str(exc)))
         return EXIT_FAILURE

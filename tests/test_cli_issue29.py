@@ -13,19 +13,13 @@ error`, never a silent or absurd number, and the user's file is never damaged.
 from __future__ import annotations
 
 import os
-import shutil
-import struct
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
-from kestimator import rewrite
 from kestimator.config.printer_cfg import limits_from_printer_cfg
-from kestimator.errors import KestimatorError
-from kestimator.filekind import STL, what_is_not_gcode
-from kestimator.rewrite import inject_file
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
 
@@ -86,3 +80,22 @@ def test_report_on_a_file_whose_name_is_not_utf8_writes_the_page(tmp_path: Path)
     assert proc.returncode == 0, proc.stderr
     assert b"internal error" not in proc.stderr
     assert "caf\\xe9.gcode" in page.read_text(encoding="utf-8")
+
+
+# 10. kestimator-compat ... | head
+
+
+@pytest.mark.parametrize("argv", [["estimate", "-f", "json", str(NUT)],
+                                  ["estimate", str(NUT)], ["--version"]])
+def test_compat_into_a_closed_pipe_is_no_internal_error(argv: list[str]) -> None:
+    """The reader is gone before the first byte is written, as `| head -0` does."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)
+    try:
+        proc = subprocess.run([sys.executable, "-m", "kestimator.compat", *argv],
+                              env=dict(os.environ, PYTHONPATH=str(PROJECT)),
+                              stdout=write_end, stderr=subprocess.PIPE, timeout=300)
+    finally:
+        os.close(write_end)
+    assert proc.stderr == b"", proc.stderr
+    assert proc.returncode == 0
