@@ -19,7 +19,10 @@ from pathlib import Path
 
 import pytest
 
+from kestimator import rewrite
 from kestimator.config.printer_cfg import limits_from_printer_cfg
+from kestimator.errors import KestimatorError
+from kestimator.rewrite import inject_file
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
 
@@ -99,3 +102,84 @@ def test_compat_into_a_closed_pipe_is_no_internal_error(argv: list[str]) -> None
         os.close(write_end)
     assert proc.stderr == b"", proc.stderr
     assert proc.returncode == 0
+
+
+# 1. inject -o OUT while the input is replaced
+
+
+def _between_passes(monkeypatch: pytest.MonkeyPatch, action) -> None:  # type: ignore[no-untyped-def]
+    real_plan = rewrite.plan_file
+
+    def plan_then_act(*args, **kwargs):  # type: ignore[no-untyped-def]
+        result = real_plan(*args, **kwargs)
+        action()
+        return result
+
+    monkeypatch.setattr(rewrite, "plan_file", plan_then_act)
+
+
+def _replace(path: Path, data: bytes) -> None:
+    other = path.with_name("other")
+    other.write_bytes(data)
+    os.replace(other, path)
+
+
+@pytest.mark.parametrize("how", ["replace_file", "append", "truncate", "remove"])
+@pytest.mark.parametrize("old_out", [False, True])
+def test_inject_to_another_file_refuses_a_source_changed_between_the_passes(
+        how: str, old_out: bool, tmp_path: Path, limits,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(SMALL_BODY)
+    out = tmp_path / "out.gcode"
+    if old_out:
+        out.write_bytes(b"; the user's old output\n")
+
+    def change() -> None:
+        if how == "replace_file":
+            _replace(work, OTHER_BODY)
+        elif how == "remove":
+            work.unlink()
+        else:
+            with open(work, "r+b") as f:
+                f.truncate(0)
+                f.write(SMALL_BODY + b"G1 X30 E1\n" if how == "append" else SMALL_BODY[:20])
+
+    _between_passes(monkeypatch, change)
+    with pytest.raises(KestimatorError, match="while it was being processed") as info:
+        inject_file(work, limits, output=str(out))
+    assert info.value.path == str(work)
+    if old_out:
+        assert out.read_bytes() == b"; the user's old output\n"
+    else:
+        assert not out.exists()
+    assert sorted(os.listdir(tmp_path)) == sorted(
+        ["out.gcode"] * old_out + ["print.gcode"] * (how != "remove"))
+
+
+def test_inject_to_another_file_refuses_a_source_replaced_during_the_second_pass(
+        tmp_path: Path, limits, monkeypatch: pytest.MonkeyPatch) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(SMALL_BODY)
+    out = tmp_path / "out.gcode"
+    real_fsync = os.fsync
+
+    def fsync_while_the_slicer_saves(fd: int) -> None:
+        real_fsync(fd)
+        _replace(work, OTHER_BODY)
+
+    monkeypatch.setattr(rewrite.os, "fsync", fsync_while_the_slicer_saves)
+    with pytest.raises(KestimatorError, match="out.gcode was not written"):
+        inject_file(work, limits, output=str(out))
+    assert not out.exists()
+    assert sorted(os.listdir(tmp_path)) == ["print.gcode"]
+    assert work.read_bytes() == OTHER_BODY
+
+
+def test_inject_to_another_file_still_writes_an_unchanged_source(
+        tmp_path: Path, limits) -> None:
+    work = tmp_path / "print.gcode"
+    work.write_bytes(SMALL_BODY)
+    out = tmp_path / "out.gcode"
+    inject_file(work, limits, output=str(out))
+    assert b"M73 P0 R" in out.read_bytes() and work.read_bytes() == SMALL_BODY
