@@ -13,6 +13,7 @@ error`, never a silent or absurd number, and the user's file is never damaged.
 from __future__ import annotations
 
 import os
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ import pytest
 from kestimator import rewrite
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.errors import KestimatorError
+from kestimator.filekind import STL, what_is_not_gcode
 from kestimator.rewrite import inject_file
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment
@@ -183,3 +185,46 @@ def test_inject_to_another_file_still_writes_an_unchanged_source(
     out = tmp_path / "out.gcode"
     inject_file(work, limits, output=str(out))
     assert b"M73 P0 R" in out.read_bytes() and work.read_bytes() == SMALL_BODY
+
+
+# 14. A binary STL whose size does not match its triangle count
+
+
+def _binary_stl(triangles: int, count: int | None = None, extra: bytes = b"") -> bytes:
+    header = b"binary STL written by the test".ljust(80, b" ")
+    facet = struct.pack("<12fH", 0, 0, 1, 0, 0, 0, 10, 0, 0, 0, 10, 0, 0)
+    return (header + struct.pack("<I", triangles if count is None else count)
+            + facet * triangles + extra)
+
+
+ODD_STLS = {
+    "padded.stl": _binary_stl(12, extra=b"\0\0"),
+    "cut_short.stl": _binary_stl(12)[:-30],
+    "wrong_count.stl": _binary_stl(12, count=1000),
+    "no_extension": _binary_stl(3, extra=b"trailing junk"),
+    "empty.stl": _binary_stl(0),
+}
+
+
+@pytest.mark.parametrize("name", sorted(ODD_STLS))
+def test_an_odd_binary_stl_is_refused_by_every_command(name: str, tmp_path: Path) -> None:
+    path = tmp_path / name
+    path.write_bytes(ODD_STLS[name])
+    said = ("kestimator: error: %s: %s\n" % (path, STL)).encode()
+    for argv in (["estimate", path], ["check", path], ["report", path, "-o", tmp_path / "r.html"],
+                 ["inject", path]):
+        proc = run(*argv)
+        assert (proc.returncode, proc.stderr, proc.stdout) == (1, said, b""), argv
+    proc = run("estimate", path, program="compat")
+    assert proc.returncode == 1
+    assert proc.stderr == ("kestimator-compat: error: %s: %s\n" % (path, STL)).encode()
+    assert path.read_bytes() == ODD_STLS[name]
+    assert sorted(os.listdir(tmp_path)) == [name]
+
+
+def test_text_gcode_is_never_taken_for_a_binary_stl(corpus_root: Path) -> None:
+    for path in sorted((CORPUS / "gcode").rglob("*")):
+        if path.is_file():
+            with open(path, "rb") as f:
+                start = f.read(64 * 1024)
+            assert what_is_not_gcode(start, path.stat().st_size, str(path)) is None, path
