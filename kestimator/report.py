@@ -29,7 +29,8 @@ from kestimator.cli_output import (
     untimed_summary,
 )
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate, ProgressCallback, estimate_file
+from kestimator.errors import KestimatorError
+from kestimator.estimate import Estimate, ProgressCallback, estimate_lines, iter_lines
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.preflight import KIND_STOP, summary_lines
@@ -142,11 +143,18 @@ def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 
             limit_warnings: Sequence[str] = (),
             limit_sources: Mapping[str, str] | None = None,
             guessed_limits: bool = False,
-            bytes_read: ProgressCallback | None = None) -> ReportData:
-    """Estimate the file with move statistics; read the slicer's remaining time and Z."""
+            bytes_read: ProgressCallback | None = None,
+            shown: str | None = None) -> ReportData:
+    """Estimate the file with move statistics; read the slicer's remaining time and Z.
+
+    `shown` is the name the page gives the file (default `path`; `<stdin>` when `path` is a
+    temporary copy of standard input)."""
     speed = SpeedStats()
-    est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
-                        macros=macros, sample=True, observer=speed, progress=bytes_read)
+    if os.path.isdir(path):
+        raise KestimatorError("is a directory, not a G-code file", path)
+    est = estimate_lines(iter_lines(path, bytes_read), limits, path if shown is None else shown,
+                         homing_time=homing_time, heat_time=heat_time, macros=macros,
+                         sample=True, observer=speed)
     slicer = slicer_of_file(path)  # through our marker in an injected file
     m73: list[tuple[float, float]] = []
     elapsed: list[tuple[float, float]] = []

@@ -228,3 +228,90 @@ def test_text_gcode_is_never_taken_for_a_binary_stl(corpus_root: Path) -> None:
             with open(path, "rb") as f:
                 start = f.read(64 * 1024)
             assert what_is_not_gcode(start, path.stat().st_size, str(path)) is None, path
+
+
+# 11. `-` is standard input and standard output
+
+
+def test_estimate_check_report_and_limits_read_dash_from_standard_input(
+        tmp_path: Path, corpus_root: Path) -> None:
+    data = NUT.read_bytes()
+    named = run("estimate", NUT, "-q", "--printer-cfg", CORPUS_CFG)
+    piped = run("estimate", "-", "-q", "--printer-cfg", CORPUS_CFG, stdin=data)
+    assert piped.returncode == 0, piped.stderr
+    assert piped.stdout == named.stdout and float(piped.stdout) > 100
+    doc = run("estimate", "-", "--json", "--printer-cfg", CORPUS_CFG, stdin=data)
+    assert b'"file": "<stdin>"' in doc.stdout
+    check = run("check", "-", "--printer-cfg", CORPUS_CFG, stdin=data)
+    assert check.returncode == 0 and check.stdout.startswith(b"<stdin>\n")
+    page = tmp_path / "r.html"
+    report = run("report", "-", "-o", page, "-q", "--printer-cfg", CORPUS_CFG, stdin=data)
+    assert report.returncode == 0, report.stderr
+    assert "Klipper time for &lt;stdin&gt;" in page.read_text(encoding="utf-8")
+    limits = run("limits", "-", stdin=data)
+    assert limits.returncode == 0 and b"<stdin>" in limits.stdout
+    # The temporary copy is gone and never named.
+    for proc in (piped, doc, check, report, limits):
+        assert b"kestimator-stdin" not in proc.stdout + proc.stderr
+
+
+def test_inject_dash_o_dash_writes_the_gcode_to_standard_output(
+        tmp_path: Path, corpus_root: Path) -> None:
+    out = tmp_path / "out.gcode"
+    assert run("inject", NUT, "-o", out, "-q").returncode == 0
+    to_stdout = run("inject", NUT, "-o", "-")
+    assert to_stdout.returncode == 0, to_stdout.stderr
+    assert to_stdout.stdout == out.read_bytes()
+    assert b"<stdout>: Klipper time" in to_stdout.stderr
+    piped = run("inject", "-", "-o", "-", "-q", stdin=NUT.read_bytes())
+    assert piped.returncode == 0 and piped.stdout == out.read_bytes()
+    from_stdin = run("inject", "-", "-o", tmp_path / "o2.gcode", "-q", stdin=NUT.read_bytes())
+    assert from_stdin.returncode == 0
+    assert (tmp_path / "o2.gcode").read_bytes() == out.read_bytes()
+    page = run("report", NUT, "-o", "-")
+    assert page.returncode == 0 and page.stdout.startswith(b"<!DOCTYPE html>")
+    assert not os.path.exists("-") and sorted(os.listdir(tmp_path)) == [
+        "o2.gcode", "out.gcode"]
+
+
+@pytest.mark.parametrize("argv, stdin, said", [
+    (["inject", "-"], NUT, b"kestimator: error: standard input cannot be rewritten in "
+                           b"place: give -o OUT, or -o - for standard output\n"),
+    (["inject", str(NUT), "-o", "-", "--json"], None,
+     b"kestimator: error: -o - writes the G-code to standard output, where --json would go "
+     b"too: give -o FILE, or -q\n"),
+    (["estimate", "-"], None, b"kestimator: error: <stdin>: the file is empty\n"),
+])
+def test_dash_where_it_cannot_be_used_is_one_line(
+        argv: list[str], stdin: Path | None, said: bytes, corpus_root: Path) -> None:
+    proc = run(*argv, stdin=stdin.read_bytes() if stdin else b"")
+    assert proc.stderr == said
+    assert proc.returncode == (1 if argv[0] == "estimate" else 2)
+    assert proc.stdout == b""
+
+
+def test_stdin_from_a_terminal_is_refused_not_waited_for(corpus_root: Path) -> None:
+    import pty
+
+    leader, follower = pty.openpty()
+    try:
+        proc = subprocess.run([sys.executable, "-m", "kestimator", "estimate", "-"],
+                              env=dict(os.environ, PYTHONPATH=str(PROJECT)), stdin=follower,
+                              capture_output=True, timeout=60)
+    finally:
+        os.close(leader)
+        os.close(follower)
+    assert proc.returncode == 1
+    assert proc.stderr.startswith(b"kestimator: error: <stdin>: standard input is a terminal")
+
+
+def test_compat_reads_dash_as_stdin_with_the_checks_of_a_file(
+        tmp_path: Path, corpus_root: Path) -> None:
+    proc = run("estimate", "-f", "json", "-", program="compat", stdin=NUT.read_bytes())
+    assert proc.returncode == 0 and b'"total_time"' in proc.stdout
+    stl = run("estimate", "-", program="compat", stdin=ODD_STLS["padded.stl"])
+    assert stl.returncode == 1
+    assert stl.stderr == ("kestimator-compat: error: <stdin>: %s\n" % STL).encode()
+    post = run("post-process", "-", program="compat", stdin=NUT.read_bytes())
+    assert post.returncode == 1 and post.stderr.count(b"\n") == 1
+    assert b"standard input cannot be" in post.stderr
