@@ -365,7 +365,8 @@ def _progress(args: argparse.Namespace, label: str, passes: int = 1
               ) -> contextlib.AbstractContextManager[ProgressBar | None]:
     """A progress bar for the command's file (`progress_for`), unless --json or -q."""
     return progress_for(args.file, label, passes,
-                        wanted=not (getattr(args, "json", False) or args.quiet))
+                        wanted=not (getattr(args, "json", False) or args.quiet),
+                        shown=args.shown)
 
 
 def _write_json(doc: dict[str, Any]) -> None:

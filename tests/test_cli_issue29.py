@@ -315,3 +315,20 @@ def test_compat_reads_dash_as_stdin_with_the_checks_of_a_file(
     post = run("post-process", "-", program="compat", stdin=NUT.read_bytes())
     assert post.returncode == 1 and post.stderr.count(b"\n") == 1
     assert b"standard input cannot be" in post.stderr
+
+
+def test_the_command_line_exits_1_when_the_source_is_swapped_under_inject_o(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+        capsys: pytest.CaptureFixture[str]) -> None:
+    from kestimator import cli
+
+    big = tmp_path / "print.gcode"
+    big.write_bytes(SMALL_BODY * 50)
+    out = tmp_path / "out.gcode"
+    _between_passes(monkeypatch, lambda: _replace(big, OTHER_BODY))
+    assert cli.main(["inject", str(big), "-o", str(out), "--printer-cfg",
+                     str(CORPUS_CFG)]) == cli.EXIT_FAILURE
+    err = capsys.readouterr().err
+    assert err == ("kestimator: error: %s: the file changed while it was being processed: "
+                   "%s was not written\n" % (big, out))
+    assert not out.exists()
