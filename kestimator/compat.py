@@ -174,9 +174,12 @@ def _warn(resolved: ResolvedLimits, err: TextIO) -> None:
 
 
 def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
-                 stdin: BinaryIO) -> int:
+                 stdin: BinaryIO | None) -> int:
     """``estimate [-f json] INPUT``."""
     if args.input == STDIN_NAME:
+        if stdin is None:  # started with standard input closed (<&-)
+            raise KestimatorError("standard input is closed: there is no G-code to read",
+                                  STDIN_SHOWN)
         # Kept in a temporary file, so it is checked as a named file is (an STL, a 3MF,
         # an empty input are one line) and named `<stdin>`.
         with spooled_stdin(stdin, STDIN_SHOWN) as path:
@@ -288,7 +291,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             out.write(VERSION_LINE + "\n")
             status = EXIT_OK
         elif args.command == "estimate":
-            status = cmd_estimate(args, out, err, sys.stdin.buffer)
+            status = cmd_estimate(args, out, err, getattr(sys.stdin, "buffer", None))
         elif args.command == "post-process":
             status = cmd_post_process(args, out, err)
         else:

@@ -332,3 +332,16 @@ def test_the_command_line_exits_1_when_the_source_is_swapped_under_inject_o(
     assert err == ("kestimator: error: %s: the file changed while it was being processed: "
                    "%s was not written\n" % (big, out))
     assert not out.exists()
+
+
+@pytest.mark.parametrize("program, prefix", [("kestimator", "kestimator"),
+                                             ("compat", "kestimator-compat")])
+def test_dash_with_standard_input_closed_is_one_line(program: str, prefix: str) -> None:
+    module = "kestimator" if program == "kestimator" else "kestimator.compat"
+    proc = subprocess.run(["sh", "-c", 'exec "$0" -m %s estimate - <&-' % module,
+                           sys.executable],
+                          env=dict(os.environ, PYTHONPATH=str(PROJECT)), capture_output=True,
+                          timeout=60)
+    assert proc.returncode == 1
+    assert proc.stderr == ("%s: error: <stdin>: standard input is closed: there is no G-code "
+                           "to read\n" % prefix).encode()
