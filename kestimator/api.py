@@ -12,8 +12,10 @@ inside the core that moves one changes this file, not them.
   `moonraker_values`, and the resolver that weighs every source (`LimitRequest`,
   `ResolvedLimits`, `resolve_limits`, `resolve_machine_limits`, `macro_times_for`,
   `learned_macro_times`).
-- Estimating: `estimate_file`, `estimate_lines`, their result `Estimate`, the planned
-  `Move` an observer hears, `NO_FEATURE`, and `format_duration` (``1h 02m 03s``).
+- Estimating: `estimate_file`, `estimate_lines` (over `iter_lines(path)`, a file's lines
+  in bounded memory, when the estimate must name the file otherwise), their result
+  `Estimate`, the planned `Move` an observer hears, `NO_FEATURE`, and `format_duration`
+  (``1h 02m 03s``).
 - Rewriting (``kestimator inject``'s two passes): `plan_lines` (pass 1 over byte lines:
   the estimate and an `InjectPlan`), `Rewriter` (pass 2, line by line), `inject_file` (both
   over a file, replaced atomically) and its `InjectResult`, `check_gcode_file`, and the
@@ -38,7 +40,7 @@ from kestimator.config.moonraker import moonraker_values
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_file, estimate_lines
+from kestimator.estimate import Estimate, estimate_file, estimate_lines, iter_lines
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.rewrite import (
@@ -68,9 +70,9 @@ __all__ = [
     "Limits", "MacroTimes", "Move", "ResolvedLimits", "Rewriter", "SlicerConfig",
     "SlicerInfo", "SlicerValue",
     "adapter_for", "check_gcode_file", "detect_slicer", "estimate_file", "estimate_lines",
-    "format_duration", "inject_file", "learned_macro_times", "limits_from_printer_cfg",
-    "macro_times_for", "moonraker_values", "parse_marker", "plan_lines", "resolve_limits",
-    "resolve_machine_limits",
+    "format_duration", "inject_file", "iter_lines", "learned_macro_times",
+    "limits_from_printer_cfg", "macro_times_for", "moonraker_values", "parse_marker",
+    "plan_lines", "resolve_limits", "resolve_machine_limits",
 ]
 
 _RESOLVER_NAMES = frozenset(("LimitRequest", "ResolvedLimits", "resolve_limits"))

@@ -32,6 +32,7 @@ from kestimator.cli_output import (
     print_text,
     printable,
     printable_doc,
+    quiet_stdout,
     set_slicer_estimate,
     write_json,
 )
@@ -54,8 +55,14 @@ from kestimator.config.resolve import (
 )
 from kestimator.durations import format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_file
-from kestimator.files import Terminated, write_bytes_atomically
+from kestimator.estimate import Estimate, estimate_lines, iter_lines
+from kestimator.files import (
+    STDIO_NAME,
+    STDOUT_SHOWN,
+    Terminated,
+    spooled_stdin,
+    write_bytes_atomically,
+)
 from kestimator.preflight import (
     EXIT_KLIPPER_STOPS,
     SUMMARY_HEAD,
@@ -367,7 +374,8 @@ def _progress(args: argparse.Namespace, label: str, passes: int = 1
               ) -> contextlib.AbstractContextManager[ProgressBar | None]:
     """A progress bar for the command's file (`progress_for`), unless --json or -q."""
     return progress_for(args.file, label, passes,
-                        wanted=not (getattr(args, "json", False) or args.quiet))
+                        wanted=not (getattr(args, "json", False) or args.quiet),
+                        shown=args.shown)
 
 
 def _write_json(doc: dict[str, Any]) -> None:
@@ -380,8 +388,10 @@ def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Es
     resolved = _resolve(args, args.file)
     _check_time_options(args)
     with _progress(args, label) as progress:
-        est = estimate_file(args.file, resolved.limits, homing_time=args.homing_time,
-                            heat_time=args.heat_time, progress=progress, macros=args.macros)
+        # Named as the user named it (`<stdin>` for `-`, read from a temporary copy).
+        est = estimate_lines(iter_lines(args.file, progress), resolved.limits, args.shown,
+                             homing_time=args.homing_time, heat_time=args.heat_time,
+                             macros=args.macros)
     return resolved, est
 
 
@@ -393,7 +403,7 @@ def cmd_estimate(args: argparse.Namespace) -> int:
         warnings.append("the file has no moves: there is nothing to time")
     slicer = slicer_of_file(args.file)
     doc = estimate_to_json(est, slicer, resolved.summary, warnings,
-                           limits_guessed=resolved.guessed)
+                           limits_guessed=resolved.guessed, source=args.file)
     if args.json:
         _write_json(doc)
     elif args.quiet:
@@ -412,6 +422,10 @@ def cmd_estimate(args: argparse.Namespace) -> int:
 
 def cmd_inject(args: argparse.Namespace) -> int:
     """`kestimator inject`."""
+    to_stdout = args.output == STDIO_NAME
+    if to_stdout and args.json:
+        raise UsageError("-o - writes the G-code to standard output, where --json would go "
+                         "too: give -o FILE, or -q")
     check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
     _check_time_options(args)
@@ -421,12 +435,17 @@ def cmd_inject(args: argparse.Namespace) -> int:
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              progress=progress, macros=args.macros,
                              layer_info=args.layer_info)
-    args.written.append(result.output)
+    shown_output = STDOUT_SHOWN if to_stdout else result.output
+    if not to_stdout:
+        args.written.append(result.output)
     if args.json:
         doc = estimate_to_json(result.estimate, result.slicer, resolved.summary,
                                list(resolved.warnings), limits_guessed=resolved.guessed)
         set_slicer_estimate(doc, result.slicer_estimate_s)
-        doc["output"] = result.output
+        if args.shown != args.file:  # standard input, timed from a temporary copy
+            doc["file"] = args.shown
+            doc["warnings"] = [w.replace(args.file, args.shown) for w in doc["warnings"]]
+        doc["output"] = shown_output
         doc["m73_written"] = result.m73_written
         _write_json(doc)
     elif not args.quiet:
@@ -440,10 +459,11 @@ def cmd_inject(args: argparse.Namespace) -> int:
         found = ("" if not preflight else
                  "; pre-flight: %s (kestimator check FILE shows each)"
                  % preflight[0][len(SUMMARY_HEAD):])
-        sys.stdout.write(printable("kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
-                                   % (result.output, format_duration(est.total_s),
-                                      _parts_text(est), approximate, said,
-                                      result.m73_written, found)) + "\n")
+        # With -o -, standard output is the G-code: the summary goes to stderr.
+        (sys.stderr if to_stdout else sys.stdout).write(printable(
+            "kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
+            % (shown_output, format_duration(est.total_s), _parts_text(est), approximate,
+               said, result.m73_written, found)) + "\n")
     _say_guessed(resolved)
     return _stop_status(result.estimate)
 
@@ -508,7 +528,7 @@ def cmd_limits(args: argparse.Namespace) -> int:
     if args.file is not None:
         check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
-    doc = limits_to_json(resolved, args.file)
+    doc = limits_to_json(resolved, args.shown)
     learned = _learned(args, resolved)
     doc["macros"] = {name: {"seconds": t.seconds, "source": t.source}
                      for name, t in sorted(resolved.macro_times.items())}
@@ -583,11 +603,13 @@ def cmd_report(args: argparse.Namespace) -> int:
     # Only this command draws the page: the other commands do not pay for its import.
     from kestimator.report import collect, render_html
 
-    extension = os.path.splitext(args.output)[1].lower()
+    to_stdout = args.output == STDIO_NAME
+    extension = ".html" if to_stdout else os.path.splitext(args.output)[1].lower()
     if not args.output:
         raise KestimatorError("-o names no file (an empty name)")
     check_gcode_file(args.file)
-    if os.path.exists(args.output) and os.path.samefile(args.file, args.output):
+    if (not to_stdout and os.path.exists(args.output)
+            and os.path.samefile(args.file, args.output)):
         raise KestimatorError("the report would overwrite the G-code it reports on: give "
                               "another -o", args.output)
     if extension not in REPORT_EXTENSIONS:
@@ -601,13 +623,16 @@ def cmd_report(args: argparse.Namespace) -> int:
                        homing_time=args.homing_time, heat_time=args.heat_time,
                        macros=args.macros, limit_warnings=list(resolved.warnings),
                        limit_sources=resolved.sources, guessed_limits=resolved.guessed,
-                       bytes_read=progress)
+                       bytes_read=progress, shown=args.shown)
     page = render_html(data)
     write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
         approximate = ", approximate: the limits are guesses" if resolved.guessed else ""
-        sys.stdout.write(printable("kestimator: wrote %s (Klipper time %s%s)" % (
-            args.output, format_duration(data.estimate.total_s), approximate)) + "\n")
+        # With -o -, standard output is the page: the summary goes to stderr.
+        (sys.stderr if to_stdout else sys.stdout).write(printable(
+            "kestimator: wrote %s (Klipper time %s%s)" % (
+                STDOUT_SHOWN if to_stdout else args.output,
+                format_duration(data.estimate.total_s), approximate)) + "\n")
     _say_guessed(resolved)
     return EXIT_OK
 
@@ -617,7 +642,7 @@ class UsageError(KestimatorError):
 
 
 # The commands; options given before one of them are moved after it.
-COMMANDS = ("estimate", "inject", "limits", "report", "learn")
+COMMANDS = ("estimate", "inject", "check", "limits", "report", "learn")
 _TOP_LEVEL_ONLY = frozenset(("-h", "--help", "-V", "--version"))
 # Options whose value is a path: a value with an unquoted space or Windows backslashes is
 # explained (a slicer's post-processing line splits at spaces).
@@ -717,17 +742,6 @@ class _GuardedStdout:
         return getattr(self._stream, name)
 
 
-def _quiet_stdout() -> None:
-    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
-    (what is still buffered goes nowhere)."""
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, 1)
-        os.close(devnull)
-    except OSError:
-        pass
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `kestimator` command; returns the exit status.
 
@@ -744,7 +758,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout.flush()
         return status
     except StdoutError as exc:
-        _quiet_stdout()
+        quiet_stdout()
         if written:
             sys.stderr.write("kestimator: %s was written; its summary could not be shown: "
                              "standard output: %s\n" % (printable(written[0]), exc))
@@ -752,7 +766,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write("kestimator: error: cannot write to standard output: %s\n" % exc)
         return EXIT_FAILURE
     except BrokenPipeError:
-        _quiet_stdout()
+        quiet_stdout()
         return EXIT_OK
     except Terminated as exc:
         # Temporary files are gone (the writers unwind); 128 + signal, as if killed.
@@ -774,19 +788,11 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return EXIT_USAGE
+    args.shown = getattr(args, "file", None)
     try:
-        if args.command == "estimate":
-            return cmd_estimate(args)
-        if args.command == "inject":
-            return cmd_inject(args)
-        if args.command == "check":
-            return cmd_check(args)
-        if args.command == "limits":
-            return cmd_limits(args)
-        if args.command == "report":
-            return cmd_report(args)
-        if args.command == "learn":
-            return cmd_learn(args)
+        if args.shown == STDIO_NAME:
+            return _run_on_stdin(args)
+        return _run(args)
     except UsageError as exc:
         sys.stderr.write("kestimator: error: %s\n" % _error_text(exc))
         return EXIT_USAGE
@@ -797,7 +803,7 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
         return EXIT_FAILURE
     except BrokenPipeError:
         # The reader went away (`kestimator estimate --json | head`): not our failure.
-        _quiet_stdout()
+        quiet_stdout()
         return EXIT_OK
     except KeyboardInterrupt:
         sys.stderr.write("kestimator: interrupted\n")
@@ -814,5 +820,43 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
                          "traceback and please report it)\n"
                          % (type(exc).__name__, printable(str(exc).replace("\n", " "))))
         return EXIT_INTERNAL
-    parser.error("unknown command %r" % args.command)
-    return EXIT_USAGE
+
+
+STDIN_SHOWN = "<stdin>"
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "estimate":
+        return cmd_estimate(args)
+    if args.command == "inject":
+        return cmd_inject(args)
+    if args.command == "check":
+        return cmd_check(args)
+    if args.command == "limits":
+        return cmd_limits(args)
+    if args.command == "report":
+        return cmd_report(args)
+    if args.command == "learn":
+        return cmd_learn(args)
+    raise UsageError("unknown command %r" % args.command)
+
+
+def _run_on_stdin(args: argparse.Namespace) -> int:
+    """FILE given as `-`: standard input, kept in a temporary file for the command's passes
+    and named `<stdin>` in what it prints (docs/CLI.md)."""
+    if args.command == "inject" and args.output is None:
+        raise UsageError("standard input cannot be rewritten in place: give -o OUT, or -o - "
+                         "for standard output")
+    stdin = getattr(sys.stdin, "buffer", None)
+    if stdin is None:
+        raise KestimatorError("standard input is closed: there is no G-code to read",
+                              STDIN_SHOWN)
+    with spooled_stdin(stdin, STDIN_SHOWN) as path:
+        args.file = path
+        args.shown = STDIN_SHOWN
+        try:
+            return _run(args)
+        except KestimatorError as exc:
+            # The temporary file's name means nothing to the user.
+            exc.message = exc.message.replace(path, STDIN_SHOWN)
+            raise

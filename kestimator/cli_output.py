@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from collections.abc import Iterator
 from typing import Any, TextIO
@@ -73,6 +74,18 @@ def printable(text: str) -> str:
     Everything kestimator prints that came from a file, a server or a path goes through
     this."""
     return _UNSAFE_RE.sub(_escaped, text)
+
+
+def quiet_stdout() -> None:
+    """Point fd 1 at the null device so the interpreter's last flush cannot fail again
+    (what is still buffered goes nowhere): after a broken pipe (`... | head`), where the
+    reader went away on purpose."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.close(devnull)
+    except OSError:
+        pass
 
 
 def printable_doc(value: Any) -> Any:
@@ -211,8 +224,12 @@ def write_json(doc: dict[str, Any], out: TextIO) -> None:
 def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
                      extra_warnings: list[str],
                      filament: dict[str, Any] | None = None,
-                     limits_guessed: bool = False) -> dict[str, Any]:
-    """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md)."""
+                     limits_guessed: bool = False,
+                     source: str | None = None) -> dict[str, Any]:
+    """The documented `--json` object (schema version JSON_SCHEMA_VERSION, docs/CLI.md).
+
+    `source` is the file the slicer's filament comments are read from when it is not
+    `est.path` (standard input kept in a temporary file, `est.path` naming it `<stdin>`)."""
     slicer_s = slicer.estimate_s
     # The slicer times the moves: it is compared with Klipper's motion time.
     motion_s = est.parts.motion_s
@@ -234,7 +251,7 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
                    "difference_pct": None if difference is None or not motion_s
                    else round(PERCENT * difference / motion_s, 3)},
         "filament": filament if filament is not None
-        else filament_to_json(est, read_slicer_filament(est.path)),
+        else filament_to_json(est, read_slicer_filament(source or est.path)),
         "limits_source": limits_source,
         "limits_guessed": limits_guessed,
         "n_moves": est.n_moves,

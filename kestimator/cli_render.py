@@ -356,11 +356,12 @@ def shown_value(value: object) -> str:
     return str(value)
 
 
-def progress_for(path: str, label: str, passes: int = 1, wanted: bool = True
+def progress_for(path: str, label: str, passes: int = 1, wanted: bool = True,
+                 shown: str | None = None
                  ) -> contextlib.AbstractContextManager[ProgressBar | None]:
     """A progress bar for reading `path` `passes` times, labelled `label` and the file's
-    name, when it is `wanted`, the file is large and stderr is a terminal; else a context
-    yielding None."""
+    name (`shown`, by default `path`'s), when it is `wanted`, the file is large and stderr
+    is a terminal; else a context yielding None."""
     if not wanted or not is_terminal(sys.stderr):
         return contextlib.nullcontext()
     try:
@@ -369,4 +370,5 @@ def progress_for(path: str, label: str, passes: int = 1, wanted: bool = True
         return contextlib.nullcontext()
     if size < PROGRESS_MIN_BYTES:
         return contextlib.nullcontext()
-    return ProgressBar("%s %s" % (label, os.path.basename(path)), size * passes)
+    return ProgressBar("%s %s" % (label, os.path.basename(path if shown is None else shown)),
+                       size * passes)

@@ -23,7 +23,8 @@ moonraker/components/analysis.py, 0.11) has with the program it runs from
 
 What it runs of the core it takes from `kestimator.api`, as every front end outside the
 command line does; only the output helpers it shares with that (`kestimator.cli_output`),
-klipper_estimator's config format and `kestimator.files.Terminated` come from their modules.
+klipper_estimator's config format, `kestimator.files.Terminated` and `spooled_stdin` (`-` as
+the input) come from their modules.
 Limits come from `kestimator.config.resolve.resolve_limits`: the config file is a
 klipper_estimator config source, a URL the machine, and kestimator's profile (if any) as
 everywhere else. Exit codes: 0 success, 1 the input could not be processed, 2 a wrong
@@ -49,15 +50,15 @@ from kestimator.api import (
     Move,
     ResolvedLimits,
     check_gcode_file,
-    estimate_file,
     estimate_lines,
     inject_file,
+    iter_lines,
     macro_times_for,
     resolve_limits,
 )
-from kestimator.cli_output import parts_to_json, printable
+from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
-from kestimator.files import Terminated
+from kestimator.files import Terminated, spooled_stdin
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -78,6 +79,7 @@ OTHER_KIND = "Other"
 SAME_Z_MM = sys.float_info.epsilon
 LAYER_Z_DECIMALS = 3
 STDIN_NAME = "-"
+STDIN_SHOWN = "<stdin>"
 # The guessed-limits line's fix, in terms this program accepts (Moonraker passes only
 # --config_file to post-process and estimate).
 COMPAT_GUESS_FIX = ("name the printer in kestimator's profile (printer_cfg or moonraker in "
@@ -172,22 +174,27 @@ def _warn(resolved: ResolvedLimits, err: TextIO) -> None:
 
 
 def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
-                 stdin: BinaryIO) -> int:
+                 stdin: BinaryIO | None) -> int:
     """``estimate [-f json] INPUT``."""
-    from_stdin = args.input == STDIN_NAME
-    resolved = resolve_limits(_request(args, None if from_stdin else args.input))
+    if args.input == STDIN_NAME:
+        if stdin is None:  # started with standard input closed (<&-)
+            raise KestimatorError("standard input is closed: there is no G-code to read",
+                                  STDIN_SHOWN)
+        # Kept in a temporary file, so it is checked as a named file is (an STL, a 3MF,
+        # an empty input are one line) and named `<stdin>`.
+        with spooled_stdin(stdin, STDIN_SHOWN) as path:
+            return _estimate(args, path, STDIN_SHOWN, out)
+    return _estimate(args, args.input, args.input, out)
+
+
+def _estimate(args: argparse.Namespace, path: str, shown: str, out: TextIO) -> int:
+    check_gcode_file(path)
+    resolved = resolve_limits(_request(args, None if shown != path else path))
     totals = MoveTotals()
-    if from_stdin:
-        est = estimate_lines(stdin, resolved.limits, "<stdin>", observer=totals,
-                             homing_time=resolved.homing_time_s or 0.0,
-                             heat_time=resolved.heat_time_s or 0.0,
-                             macros=macro_times_for(resolved))
-    else:
-        check_gcode_file(args.input)
-        est = estimate_file(args.input, resolved.limits, observer=totals,
-                            homing_time=resolved.homing_time_s or 0.0,
-                            heat_time=resolved.heat_time_s or 0.0,
-                            macros=macro_times_for(resolved))
+    est = estimate_lines(iter_lines(path), resolved.limits, shown, observer=totals,
+                         homing_time=resolved.homing_time_s or 0.0,
+                         heat_time=resolved.heat_time_s or 0.0,
+                         macros=macro_times_for(resolved))
     doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
     if args.format == "json":
         # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
@@ -214,6 +221,9 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     temporary file before it replaces PATH, and that file exists only while it is written.
     """
     path = args.filename
+    if path == STDIN_NAME:
+        raise KestimatorError("post-process rewrites a file in place: standard input cannot "
+                              "be; give the file's path")
     check_gcode_file(path)
     resolved = resolve_limits(_request(args, path))
     _warn(resolved, err)
@@ -273,18 +283,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     out, err = sys.stdout, sys.stderr
-    if args.version:
-        out.write(VERSION_LINE + "\n")
-        return EXIT_OK
-    if args.command is None:
+    if args.command is None and not args.version:
         parser.print_help(err)
         return EXIT_USAGE
     try:
-        if args.command == "estimate":
-            return cmd_estimate(args, out, err, sys.stdin.buffer)
-        if args.command == "post-process":
-            return cmd_post_process(args, out, err)
-        return cmd_dump_config(args, out, err)
+        if args.version:
+            out.write(VERSION_LINE + "\n")
+            status = EXIT_OK
+        elif args.command == "estimate":
+            status = cmd_estimate(args, out, err, getattr(sys.stdin, "buffer", None))
+        elif args.command == "post-process":
+            status = cmd_post_process(args, out, err)
+        else:
+            status = cmd_dump_config(args, out, err)
+        # Here, not at the interpreter's exit, so a reader that went away is caught below.
+        out.flush()
+        return status
+    except BrokenPipeError:
+        # The reader went away (`kestimator-compat estimate F | head`): not our failure, as
+        # `kestimator` says (its main). A post-process run has replaced its file by then.
+        quiet_stdout()
+        return EXIT_OK
     except KestimatorError as exc:
         err.write("kestimator-compat: error: %s\n" % _printable(str(exc)))
         return EXIT_FAILURE

@@ -29,6 +29,7 @@ import errno
 import json
 import os
 import stat
+import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -51,6 +52,12 @@ DEFAULT_NAME_MAX = 255
 # Extended attributes that must survive a rewrite (others, like security.selinux, are the
 # system's to set and are kept where the kernel lets us).
 KEPT_XATTR_NAMESPACES = ("user.", "system.posix_acl_")
+
+# `-` as a file name: standard input where a file is read, standard output where one is
+# written (`output_target`, `spooled_stdin`). A file really named `-` is `./-`.
+STDIO_NAME = "-"
+STDIN_SHOWN = "<stdin>"
+STDOUT_SHOWN = "<stdout>"
 
 Write = Callable[[bytes], object]
 """Where content goes: `out.write` of the temporary file (or of the device)."""
@@ -214,6 +221,8 @@ def output_target(dest: str) -> OutputTarget:
     device or FIFO is written through; anything else that is not a regular file is refused,
     and so is a regular file the user may not write (even in a directory they may write).
     """
+    if dest == STDIO_NAME:
+        return OutputTarget(STDIO_NAME, True, True, None)
     real = os.path.realpath(dest)
     try:
         st = os.stat(real)
@@ -364,6 +373,51 @@ def write_atomically(target: OutputTarget, fill: Callable[[Write], object], *,
     _fsync_dir(dest_dir)
 
 
+@contextlib.contextmanager
+def spooled_stdin(stream: BinaryIO, shown: str = STDIN_SHOWN) -> Iterator[str]:
+    """Standard input copied into a temporary file (0600, in the temporary directory,
+    removed afterwards) whose name the block gets: the commands read a file twice (the
+    estimate, then the slicer's settings, the report's scan or inject's second pass).
+
+    A terminal is refused (one line: the G-code must come through a pipe or `<`), never
+    waited on. A `KestimatorError` from the block that names the temporary file names
+    `shown` instead.
+    """
+    import tempfile
+
+    if is_terminal_stream(stream):
+        raise KestimatorError("standard input is a terminal: pipe the G-code in (e.g. "
+                              "kestimator estimate - < print.gcode) or name the file", shown)
+    fd, tmp = make_temp_file("kestimator-stdin.", ".gcode", tempfile.gettempdir())
+    try:
+        try:
+            with os.fdopen(fd, "wb") as out:
+                while True:
+                    block = stream.read(1 << 20)
+                    if not block:
+                        break
+                    out.write(block)
+        except OSError as exc:
+            raise KestimatorError("cannot keep standard input in a temporary file: %s"
+                                  % (exc.strerror or exc), shown) from None
+        try:
+            yield tmp
+        except KestimatorError as exc:
+            if exc.path == tmp:
+                exc.path = shown
+            raise
+    finally:
+        _remove_quietly(tmp)
+
+
+def is_terminal_stream(stream: object) -> bool:
+    """True if `stream` is an interactive terminal (False when it cannot tell)."""
+    try:
+        return bool(stream.isatty())  # type: ignore[attr-defined]
+    except (AttributeError, ValueError, OSError):
+        return False
+
+
 def write_bytes_atomically(dest: str, data: bytes) -> None:
     """Write `data` to `dest` as `inject` writes its output (`output_target`'s rules, a
     temporary file synced and renamed, attributes kept): never a partial file."""
@@ -380,7 +434,20 @@ def _umask() -> int:
 
 def _write_stream(dest: str, fill: Callable[[Write], object], shown: str) -> None:
     """Write a character device or FIFO straight through; a FIFO without a reader is
-    refused at once instead of blocking."""
+    refused at once instead of blocking. `-` is standard output (a reader that goes away
+    raises BrokenPipeError, which the command line treats as the end it is)."""
+    if dest == STDIO_NAME:
+        out = sys.stdout.buffer
+        try:
+            sys.stdout.flush()
+            fill(out.write)
+            out.flush()
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise KestimatorError("cannot write the output: %s" % (exc.strerror or exc),
+                                  STDOUT_SHOWN) from None
+        return
     try:
         fd = os.open(dest, os.O_WRONLY | getattr(os, "O_NONBLOCK", 0))
     except OSError as exc:

@@ -22,13 +22,15 @@ from collections.abc import Mapping, Sequence
 from kestimator import __version__
 from kestimator.cli_output import (
     parts_to_json,
+    printable,
     shown_warnings,
     untimed_by_kind,
     untimed_detail,
     untimed_summary,
 )
 from kestimator.durations import format_duration
-from kestimator.estimate import Estimate, ProgressCallback, estimate_file
+from kestimator.errors import KestimatorError
+from kestimator.estimate import Estimate, ProgressCallback, estimate_lines, iter_lines
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.preflight import KIND_STOP, summary_lines
@@ -120,6 +122,16 @@ class ReportData:
     guessed_limits: bool = False
 
 
+def _escape(text: str) -> str:
+    """`text` for the page: what could make a name display as something it is not (bidi
+    overrides and isolates, control characters) and undecodable bytes of a file name are
+    shown as escapes, as the terminal shows them (`cli_output.printable`), then HTML-escaped.
+
+    Every string from a file, a path, a server or a setting reaches the page through this.
+    """
+    return html.escape(printable(text))
+
+
 def _time_at_line(est: Estimate, line: int) -> float:
     """Time every move before `line` has finished, from the progress samples."""
     i = bisect.bisect_left(est.sample_lines, line)
@@ -131,11 +143,18 @@ def collect(path: str, limits: Limits, limits_source: str, homing_time: float = 
             limit_warnings: Sequence[str] = (),
             limit_sources: Mapping[str, str] | None = None,
             guessed_limits: bool = False,
-            bytes_read: ProgressCallback | None = None) -> ReportData:
-    """Estimate the file with move statistics; read the slicer's remaining time and Z."""
+            bytes_read: ProgressCallback | None = None,
+            shown: str | None = None) -> ReportData:
+    """Estimate the file with move statistics; read the slicer's remaining time and Z.
+
+    `shown` is the name the page gives the file (default `path`; `<stdin>` when `path` is a
+    temporary copy of standard input)."""
     speed = SpeedStats()
-    est = estimate_file(path, limits, homing_time=homing_time, heat_time=heat_time,
-                        macros=macros, sample=True, observer=speed, progress=bytes_read)
+    if os.path.isdir(path):
+        raise KestimatorError("is a directory, not a G-code file", path)
+    est = estimate_lines(iter_lines(path, bytes_read), limits, path if shown is None else shown,
+                         homing_time=homing_time, heat_time=heat_time, macros=macros,
+                         sample=True, observer=speed)
     slicer = slicer_of_file(path)  # through our marker in an injected file
     m73: list[tuple[float, float]] = []
     elapsed: list[tuple[float, float]] = []
@@ -270,7 +289,7 @@ def _axes(x_axis: Axis | None, y_axis: Axis, x_label: str, y_label: str,
         out.append('<line x1="%d" x2="%d" y1="%.1f" y2="%.1f" class="grid"/>'
                    % (PAD_L, PAD_L + PLOT_W, y, y))
         out.append('<text x="%d" y="%.1f" class="tick" text-anchor="end">%s</text>'
-                   % (PAD_L - 5, y + 4, html.escape(label)))
+                   % (PAD_L - 5, y + 4, _escape(label)))
     if x_ticks is None and x_axis is not None:
         x_ticks = [(_x(x_axis, v), label) for v, label in x_axis.ticks()]
     for i, (x, label) in enumerate(x_ticks or ()):
@@ -283,19 +302,19 @@ def _axes(x_axis: Axis | None, y_axis: Axis, x_label: str, y_label: str,
         out.append('<line x1="%.1f" x2="%.1f" y1="%d" y2="%d" class="axis"/>'
                    % (x, x, PAD_T + PLOT_H, PAD_T + PLOT_H + 4))
         out.append('<text x="%.1f" y="%d" class="tick" text-anchor="%s">%s</text>'
-                   % (x, PAD_T + PLOT_H + 17, anchor, html.escape(label)))
+                   % (x, PAD_T + PLOT_H + 17, anchor, _escape(label)))
     out.append('<text x="%d" y="%d" class="label" text-anchor="middle">%s</text>'
-               % (PAD_L + PLOT_W // 2, CHART_H - 6, html.escape(x_label)))
+               % (PAD_L + PLOT_W // 2, CHART_H - 6, _escape(x_label)))
     out.append('<text x="14" y="%d" class="label" text-anchor="middle" '
                'transform="rotate(-90 14 %d)">%s</text>'
-               % (PAD_T + PLOT_H // 2, PAD_T + PLOT_H // 2, html.escape(y_label)))
+               % (PAD_T + PLOT_H // 2, PAD_T + PLOT_H // 2, _escape(y_label)))
     return out
 
 
 def _svg(chart_id: str, title: str, body: list[str], height: float = CHART_H) -> str:
     return ('<svg id="%s" class="chart" viewBox="0 0 %d %d" role="img" '
             'preserveAspectRatio="xMidYMid meet"><title>%s</title>%s</svg>'
-            % (chart_id, CHART_W, math.ceil(height), html.escape(title), "".join(body)))
+            % (chart_id, CHART_W, math.ceil(height), _escape(title), "".join(body)))
 
 
 def remaining_error(data: ReportData) -> tuple[float, float] | None:
@@ -331,8 +350,8 @@ def remaining_chart(data: ReportData) -> str:
             previous = shown
         body.append('<polyline class="series slicer" fill="none" stroke="%s" '
                     'stroke-width="2" points="%s"><title>%s (%s)</title></polyline>'
-                    % (COLORS[1], " ".join(points), html.escape(data.slicer.name),
-                       html.escape(data.remaining_source)))
+                    % (COLORS[1], " ".join(points), _escape(data.slicer.name),
+                       _escape(data.remaining_source)))
     return _svg("chart-remaining", "Time remaining on the printer's display", body)
 
 
@@ -374,10 +393,10 @@ def _hbars(chart_id: str, title: str, items: Sequence[tuple[float, str]],
         w = bar_max * t / t_max
         short = name if len(name) <= 44 else name[:43] + "\u2026"
         body.append('<text x="8" y="%d" class="tick name">%s</text>'
-                    % (y + 12, html.escape(short)))
+                    % (y + 12, _escape(short)))
         body.append('<rect class="bar" x="8" y="%d" width="%.1f" height="14" fill="%s" '
                     'data-seconds="%.6f"><title>%s: %s</title></rect>'
-                    % (y + 17, max(w, 0.5), COLORS[i % len(COLORS)], t, html.escape(name),
+                    % (y + 17, max(w, 0.5), COLORS[i % len(COLORS)], t, _escape(name),
                        format_duration(t)))
         body.append('<text x="%.1f" y="%d" class="tick">%s \u00b7 %.0f %%</text>'
                     % (8 + max(w, 0.5) + 5, y + 29, format_duration(t),
@@ -483,7 +502,7 @@ def minutes(seconds: float) -> str:
 
 
 def _remaining_text(data: ReportData) -> str:
-    name = html.escape(data.slicer.name)
+    name = _escape(data.slicer.name)
     if not data.slicer_remaining:
         return ("<p>%s wrote no remaining time into the file (no <code>M73 R</code> and no "
                 "<code>;TIME_ELAPSED:</code>), so the printer's display can only guess; "
@@ -494,8 +513,8 @@ def _remaining_text(data: ReportData) -> str:
     return ("<p>The printer's display shows what %s wrote (%s); Klipper's planner needs the "
             "time on the green line. The display is off by up to <b>%s</b> "
             "(%s into the print)%s.</p>"
-            % (name, html.escape(data.remaining_source), minutes(error),
-               html.escape(format_duration(at)),
+            % (name, _escape(data.remaining_source), minutes(error),
+               _escape(format_duration(at)),
                ": it says the print ends sooner than it will" if error < 0 else
                ": it says the print takes longer than it will" if error > 0 else ""))
 
@@ -513,8 +532,8 @@ def _banner(data: ReportData) -> str:
     if preflight:
         stops = any(f["kind"] == KIND_STOP for f in findings)
         parts.append('<div class="banner%s"><b>%s</b><ul>%s</ul></div>'
-                     % (" bad" if stops else "", html.escape(preflight[0]),
-                        "".join("<li>%s</li>" % html.escape(line.strip())
+                     % (" bad" if stops else "", _escape(preflight[0]),
+                        "".join("<li>%s</li>" % _escape(line.strip())
                                 for line in preflight[1:])))
     # Untimed commands are one grouped line, as in the text summary (not one warning each).
     doc = {"warnings": list(data.limit_warnings) + list(est.warnings),
@@ -526,7 +545,7 @@ def _banner(data: ReportData) -> str:
     notes = ([untimed.replace(" (--verbose lists them)", ": " + "; ".join(untimed_detail(doc)))]
              if untimed else []) + shown_warnings(doc)
     if notes:
-        shown = "".join("<li>%s</li>" % html.escape(w) for w in notes[:20])
+        shown = "".join("<li>%s</li>" % _escape(w) for w in notes[:20])
         more = len(notes) - 20 + est.warnings_dropped
         parts.append('<div class="banner"><b>%d warning%s</b> (what Klipper would do '
                      'differently, or what the estimate cannot know)<ul>%s</ul>%s</div>'
@@ -548,18 +567,18 @@ MAIN_LIMITS = ("kinematics", "max_velocity", "max_accel", "minimum_cruise_ratio"
 def _limit_rows(rows: Sequence[tuple[str, str, str]]) -> str:
     # Long names break at their underscores, never mid-word.
     return "".join("<tr><td>%s</td><td>%s</td><td>%s</td></tr>"
-                   % (html.escape(n).replace("_", "_<wbr>"), html.escape(v), html.escape(s))
+                   % (_escape(n).replace("_", "_<wbr>"), _escape(v), _escape(s))
                    for n, v, s in rows)
 
 
 def _limits_table(data: ReportData) -> str:
     if not data.limit_rows:
-        return "<p>Limits: %s</p>" % html.escape(data.limits_source)
+        return "<p>Limits: %s</p>" % _escape(data.limits_source)
     main = sorted((r for r in data.limit_rows if r[0] in MAIN_LIMITS),
                   key=lambda r: MAIN_LIMITS.index(r[0]))
     rest = [r for r in data.limit_rows if r[0] not in MAIN_LIMITS]
     head = "<tr><th>limit</th><th>value</th><th>from</th></tr>"
-    out = "<p>%s</p><table>%s%s</table>" % (html.escape(data.limits_source), head,
+    out = "<p>%s</p><table>%s%s</table>" % (_escape(data.limits_source), head,
                                             _limit_rows(main))
     if rest:
         out += ("<details><summary>%d more limits</summary><table>%s%s</table></details>"
@@ -599,12 +618,12 @@ def render_html(data: ReportData) -> str:
     share = 100.0 * lost / est.total_s if est.total_s else 0.0
     cards.append(("Lost to acceleration", "%s (%.0f %%)" % (format_duration(lost), share)))
     card_html = "".join('<div class="card"><span>%s</span><b>%s</b></div>'
-                        % (html.escape(k), html.escape(v)) for k, v in cards)
+                        % (_escape(k), _escape(v)) for k, v in cards)
     legend = ('<p class="legend"><span><i style="background:%s"></i>Klipper (true)</span>%s'
               '</p>' % (COLORS[2], '' if not data.slicer_remaining else
                         '<span><i style="background:%s"></i>%s (%s)</span>'
-                        % (COLORS[1], html.escape(slicer.name),
-                           html.escape(data.remaining_source))))
+                        % (COLORS[1], _escape(slicer.name),
+                           _escape(data.remaining_source))))
     name = os.path.basename(est.path)
     return """<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
@@ -632,13 +651,13 @@ slowing down (%(lost)s in all, %(share).0f %% of the print).</p>%(speed_legend)s
 <footer>kestimator %(version)s &middot; Klipper's planner replayed on %(file)s</footer>
 </main></body></html>
 """ % {
-        "title": html.escape("Klipper time for " + name), "css": _CSS, "cards": card_html,
+        "title": _escape("Klipper time for " + name), "css": _CSS, "cards": card_html,
         "banner": _banner(data), "remaining_text": _remaining_text(data),
         "legend": legend, "remaining": remaining_chart(data),
         "layers": layer_chart(est, data.layer_z), "objects": object_chart(est),
         "features": feature_chart(est), "speed": speed_chart(data.speed),
         "speed_legend": speed_legend(data.speed), "bin": SPEED_BIN_V,
-        "lost": html.escape(format_duration(lost)), "share": share,
+        "lost": _escape(format_duration(lost)), "share": share,
         "filament": _filament_text(data), "limits": _limits_table(data),
-        "version": __version__, "file": html.escape(name), "total": est.total_s,
+        "version": __version__, "file": _escape(name), "total": est.total_s,
     }

@@ -733,7 +733,7 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
         raise KestimatorError("the output name is empty", src)
     check_gcode_file(src)
     target = output_target(dest)
-    in_place = target.exists and same_file(src, target.path)
+    in_place = not target.stream and target.exists and same_file(src, target.path)
     with exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
@@ -744,30 +744,62 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
                         slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
 
 
+GONE = "the file was removed while it was being processed: nothing was written"
+
+
 def _write_output(src: str, target: OutputTarget, rewriter: Rewriter,
                   before: os.stat_result, in_place: bool,
                   progress: ProgressCallback | None = None,
                   finish: Callable[[str], object] | None = None) -> None:
-    """Pass 2 from `src` into `target` through `kestimator.files.write_atomically`; an
-    in-place rewrite is refused at the last moment if the source changed meanwhile (size,
-    mtime or inode: a writer that takes no lock, such as a slicer still saving)."""
+    """Pass 2 from `src` into `target` through `kestimator.files.write_atomically`.
+
+    Refused if the source is not the file pass 1 read (identity, size, mtime): when pass 2
+    opens it, when it has read it, and at the last moment before the replace (a writer that
+    takes no lock, such as a slicer still saving, or a file swapped in by rename). In place
+    the file is then left as it is now; with -o the output is not written (a new file is not
+    left behind, an old one keeps its content). A device or FIFO output has its bytes
+    already when the check after pass 2 fails: the run still fails, one line saying so.
+    """
     copied = None
     if progress is not None:
         def copied(done: int) -> None:
             progress(before.st_size + done)
 
-    def fill(write: Write) -> None:
-        with open(src, "rb") as inp:
-            rewriter.copy_stream(inp, write, copied)
-
-    def unchanged() -> None:
-        now = os.stat(src)
-        if (now.st_size, now.st_mtime_ns, now.st_ino) != (
-                before.st_size, before.st_mtime_ns, before.st_ino):
+    def refuse() -> None:
+        if in_place:
             raise KestimatorError("the file changed while it was being processed; "
                                   "it was left as it is now", src)
+        if target.stream:
+            raise KestimatorError("the file changed while it was being processed: what was "
+                                  "written to %s is not its output" % target.path, src)
+        raise KestimatorError("the file changed while it was being processed: %s was not "
+                              "written" % target.path, src)
+
+    def check(now: os.stat_result) -> None:
+        if (now.st_size, now.st_mtime_ns, now.st_ino, now.st_dev) != (
+                before.st_size, before.st_mtime_ns, before.st_ino, before.st_dev):
+            refuse()
+
+    def fill(write: Write) -> None:
+        try:
+            inp = open(src, "rb")
+        except FileNotFoundError:
+            raise KestimatorError(GONE, src) from None
+        with inp:
+            check(os.fstat(inp.fileno()))
+            rewriter.copy_stream(inp, write, copied)
+            check(os.fstat(inp.fileno()))
+
+    def unchanged() -> None:
+        try:
+            now = os.stat(src)
+        except FileNotFoundError:
+            raise KestimatorError(GONE, src) from None
+        check(now)
 
     write_atomically(target, fill,
                      # A new file: the source's mode, and writable by its owner (who made it).
                      new_mode=stat.S_IMODE(before.st_mode) | stat.S_IWUSR,
-                     before_sync=finish, before_replace=unchanged if in_place else None)
+                     before_sync=finish, before_replace=unchanged)
+    if target.stream:
+        unchanged()

@@ -283,7 +283,7 @@ def test_a_bug_is_one_line_exit_3_and_a_traceback_only_with_debug(
         corpus_root: Path) -> None:
     def broken(*args: object, **kwargs: object) -> None:
         raise RuntimeError("planner exploded\nsecond line")
-    monkeypatch.setattr(cli, "estimate_file", broken)
+    monkeypatch.setattr(cli, "estimate_lines", broken)
     assert cli.main(["estimate", str(NUT)]) == cli.EXIT_INTERNAL == 3
     err = capsys.readouterr().err
     assert err == ("kestimator: internal error: RuntimeError: planner exploded second line "

@@ -125,7 +125,7 @@ def _boom(*a, **k):
 e.estimate_file = _boom
 e.estimate_lines = _boom
 import kestimator.cli, kestimator.compat
-kestimator.cli.estimate_file = _boom
+kestimator.cli.estimate_lines = _boom
 kestimator.compat.estimate_file = _boom
 kestimator.compat.estimate_lines = _boom
 main = kestimator.compat.main if sys.argv[1] == "compat" else kestimator.cli.main
