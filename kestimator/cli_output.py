@@ -21,6 +21,7 @@ from typing import Any, TextIO
 from kestimator import __version__
 from kestimator.config.resolve import GUESS_WARNING_START, ResolvedLimits
 from kestimator.durations import format_duration
+from kestimator.errors import fixed
 from kestimator.estimate import KIND_UNKNOWN, Estimate
 from kestimator.interpreter import KIND_MACRO
 from kestimator.limits import Limits, json_value
@@ -460,19 +461,19 @@ def difference_text(doc: dict[str, Any]) -> str:
 def filament_text(doc: dict[str, Any]) -> str:
     """`280.2 mm (0.67 cm³, 0.84 g); slicer: 280.2 mm`."""
     fil = doc["filament"]
-    text = "%.1f mm" % fil["extruded_mm"]
+    text = "%s mm" % fixed(fil["extruded_mm"], 1)
     extra = []
     if fil["volume_cm3"] is not None:
-        extra.append("%.2f cm3" % fil["volume_cm3"])
+        extra.append("%s cm3" % fixed(fil["volume_cm3"], 2))
     if fil["weight_g"] is not None:
-        extra.append("%.2f g" % fil["weight_g"])
+        extra.append("%s g" % fixed(fil["weight_g"], 2))
     if extra:
         text += " (%s)" % ", ".join(extra)
     said = []
     if fil["slicer_mm"] is not None:
-        said.append("%.1f mm" % fil["slicer_mm"])
+        said.append("%s mm" % fixed(fil["slicer_mm"], 1))
     if fil["slicer_g"] is not None:
-        said.append("%.2f g" % fil["slicer_g"])
+        said.append("%s g" % fixed(fil["slicer_g"], 2))
     if said:
         text += "; the slicer says " + ", ".join(said)
     return text

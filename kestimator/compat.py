@@ -34,6 +34,7 @@ command line.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -47,6 +48,7 @@ from kestimator.api import (
     Estimate,
     KestimatorError,
     LimitRequest,
+    MacroTimes,
     Move,
     ResolvedLimits,
     check_gcode_file,
@@ -58,6 +60,7 @@ from kestimator.api import (
 )
 from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
+from kestimator.errors import fixed
 from kestimator.files import Terminated, spooled_stdin
 
 EXIT_OK = 0
@@ -189,12 +192,11 @@ def cmd_estimate(args: argparse.Namespace, out: TextIO, err: TextIO,
 
 def _estimate(args: argparse.Namespace, path: str, shown: str, out: TextIO) -> int:
     check_gcode_file(path)
-    resolved = resolve_limits(_request(args, None if shown != path else path))
+    resolved, macros = _limits_and_macros(_request(args, None if shown != path else path))
     totals = MoveTotals()
     est = estimate_lines(iter_lines(path), resolved.limits, shown, observer=totals,
                          homing_time=resolved.homing_time_s or 0.0,
-                         heat_time=resolved.heat_time_s or 0.0,
-                         macros=macro_times_for(resolved))
+                         heat_time=resolved.heat_time_s or 0.0, macros=macros)
     doc = estimate_document(est, totals, resolved.summary, resolved.warnings)
     if args.format == "json":
         # Moonraker reads this command's stdout and stderr as one stream (its exec_cmd
@@ -205,12 +207,22 @@ def _estimate(args: argparse.Namespace, path: str, shown: str, out: TextIO) -> i
     seq = doc["sequences"][0]
     lines = ["Sequences:", " Run 0:",
              "  Total moves: %d" % seq["num_moves"],
-             "  Total distance: %.3fmm" % seq["total_distance"],
-             "  Total extrude distance: %.3fmm" % seq["total_extrude_distance"],
+             "  Total distance: %smm" % fixed(seq["total_distance"]),
+             "  Total extrude distance: %smm" % fixed(seq["total_extrude_distance"]),
              "  Klipper time: %.3fs (kestimator %s; limits: %s)"
              % (seq["total_time"], __version__, resolved.summary)]
     out.write("\n".join(lines + ["  warning: " + w for w in resolved.warnings]) + "\n")
     return EXIT_OK
+
+
+def _limits_and_macros(request: LimitRequest) -> tuple[ResolvedLimits, MacroTimes]:
+    """The limits and the macro times, with the learned store's warnings among the limits'
+    (a damaged store is said, never silently dropped, as `kestimator` says it)."""
+    resolved = resolve_limits(request)
+    macros = macro_times_for(resolved)
+    if macros.warnings:
+        resolved = dataclasses.replace(resolved, warnings=resolved.warnings + macros.warnings)
+    return resolved, macros
 
 
 def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
@@ -225,12 +237,12 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         raise KestimatorError("post-process rewrites a file in place: standard input cannot "
                               "be; give the file's path")
     check_gcode_file(path)
-    resolved = resolve_limits(_request(args, path))
+    resolved, macros = _limits_and_macros(_request(args, path))
     _warn(resolved, err)
     result = inject_file(path, resolved.limits, limits_source=resolved.marker_source,
                          homing_time=resolved.homing_time_s or 0.0,
                          heat_time=resolved.heat_time_s or 0.0,
-                         macros=macro_times_for(resolved), finish=append_ident_line)
+                         macros=macros, finish=append_ident_line)
     out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)\n"
               % (_printable(path), result.estimate.total_s, result.m73_written,
                  _printable(resolved.summary)))
