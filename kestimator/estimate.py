@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from typing import Final
 
+from kestimator.durations import MAX_PRINT_S
 from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
@@ -322,12 +323,28 @@ class Timeline:
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
+        if t > MAX_PRINT_S:
+            self._too_long_moves(moves, start_t)
         split.segment = segment
         split.counted_until = t
         self.filament_mm = filament
         self.n_moves += len(moves)
         if self.observer is not None:
             self.observer(moves, start_t)
+
+    def _too_long_moves(self, moves: list[Move], start_t: float) -> None:
+        """Raise KestimatorError naming the move during which time passes MAX_PRINT_S."""
+        t = start_t
+        for move in moves:
+            dt = move.accel_t + move.cruise_t + move.decel_t
+            t += dt
+            if t > MAX_PRINT_S:
+                break
+        raise KestimatorError(
+            "the print would last over a year by this line: its move takes %.3g s (%.6g mm "
+            "at up to %.3g mm/s, acceleration %.3g mm/s^2), so a speed or acceleration in "
+            "force is absurd (SET_VELOCITY_LIMIT or M204 in the file, or a limit of the "
+            "printer's config)" % (dt, move.move_d, move.cruise_v, move.accel), self.path, move.tag)
 
     def _find_first_extrusion(self, moves: list[Move], start_t: float) -> None:
         """Note when the net filament first exceeds print_stats' threshold."""
@@ -364,6 +381,10 @@ class Timeline:
         split = self.split
         split.rest_until(before)
         toolhead.add_time(seconds)
+        if toolhead.print_time > MAX_PRINT_S:
+            raise KestimatorError(
+                "the print would last over a year by this line: %s adds %.3g s here (%s)"
+                % (name, seconds, source), self.path, self.lineno or None)
         # add_time stopped the head: every queued segment change has been applied.
         split.segment_time[split.queued_segment] += toolhead.print_time - before
         split.counted_until = toolhead.print_time
@@ -529,6 +550,11 @@ class Timeline:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
             self._command_error(stripped, exc, "reject:" + cmd.name)
+        if self.toolhead.print_time > MAX_PRINT_S:
+            raise KestimatorError("the print would last over a year by this line: '%s' "
+                                  "waits until %.3g s" % (stripped[:80],
+                                                          self.toolhead.print_time),
+                                  self.path, self.lineno)
 
     def _reject(self, stripped: str, exc: Exception) -> None:
         """Klipper rejects this plain move line (as `execute` would report it)."""
@@ -580,6 +606,9 @@ class Timeline:
         total = self.toolhead.finish()
         self.split.rest_until(total)
         total = self._correct_motion(total)
+        if total > MAX_PRINT_S:
+            raise KestimatorError("the print would last over a year (%.3g s)" % total,
+                                  self.path, self.toolhead.last_move_line or self.lineno or None)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
             self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
