@@ -119,3 +119,137 @@ def test_inject_refuses_an_absurd_total_and_leaves_the_file(tmp_path: Path) -> N
     run = _run("inject", str(gcode), "--printer-cfg", str(CORPUS_CFG))
     _one_line_failure(run, b"print.gcode:4: the print would last over a year")
     assert gcode.read_bytes() == body
+
+
+# Items 8 and 13: a printer's geometry Klipper's arithmetic breaks on, or that leaves no
+# range, is one line naming the file, the section and the option the user wrote.
+
+GCODE = "G28\nG1 X1 Y1 Z5 F3000\n"
+
+
+def _cfg(tmp_path: Path, kinematics: str, old: str, new: str) -> Path:
+    text = (REFS / kinematics / "printer.cfg").read_text()
+    assert old in text, old
+    path = tmp_path / "printer.cfg"
+    # The delta case sets every tower's step (Klipper's bound is on the finest).
+    path.write_text(text.replace(old, new, -1 if kinematics == "delta" else 1))
+    return path
+
+
+def _cfg_line(path: Path, text: str) -> int:
+    return path.read_text().splitlines().index(text) + 1
+
+
+def _config_error(path: Path) -> KestimatorError:
+    with pytest.raises(KestimatorError) as caught:
+        limits, _ = limits_from_printer_cfg(path)
+        estimate_text(GCODE, limits)
+    return caught.value
+
+
+CONFIG_CASES = {
+    # case: (kinematics, old text, new text, the option named, words of the message)
+    "delta_coarse_step": ("delta", "rotation_distance: 40\n", "rotation_distance: 200000\n",
+                          "rotation_distance: 200000", "too coarse for arm_length 28"),
+    "rotary_delta_long_upper_arm": ("rotary_delta", "upper_arm_length: 170.000",
+                                    "upper_arm_length: 500", "upper_arm_length: 500",
+                                    "cannot reach its position_endstop 252"),
+    "deltesian_huge_slow_ratio": ("deltesian", "kinematics: deltesian\n",
+                                  "kinematics: deltesian\nslow_ratio: 1e300\n",
+                                  "slow_ratio: 1e300", "'slow_ratio' must be at most 1e+100"),
+    "polar_huge_position_max": ("polar", "position_max: 250\n", "position_max: 1e200\n",
+                                "position_max: 1e200", "'position_max' must be at most"),
+    "deltesian_min_angle_90": ("deltesian", "kinematics: deltesian\n",
+                               "kinematics: deltesian\nmin_angle: 90\n", "min_angle: 90",
+                               "'min_angle' 90 leaves the arms no X range"),
+    "deltesian_arm_barely_longer": ("deltesian", "arm_x_length: 160", "arm_x_length: 216.99",
+                                    "arm_length: 217", "'arm_length' 217 is too short"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(CONFIG_CASES))
+def test_a_geometry_klipper_cannot_use_is_one_line_at_the_option(tmp_path: Path,
+                                                                 case: str) -> None:
+    kinematics, old, new, option_line, words = CONFIG_CASES[case]
+    path = _cfg(tmp_path, kinematics, old, new)
+    error = _config_error(path)
+    assert error.path == str(path) and error.line == _cfg_line(path, option_line), str(error)
+    assert words in error.message and "print_width" not in error.message, str(error)
+
+
+def test_a_blank_carriage_name_is_named_not_an_index_error(tmp_path: Path) -> None:
+    path = _cfg(tmp_path, "generic_cartesian", "[carriage x]", "[carriage  ]")
+    error = _config_error(path)
+    assert error.path == str(path) and "[carriage  ] has no carriage name" in error.message
+
+
+def test_a_delta_geometry_with_no_solution_is_one_line_not_a_zero_division(
+        tmp_path: Path) -> None:
+    path = _cfg(tmp_path, "delta", "angle: 92", "angle: 210")
+    text = path.read_text().replace("[stepper_b]\n", "[stepper_b]\nangle: 210\n", 1)
+    path.write_text(text)
+    error = _config_error(path)
+    assert error.path == str(path) and "kinematics: delta" in error.message
+
+
+def test_the_same_delta_values_from_moonraker_name_the_setting() -> None:
+    from kestimator.config.moonraker import settings_values
+    from kestimator.config.printer_cfg import read_printer_cfg
+    from kestimator.kinematics import load_kinematics
+
+    def typed(text: str) -> object:
+        for kind in (int, float):
+            try:
+                return kind(text)
+            except ValueError:
+                pass
+        return text
+    settings = {name: {option: typed(value.value) for option, value in options.items()}
+                for name, options in read_printer_cfg(REFS / "delta" / "printer.cfg").items()}
+    for tower in "abc":
+        settings["stepper_" + tower]["rotation_distance"] = 200000.0
+    found = settings_values(settings, "moonraker http://printer")
+    limits = Limits.from_values(found.values).replace(machine=found.machine)
+    with pytest.raises(KestimatorError) as caught:
+        load_kinematics(limits)
+    text = str(caught.value)
+    assert text.startswith("moonraker http://printer: [stepper_a] rotation_distance: "), text
+    assert "too coarse" in text
+    for tower in "abc":
+        settings["stepper_" + tower]["rotation_distance"] = 40.0
+    settings["printer"]["delta_radius"] = 1e200
+    found = settings_values(settings, "moonraker http://printer")
+    limits = Limits.from_values(found.values).replace(machine=found.machine)
+    with pytest.raises(KestimatorError, match=r"\[printer\] delta_radius: .*at most 1e\+100"):
+        load_kinematics(limits)
+
+
+def test_a_klipper_estimator_axis_of_1e200_is_read_not_an_overflow(tmp_path: Path) -> None:
+    from kestimator.config.klipper_estimator import estimator_config_values
+    path = tmp_path / "estimator.json"
+    path.write_text('{"max_velocity": 300, "max_acceleration": 3000, "move_checkers": ['
+                    '{"axis_limiter": {"axis": [0, 0, 1e200], "max_velocity": 12, '
+                    '"max_accel": 1e200}}, {"axis_limiter": {"axis": [1e200, 0, 0], '
+                    '"max_velocity": 1e200}}]}')
+    with pytest.raises(KestimatorError, match="max_accel: max_z_accel must be at most"):
+        estimator_config_values(path)
+    path.write_text(path.read_text().replace('"max_accel": 1e200', '"max_accel": 100'))
+    found = estimator_config_values(path)
+    assert found.values["max_z_velocity"] == 12 and found.values["max_z_accel"] == 100
+    assert any("[1e+200, 0, 0]" in w for w in found.warnings)
+
+
+def test_kestimator_compat_refuses_an_axis_limit_of_1e200_in_one_line(tmp_path: Path) -> None:
+    config = tmp_path / "estimator.json"
+    config.write_text('{"move_checkers": [{"axis_limiter": {"axis": [0, 0, 1e200], '
+                      '"max_velocity": 1e200}}]}')
+    gcode = tmp_path / "print.gcode"
+    gcode.write_text(MOVES)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(PROJECT) + os.pathsep + env.get("PYTHONPATH", "")
+    run = subprocess.run([sys.executable, "-m", "kestimator.compat", "--config_file",
+                          str(config), "estimate", str(gcode)], env=env, capture_output=True,
+                         timeout=120)
+    assert run.returncode == 1 and b"internal error" not in run.stderr, run.stderr
+    assert b"max_z_velocity must be at most 1e+100" in run.stderr, run.stderr
+

@@ -31,7 +31,7 @@ from kestimator.config.klipper_options import (
     PRINTER_OPTIONS,
     SECTION_OPTIONS,
 )
-from kestimator.config.machine import MachineConfig
+from kestimator.config.machine import MachineConfig, arithmetic_violation
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes
 from kestimator.limits import (
@@ -390,27 +390,6 @@ class FloatOption:
             if bound is not None and not allowed(value, bound):
                 return f"must be {text} {bound:g}"
         return None
-
-
-# Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
-# ToolHead squares square_corner_velocity (OverflowError above ~1.3e154, toolhead.py at
-# 84104bbbd), the planner squares speeds and multiplies accelerations by distances, and the
-# extruder divides by the filament's area (0 for 1e-200). Every settings source refuses a
-# magnitude outside [ARITHMETIC_MIN, ARITHMETIC_MAX] (0 itself stays allowed).
-ARITHMETIC_MAX = 1e100
-ARITHMETIC_MIN = 1e-100
-
-
-def arithmetic_violation(value: float) -> str | None:
-    """A text if ``value`` is one Klipper's arithmetic cannot run with, else None."""
-    if not math.isfinite(value):
-        return "must be a finite number"
-    if abs(value) > ARITHMETIC_MAX:
-        return f"must be at most {ARITHMETIC_MAX:g} (Klipper's arithmetic overflows beyond)"
-    if value and abs(value) < ARITHMETIC_MIN:
-        return (f"must be 0 or at least {ARITHMETIC_MIN:g} (Klipper's arithmetic "
-                "underflows below)")
-    return None
 
 
 # Bounds as in klippy/toolhead.py, kinematics/*.py, kinematics/extruder.py,
