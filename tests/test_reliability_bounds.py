@@ -253,3 +253,47 @@ def test_kestimator_compat_refuses_an_axis_limit_of_1e200_in_one_line(tmp_path: 
     assert run.returncode == 1 and b"internal error" not in run.stderr, run.stderr
     assert b"max_z_velocity must be at most 1e+100" in run.stderr, run.stderr
 
+
+# Item 9: includes that multiply are bounded in total work, at the [include] line.
+
+def _diamond(folder: Path, depth: int) -> Path:
+    """f0 includes f1 twice, f1 includes f2 twice, ...: 2^depth files read in all."""
+    for i in range(depth):
+        (folder / ("f%d.cfg" % i)).write_text(
+            "[include f%d.cfg]\n[include f%d.cfg]\n" % (i + 1, i + 1))
+    (folder / ("f%d.cfg" % depth)).write_text(
+        "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n")
+    return folder / "f0.cfg"
+
+
+def test_an_include_diamond_stops_at_the_file_budget_fast(tmp_path: Path) -> None:
+    import time
+
+    from kestimator.config.printer_cfg import MAX_INCLUDED_FILES
+    path = _diamond(tmp_path, 26)
+    started = time.monotonic()
+    with pytest.raises(KestimatorError) as caught:
+        limits_from_printer_cfg(path)
+    assert time.monotonic() - started < 20.0
+    error = caught.value
+    assert error.path is not None and error.path.endswith(".cfg") and error.line in (1, 2)
+    assert "passes %d files read in all" % MAX_INCLUDED_FILES in error.message
+
+
+def test_a_small_diamond_within_the_budget_is_read(tmp_path: Path) -> None:
+    limits, _ = limits_from_printer_cfg(_diamond(tmp_path, 8))
+    assert limits.max_velocity == 300
+
+
+def test_included_text_is_bounded_in_total(tmp_path: Path,
+                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    from kestimator.config import printer_cfg
+    monkeypatch.setattr(printer_cfg, "MAX_INCLUDED_CHARS", 1000)
+    (tmp_path / "big.cfg").write_text("# " + "x" * 400 + "\n")
+    main = tmp_path / "printer.cfg"
+    main.write_text("[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n"
+                    + "[include big.cfg]\n" * 3)
+    with pytest.raises(KestimatorError) as caught:
+        limits_from_printer_cfg(main)
+    assert caught.value.path == str(main) and caught.value.line == 7
+    assert "MiB of config text" in caught.value.message
