@@ -324,27 +324,13 @@ class Timeline:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
         if t > MAX_PRINT_S:
-            self._too_long_moves(moves, start_t)
+            raise _too_long_move(self.path, moves, start_t)
         split.segment = segment
         split.counted_until = t
         self.filament_mm = filament
         self.n_moves += len(moves)
         if self.observer is not None:
             self.observer(moves, start_t)
-
-    def _too_long_moves(self, moves: list[Move], start_t: float) -> None:
-        """Raise KestimatorError naming the move during which time passes MAX_PRINT_S."""
-        t = start_t
-        for move in moves:
-            dt = move.accel_t + move.cruise_t + move.decel_t
-            t += dt
-            if t > MAX_PRINT_S:
-                break
-        raise KestimatorError(
-            "the print would last over a year by this line: its move takes %.3g s (%.6g mm "
-            "at up to %.3g mm/s, acceleration %.3g mm/s^2), so a speed or acceleration in "
-            "force is absurd (SET_VELOCITY_LIMIT or M204 in the file, or a limit of the "
-            "printer's config)" % (dt, move.move_d, move.cruise_v, move.accel), self.path, move.tag)
 
     def _find_first_extrusion(self, moves: list[Move], start_t: float) -> None:
         """Note when the net filament first exceeds print_stats' threshold."""
@@ -382,9 +368,7 @@ class Timeline:
         split.rest_until(before)
         toolhead.add_time(seconds)
         if toolhead.print_time > MAX_PRINT_S:
-            raise KestimatorError(
-                "the print would last over a year by this line: %s adds %.3g s here (%s)"
-                % (name, seconds, source), self.path, self.lineno or None)
+            raise _too_long_added(self.path, self.lineno, name, seconds, source)
         # add_time stopped the head: every queued segment change has been applied.
         split.segment_time[split.queued_segment] += toolhead.print_time - before
         split.counted_until = toolhead.print_time
@@ -551,10 +535,7 @@ class Timeline:
         except (CommandError, MoveError) as exc:
             self._command_error(stripped, exc, "reject:" + cmd.name)
         if self.toolhead.print_time > MAX_PRINT_S:
-            raise KestimatorError("the print would last over a year by this line: '%s' "
-                                  "waits until %.3g s" % (stripped[:80],
-                                                          self.toolhead.print_time),
-                                  self.path, self.lineno)
+            raise _too_long_wait(self.path, self.lineno, stripped, self.toolhead.print_time)
 
     def _reject(self, stripped: str, exc: Exception) -> None:
         """Klipper rejects this plain move line (as `execute` would report it)."""
@@ -606,9 +587,6 @@ class Timeline:
         total = self.toolhead.finish()
         self.split.rest_until(total)
         total = self._correct_motion(total)
-        if total > MAX_PRINT_S:
-            raise KestimatorError("the print would last over a year (%.3g s)" % total,
-                                  self.path, self.toolhead.last_move_line or self.lineno or None)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
             self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
@@ -660,6 +638,37 @@ class Timeline:
             objects=objects, commands=commands, preflight=self.preflight.findings())
 
 
+# A print whose time passes MAX_PRINT_S (a year) is refused where it passed it: as moves
+# are timed, where a line waits, where time is added, and (a learned correction) at the end.
+OVER_A_YEAR: Final = "the print would last over a year by this line: "
+
+
+def _too_long_move(path: str, moves: list[Move], start_t: float) -> KestimatorError:
+    """The error naming the move of `moves` during which time passes MAX_PRINT_S."""
+    t = start_t
+    for move in moves:
+        dt = move.accel_t + move.cruise_t + move.decel_t
+        t += dt
+        if t > MAX_PRINT_S:
+            break
+    return KestimatorError(
+        OVER_A_YEAR + "its move takes %.3g s (%.6g mm at up to %.3g mm/s, acceleration %.3g "
+        "mm/s^2): its length, or a speed or acceleration in force, is absurd "
+        "(SET_VELOCITY_LIMIT or M204 in the file, or a limit of the printer's config)"
+        % (dt, move.move_d, move.cruise_v, move.accel), path, move.tag)
+
+
+def _too_long_added(path: str, line: int, name: str, seconds: float,
+                    source: str) -> KestimatorError:
+    return KestimatorError(OVER_A_YEAR + "%s adds %.3g s here (%s)" % (name, seconds, source),
+                           path, line or None)
+
+
+def _too_long_wait(path: str, line: int, text: str, until: float) -> KestimatorError:
+    return KestimatorError(OVER_A_YEAR + "'%s' waits until %.3g s" % (text[:80], until),
+                           path, line)
+
+
 def klipper_error_text(command_line: str, exc: Exception) -> str:
     """The error as Klipper words it (a parameter error names the command line)."""
     if isinstance(exc, ParamError):
@@ -702,6 +711,9 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
         # A move longer than a float can square (X with 155 digits) takes forever.
         raise KestimatorError("a move at or before this line is too long to time (%s s)"
                               % est.total_s, path, est.last_move_line or est.n_lines or None)
+    if est.total_s > MAX_PRINT_S:
+        raise KestimatorError("the print would last over a year (%.3g s)" % est.total_s, path,
+                              est.last_move_line or est.n_lines or None)
     return est
 
 

@@ -297,3 +297,8 @@ def test_included_text_is_bounded_in_total(tmp_path: Path,
         limits_from_printer_cfg(main)
     assert caught.value.path == str(main) and caught.value.line == 7
     assert "MiB of config text" in caught.value.message
+
+
+def test_a_move_of_150_digits_is_refused_not_timed() -> None:
+    message = _refused_at("G1 X1" + "0" * 150 + " F3000\n", 1)
+    assert "1e+150 mm" in message
