@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable, Iterator
 from itertools import chain
 from typing import Final
 
+from kestimator.durations import MAX_PRINT_S
 from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
@@ -324,6 +325,8 @@ class Timeline:
             if t >= next_sample_t:
                 self._add_sample(move.tag, t)
                 next_sample_t = self._next_sample_t
+        if t > MAX_PRINT_S:
+            raise _too_long_move(self.path, moves, start_t)
         split.segment = segment
         split.counted_until = t
         self.filament_mm = filament
@@ -366,6 +369,8 @@ class Timeline:
         split = self.split
         split.rest_until(before)
         toolhead.add_time(seconds)
+        if toolhead.print_time > MAX_PRINT_S:
+            raise _too_long_added(self.path, self.lineno, name, seconds, source)
         # add_time stopped the head: every queued segment change has been applied.
         split.segment_time[split.queued_segment] += toolhead.print_time - before
         split.counted_until = toolhead.print_time
@@ -531,6 +536,8 @@ class Timeline:
             self.interp.execute(cmd)
         except (CommandError, MoveError) as exc:
             self._command_error(stripped, exc, "reject:" + cmd.name)
+        if self.toolhead.print_time > MAX_PRINT_S:
+            raise _too_long_wait(self.path, self.lineno, stripped, self.toolhead.print_time)
 
     def _reject(self, stripped: str, exc: Exception) -> None:
         """Klipper rejects this plain move line (as `execute` would report it)."""
@@ -633,6 +640,37 @@ class Timeline:
             objects=objects, commands=commands, preflight=self.preflight.findings())
 
 
+# A print whose time passes MAX_PRINT_S (a year) is refused where it passed it: as moves
+# are timed, where a line waits, where time is added, and (a learned correction) at the end.
+OVER_A_YEAR: Final = "the print would last over a year by this line: "
+
+
+def _too_long_move(path: str, moves: list[Move], start_t: float) -> KestimatorError:
+    """The error naming the move of `moves` during which time passes MAX_PRINT_S."""
+    t = start_t
+    for move in moves:
+        dt = move.accel_t + move.cruise_t + move.decel_t
+        t += dt
+        if t > MAX_PRINT_S:
+            break
+    return KestimatorError(
+        OVER_A_YEAR + "its move takes %.3g s (%.6g mm at up to %.3g mm/s, acceleration %.3g "
+        "mm/s^2): its length, or a speed or acceleration in force, is absurd "
+        "(SET_VELOCITY_LIMIT or M204 in the file, or a limit of the printer's config)"
+        % (dt, move.move_d, move.cruise_v, move.accel), path, move.tag)
+
+
+def _too_long_added(path: str, line: int, name: str, seconds: float,
+                    source: str) -> KestimatorError:
+    return KestimatorError(OVER_A_YEAR + "%s adds %.3g s here (%s)" % (name, seconds, source),
+                           path, line or None)
+
+
+def _too_long_wait(path: str, line: int, text: str, until: float) -> KestimatorError:
+    return KestimatorError(OVER_A_YEAR + "'%s' waits until %.3g s" % (text[:80], until),
+                           path, line)
+
+
 def klipper_error_text(command_line: str, exc: Exception) -> str:
     """The error as Klipper words it (a parameter error names the command line)."""
     if isinstance(exc, ParamError):
@@ -675,6 +713,9 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
         # A move longer than a float can square (X with 155 digits) takes forever.
         raise KestimatorError("a move at or before this line is too long to time (%s s)"
                               % est.total_s, path, est.last_move_line or est.n_lines or None)
+    if est.total_s > MAX_PRINT_S:
+        raise KestimatorError("the print would last over a year (%.3g s)" % est.total_s, path,
+                              est.last_move_line or est.n_lines or None)
     return est
 
 

@@ -13,8 +13,8 @@ import dataclasses
 import math
 from collections.abc import Mapping
 
-from kestimator.config.machine import MachineConfig
-from kestimator.config.printer_cfg import FLOAT_OPTIONS, arithmetic_violation
+from kestimator.config.machine import MachineConfig, arithmetic_violation
+from kestimator.config.printer_cfg import FLOAT_OPTIONS
 from kestimator.limits import KLIPPER_GENERATIONS, Limits, tuple_field_value
 
 _BOUNDS = {option.field: option for option in FLOAT_OPTIONS}

@@ -245,8 +245,10 @@ def _axis(raw: object) -> tuple[float, float, float] | None:
     if (not isinstance(raw, list) or len(raw) != 3
             or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in raw)):
         return None
-    length = math.sqrt(sum(float(v) ** 2 for v in raw))
-    if length == 0.0:
+    # hypot, not the square root of a sum of squares: [1e200, 0, 0] is a direction too,
+    # and its square overflows.
+    length = math.hypot(*(float(v) for v in raw))
+    if length == 0.0 or not math.isfinite(length):
         return None
     x, y, z = (abs(float(v)) / length for v in raw)
     return (x, y, z)

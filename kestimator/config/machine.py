@@ -44,6 +44,29 @@ def is_machine_section(name: str) -> bool:
             or name in EXTRA_SECTIONS)
 
 
+# Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
+# ToolHead squares square_corner_velocity (OverflowError above ~1.3e154, toolhead.py at
+# 84104bbbd), the planner squares speeds and multiplies accelerations by distances, and the
+# extruder divides by the filament's area (0 for 1e-200). Every settings source (and every
+# option a kinematics reads, `Section.getfloat`) refuses a magnitude outside
+# [ARITHMETIC_MIN, ARITHMETIC_MAX] (0 itself stays allowed): squares and products of two
+# such values stay finite and non-zero (docs/CLI.md, "Values no print can have").
+ARITHMETIC_MAX = 1e100
+ARITHMETIC_MIN = 1e-100
+
+
+def arithmetic_violation(value: float) -> str | None:
+    """A text if ``value`` is one Klipper's arithmetic cannot run with, else None."""
+    if not math.isfinite(value):
+        return "must be a finite number"
+    if abs(value) > ARITHMETIC_MAX:
+        return f"must be at most {ARITHMETIC_MAX:g} (Klipper's arithmetic overflows beyond)"
+    if value and abs(value) < ARITHMETIC_MIN:
+        return (f"must be 0 or at least {ARITHMETIC_MIN:g} (Klipper's arithmetic "
+                "underflows below)")
+    return None
+
+
 class MissingSectionError(KestimatorError):
     """The printer's config lacks a section the kinematics reads."""
 
@@ -157,6 +180,9 @@ class Section:
                                   % (option, text)) from None
             if not math.isfinite(value):
                 raise self._error(option, "option '%s' must be a finite number" % option)
+            problem = arithmetic_violation(value)
+            if problem is not None:
+                raise self._error(option, "option '%s' %s" % (option, problem))
         for bound, bad, words in ((minval, lambda v, b: v < b, "have minimum of"),
                                   (maxval, lambda v, b: v > b, "have maximum of"),
                                   (above, lambda v, b: v <= b, "be above"),

@@ -31,7 +31,7 @@ from kestimator.config.klipper_options import (
     PRINTER_OPTIONS,
     SECTION_OPTIONS,
 )
-from kestimator.config.machine import MachineConfig
+from kestimator.config.machine import MachineConfig, arithmetic_violation
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes
 from kestimator.limits import (
@@ -87,6 +87,9 @@ class _Config:
 
     sections: Sections = dataclasses.field(default_factory=dict)
     headers: dict[str, str] = dataclasses.field(default_factory=dict)
+    # What the [include]s have read so far (each inclusion counted, see MAX_INCLUDED_FILES).
+    files_included: int = 0
+    chars_included: int = 0
 
     def section(self, name: str, path: str, line: int) -> dict[str, ConfigValue]:
         """The section called `name` (any case), created at path:line if new."""
@@ -392,27 +395,6 @@ class FloatOption:
         return None
 
 
-# Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
-# ToolHead squares square_corner_velocity (OverflowError above ~1.3e154, toolhead.py at
-# 84104bbbd), the planner squares speeds and multiplies accelerations by distances, and the
-# extruder divides by the filament's area (0 for 1e-200). Every settings source refuses a
-# magnitude outside [ARITHMETIC_MIN, ARITHMETIC_MAX] (0 itself stays allowed).
-ARITHMETIC_MAX = 1e100
-ARITHMETIC_MIN = 1e-100
-
-
-def arithmetic_violation(value: float) -> str | None:
-    """A text if ``value`` is one Klipper's arithmetic cannot run with, else None."""
-    if not math.isfinite(value):
-        return "must be a finite number"
-    if abs(value) > ARITHMETIC_MAX:
-        return f"must be at most {ARITHMETIC_MAX:g} (Klipper's arithmetic overflows beyond)"
-    if value and abs(value) < ARITHMETIC_MIN:
-        return (f"must be 0 or at least {ARITHMETIC_MIN:g} (Klipper's arithmetic "
-                "underflows below)")
-    return None
-
-
 # Bounds as in klippy/toolhead.py, kinematics/*.py, kinematics/extruder.py,
 # extras/gcode_arcs.py and extras/firmware_retraction.py at 84104bbbd
 # (max_accel_to_decel as in the Klipper releases that still read it).
@@ -497,6 +479,11 @@ def _read_config(path: str) -> _Config:
 _CANNOT_READ = "cannot read file: "
 MAX_INCLUDE_DEPTH = 100
 """How deep [include]s may nest (a chain, not a count: any number may sit side by side)."""
+MAX_INCLUDED_FILES = 1000
+"""How many files [include]s may read in all, each inclusion counted: files that each include
+the next one twice (a diamond) would otherwise read 2^depth files."""
+MAX_INCLUDED_CHARS = 16 * 1024 * 1024
+"""How much text [include]s may read in all: as much as one config file may hold."""
 
 
 def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
@@ -612,7 +599,20 @@ def _include(path: str, line: int, spec: str, config: _Config,
         if any(os.path.realpath(name) == real for real, _ in stack):
             chain = " -> ".join([shown for _, shown in stack] + [name])
             raise KestimatorError("include cycle: " + chain, path, line)
-        _parse_file(name, _read_lines(name, (path, line)), config, stack)
+        config.files_included += 1
+        if config.files_included > MAX_INCLUDED_FILES:
+            raise KestimatorError(
+                f"this [include] passes {MAX_INCLUDED_FILES} files read in all: a file "
+                "included more than once is read each time, so files that each include the "
+                "next one twice read 2^depth files", path, line)
+        lines = _read_lines(name, (path, line))
+        # The text's length: its lines and the line breaks between them.
+        config.chars_included += sum(len(text) for text in lines) + len(lines) - 1
+        if config.chars_included > MAX_INCLUDED_CHARS:
+            raise KestimatorError(
+                f"this [include] passes {MAX_INCLUDED_CHARS >> 20} MiB of config text read in "
+                "all (a file included more than once is read each time)", path, line)
+        _parse_file(name, lines, config, stack)
 
 
 def _parse_chunk(lines: _NumberedLines, path: str, config: _Config) -> None:

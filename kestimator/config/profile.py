@@ -39,6 +39,7 @@ from types import ModuleType
 from typing import Any
 
 from kestimator.config.fields import check_limit_value
+from kestimator.durations import MAX_PRINT_S
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes
 from kestimator.macros import check_seconds
@@ -168,8 +169,9 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
     for key in DURATION_KEYS:
         value = settings.get(key)
         if value is not None and (isinstance(value, bool) or not isinstance(
-                value, (int, float)) or not 0.0 <= value < float("inf")):
-            raise KestimatorError(f"{key} must be a number of seconds, 0 or more", name)
+                value, (int, float)) or not 0.0 <= value <= MAX_PRINT_S):
+            raise KestimatorError(f"{key} must be a number of seconds, 0 or more and at most "
+                                  f"a year ({MAX_PRINT_S:g})", name)
         durations[key] = None if value is None else float(value)
     printer_cfg = settings.get("printer_cfg")
     if printer_cfg is not None:
@@ -238,4 +240,7 @@ def _macros(table: object, where: str, path: str) -> dict[str, float]:
             checked[name] = check_seconds(value)
         except ValueError as exc:
             raise KestimatorError(f"{where}: {macro} {exc}", path) from None
+        if checked[name] > MAX_PRINT_S:
+            raise KestimatorError(f"{where}: {macro} = {value:g} s is over a year "
+                                  f"({MAX_PRINT_S:g} s): no macro takes that long", path)
     return checked

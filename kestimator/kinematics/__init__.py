@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from kestimator.config.machine import MachineConfig, MissingSectionError
+from kestimator.errors import KestimatorError
 from kestimator.kinematics import (
     cartesian,
     corexy,
@@ -115,4 +116,11 @@ def load_kinematics(limits: Limits) -> Kinematics:
             name, limits, _z_rule(name),
             "%s: %s: moves are not range-checked, G28 homes to 0 and only the Z speed limit "
             "is applied" % (machine.description, exc.message))
+    except (ArithmeticError, ValueError) as exc:
+        # Values each within Klipper's bounds can still give a geometry its arithmetic
+        # breaks on (Klipper itself then stops at start-up with a traceback).
+        raise KestimatorError(
+            "[printer] kinematics: %s: Klipper cannot compute this printer's geometry from "
+            "its config (%s: %s): check the arm lengths, radii, angles and endstop positions"
+            % (name, type(exc).__name__, exc), machine.description) from None
     return kin

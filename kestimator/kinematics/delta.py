@@ -17,7 +17,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, TypeVar
 
-from kestimator.config.machine import MachineConfig, lookup_rail
+from kestimator.config.machine import MachineConfig, Rail, Section, lookup_rail
+from kestimator.errors import KestimatorError
 from kestimator.kinematics.base import (
     Kinematics,
     Position,
@@ -130,6 +131,10 @@ class DeltaKinematics(Kinematics):
         self.min_arm2 = min_arm_length**2
         # Find the point where an XY move could result in excessive tower movement
         half_min_step_dist = min([r.step_dist for r in self.rails]) * 0.5
+        if min_arm_length**2 / ((4.0 * SLOW_RATIO)**2 + 1.0) < half_min_step_dist**2:
+            # Klipper's ratio_to_xy takes the square root of a negative number and Klipper
+            # does not start (ValueError); name the step that is too coarse.
+            raise _coarse_step(stepper_configs, self.rails, min_arm_length)
 
         def ratio_to_xy(ratio: float) -> float:
             return (ratio * math.sqrt(min_arm_length**2 / (ratio**2 + 1.0)
@@ -196,6 +201,22 @@ class DeltaKinematics(Kinematics):
             move.limit_speed(self.max_velocity * r, self.max_accel * r)
             limit_xy2 = -1.0
         self.limit_xy2 = min(limit_xy2, self.slow_xy2)
+
+
+def _coarse_step(stepper_configs: list[Section], rails: list[Rail],
+                 min_arm_length: float) -> KestimatorError:
+    """The error for a step too coarse for the arms, at the option that sets the step."""
+    index = min(range(len(rails)), key=lambda i: rails[i].step_dist)
+    section = stepper_configs[index]
+    option = next((name for name in ("rotation_distance", "gear_ratio", "microsteps",
+                                     "full_steps_per_rotation")
+                   if section.source(name) is not None), "rotation_distance")
+    limit = 2.0 * min_arm_length / math.sqrt((4.0 * SLOW_RATIO)**2 + 1.0)
+    return section._error(
+        option, "option '%s': one microstep of %s moves its carriage %.6g mm, too coarse "
+        "for arm_length %g: a delta's step must be under 2 x arm_length / sqrt(145) = "
+        "%.4g mm, or Klipper cannot compute its slow-down radius and does not start"
+        % (option, section.name, rails[index].step_dist, min_arm_length, limit))
 
 
 def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:

@@ -19,8 +19,8 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from kestimator.config.machine import MachineConfig, lookup_rail
-from kestimator.errors import MoveError
+from kestimator.config.machine import MachineConfig, Section, lookup_rail
+from kestimator.errors import KestimatorError, MoveError
 from kestimator.kinematics.base import Kinematics, Position
 
 if TYPE_CHECKING:
@@ -60,6 +60,10 @@ class DeltesianKinematics(Kinematics):
         x_kin_min = math.ceil(-min(arm_x[0], cos_angle * arm[1] - arm_x[1]))
         x_kin_max = math.floor(min(arm_x[1], cos_angle * arm[0] - arm_x[0]))
         x_kin_range = min(x_kin_max - x_kin_min, x_kin_max * 2, -x_kin_min * 2)
+        if x_kin_range <= 0:
+            # Klipper starts (an absent print_width's bound is not checked) with an empty X
+            # range and refuses every X move; say which option leaves no range.
+            raise _no_x_range(printer, stepper_configs, arm, arm_x, min_angle)
         print_width = printer.getfloat("print_width", 0.0, minval=0.0, maxval=x_kin_range)
         if print_width:
             self.limits[0] = (-print_width * 0.5, print_width * 0.5)
@@ -156,6 +160,29 @@ class DeltesianKinematics(Kinematics):
             if move_x2 > self.very_slow_x2 or move_x2 > self.slow_x2:
                 raise MoveError("Internal error: %s (Klipper 84104bbbd's deltesian fails on "
                                 "moves beyond its slow-down X and shuts down)" % SLOW_DOWN_BUG)
+
+
+def _no_x_range(printer: Section, stepper_configs: list[Section], arm: list[float],
+                arm_x: list[float], min_angle: float) -> KestimatorError:
+    """The error for arms that reach no X position at min_angle, naming the option the
+    user wrote: min_angle when the arms would do at the default angle, else the arm."""
+    widest = min(math.degrees(math.acos(arm_x[i] / arm[i])) for i in range(2))
+    if printer.source("min_angle") is not None and min_angle > MIN_ANGLE and (
+            widest > MIN_ANGLE):
+        return printer._error(
+            "min_angle", "option 'min_angle' %g leaves the arms no X range: with arm_length "
+            "%g and arm_x_length %g they reach X only at angles below %.4g degrees, so "
+            "Klipper would refuse every X move" % (min_angle, arm[0], arm_x[0], widest))
+    cos_angle = math.cos(math.radians(min_angle))
+    side = 0 if cos_angle * arm[0] - arm_x[0] <= cos_angle * arm[1] - arm_x[1] else 1
+    section = stepper_configs[side]
+    if section.source("arm_length") is None:
+        section = stepper_configs[0]
+    return section._error(
+        "arm_length", "option 'arm_length' %g is too short for arm_x_length %g at min_angle "
+        "%g degrees: it must be well over arm_x_length / cos(min_angle) = %.6g, or the arms "
+        "reach no X position and Klipper would refuse every X move"
+        % (arm[side], arm_x[side], min_angle, arm_x[side] / cos_angle))
 
 
 def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:

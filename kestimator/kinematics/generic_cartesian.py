@@ -38,7 +38,11 @@ class GenericCartesianKinematics(CartKinematics):
         Kinematics.__init__(self)
         rails: dict[int, Rail] = {}
         for section in config.get_prefix_sections("carriage "):
-            carriage_name = section.name.split(None, 1)[1].strip()
+            parts = section.name.split(None, 1)
+            if len(parts) < 2:
+                raise KestimatorError("[%s] has no carriage name: name it as [carriage x]"
+                                      % section.name, config.description)
+            carriage_name = parts[1].strip()
             default_axis = carriage_name if carriage_name in VALID_AXES else None
             axis_name = (section.get("axis", default_axis) or "").strip().lower()
             if axis_name not in VALID_AXES:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING
 
-from kestimator.config.machine import MachineConfig, lookup_rail
+from kestimator.config.machine import MachineConfig, Section, lookup_rail
 from kestimator.kinematics.base import (
     Kinematics,
     Position,
@@ -80,8 +80,7 @@ class RotaryDeltaKinematics(Kinematics):
         # Setup boundary checks
         self.need_home = True
         self.limit_xy2 = -1.0
-        eangles = [self._calc_position_from_coord(i, (0.0, 0.0, endstops[i]))
-                   for i in range(3)]
+        eangles = [self._endstop_angle(stepper_configs, i, endstops[i]) for i in range(3)]
         self.home_position = self._actuator_to_cartesian(eangles)
         self.max_z = min(endstops)
         self.min_z = printer.getfloat("minimum_z_position", 0.0, maxval=self.max_z)
@@ -90,6 +89,24 @@ class RotaryDeltaKinematics(Kinematics):
         self.max_xy2 = min(min_ua, min_la)**2
         arm_z = [self._elbow_coord(i, eangles[i])[2] for i in range(3)]
         self.limit_z = min([arm_z[i] - lower_arms[i] for i in range(3)])
+
+    def _endstop_angle(self, stepper_configs: list[Section], i: int, endstop: float
+                       ) -> float:
+        """Shoulder i's angle with the head at its endstop; an error naming the arms when
+        they cannot reach it (Klipper's C code then yields NaN and no home position)."""
+        try:
+            return self._calc_position_from_coord(i, (0.0, 0.0, endstop))
+        except (ValueError, ZeroDivisionError):
+            pass
+        section = stepper_configs[i]
+        if section.source("upper_arm_length") is None:
+            section = stepper_configs[0]
+        raise section._error(
+            "upper_arm_length", "the arms of %s cannot reach its position_endstop %g "
+            "(upper_arm_length %g, lower_arm_length %g, shoulder_radius %g, shoulder_height "
+            "%g): Klipper computes no home position for this geometry"
+            % (stepper_configs[i].name, endstop, self.upper_arms[i], self.lower_arms[i],
+               self.shoulder_radius, self.shoulder_height))
 
     def _calc_position_from_coord(self, i: int, c: Vec3) -> float:
         """kin_rotary_delta.c's rotary_stepper_calc_position for shoulder i at c."""
