@@ -53,7 +53,7 @@ from kestimator.config.resolve import (
     LimitRequest,
     ResolvedLimits,
 )
-from kestimator.durations import format_duration
+from kestimator.durations import MAX_PRINT_S, format_duration
 from kestimator.errors import KestimatorError
 from kestimator.estimate import Estimate, estimate_lines, iter_lines
 from kestimator.files import (
@@ -518,9 +518,9 @@ def _parts_text(est: Estimate) -> str:
 
 def _check_time_options(args: argparse.Namespace) -> None:
     for name in ("homing_time", "heat_time"):
-        if not 0.0 <= getattr(args, name) < float("inf"):
-            raise KestimatorError("--%s must be a non-negative number of seconds"
-                                  % name.replace("_", "-"))
+        if not 0.0 <= getattr(args, name) <= MAX_PRINT_S:
+            raise KestimatorError("--%s must be a number of seconds from 0 to a year (%g)"
+                                  % (name.replace("_", "-"), MAX_PRINT_S))
 
 
 def cmd_limits(args: argparse.Namespace) -> int:

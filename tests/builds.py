@@ -128,6 +128,17 @@ def _extreme_program(rng: random.Random) -> str:
     return "\n".join(lines) + "\n"
 
 
+def extreme_programs(folder: Path) -> list[Path]:
+    """Only the seeded programs with extreme values, written into `folder`."""
+    extreme = random.Random(7)
+    paths = []
+    for i in range(N_EXTREME_PROGRAMS):
+        path = folder / ("extreme%02d.gcode" % i)
+        path.write_text(_extreme_program(extreme), encoding="ascii")
+        paths.append(path)
+    return paths
+
+
 def generated_programs(folder: Path) -> list[Path]:
     """The state-changing program, seeded random ones and seeded ones with extreme values,
     written into `folder`."""
@@ -185,10 +196,12 @@ def pure_cli_outputs(path: Path) -> tuple[bytes, str]:
     return cli_outputs(sys.executable, path)
 
 
-def digests(python: str, paths: Sequence[Path], on_path: bool = True) -> list[str]:
-    """tests/estimate_digest.py's lines for `paths`, run by `python` (first line: the build)."""
+def digests(python: str, paths: Sequence[Path], on_path: bool = True,
+            printer_cfg: Path = CORPUS_CFG) -> list[str]:
+    """tests/estimate_digest.py's lines for `paths` timed with `printer_cfg`, run by `python`
+    (first line: the build)."""
     proc = subprocess.run(
-        [python, str(DIGEST_SCRIPT), str(CORPUS_CFG), *map(str, paths)],
+        [python, str(DIGEST_SCRIPT), str(printer_cfg), *map(str, paths)],
         env=_env(None, on_path), cwd=tempfile.gettempdir(), capture_output=True, text=True,
         timeout=RUN_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr

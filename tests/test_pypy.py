@@ -17,7 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from .builds import cli_outputs, compared_files, digests, generated_programs, pure_cli_outputs
+from .builds import (
+    cli_outputs,
+    compared_files,
+    digests,
+    extreme_programs,
+    generated_programs,
+    pure_cli_outputs,
+)
 from .conftest import PROJECT, require_program
 from .test_hook_checks import build_zipapp
 
@@ -47,6 +54,20 @@ def test_pypy_estimate_equals_cpython_field_by_field_on_corpus_and_programs(
     paths = compared_files() + generated_programs(tmp_path)
     pypy = digests(_pypy(), paths)
     cpython = digests(sys.executable, paths)
+    assert len(pypy) == len(cpython) == len(paths) + 1
+    for path, a, b in zip(paths, pypy[1:], cpython[1:]):
+        assert a == b, path.name
+
+
+@pytest.mark.parametrize("kinematics", ["delta", "rotary_delta", "deltesian", "polar"])
+def test_pypy_equals_cpython_on_extreme_values_with_every_kinematics_that_squares_positions(
+        tmp_path: Path, kinematics: str) -> None:
+    # These kinematics square the file's positions in check_move: PyPy's ** gave inf where
+    # CPython raised OverflowError, so one build stopped the print and the other timed it.
+    cfg = PROJECT / "tests" / "oracle_refs" / kinematics / "printer.cfg"
+    paths = extreme_programs(tmp_path)
+    pypy = digests(_pypy(), paths, printer_cfg=cfg)
+    cpython = digests(sys.executable, paths, printer_cfg=cfg)
     assert len(pypy) == len(cpython) == len(paths) + 1
     for path, a, b in zip(paths, pypy[1:], cpython[1:]):
         assert a == b, path.name

@@ -121,6 +121,15 @@ def test_inject_refuses_an_absurd_total_and_leaves_the_file(tmp_path: Path) -> N
     assert gcode.read_bytes() == body
 
 
+@pytest.mark.parametrize("option", ["--homing-time", "--heat-time"])
+def test_a_time_option_over_a_year_is_refused_even_in_a_file_that_never_uses_it(
+        tmp_path: Path, option: str) -> None:
+    gcode = tmp_path / "print.gcode"
+    gcode.write_text("G1 X1 Y1 F3000\n")
+    run = _run("estimate", str(gcode), "--printer-cfg", str(CORPUS_CFG), option, "1e300")
+    _one_line_failure(run, option.encode() + b" must be a number of seconds from 0 to a year")
+
+
 # Items 8 and 13: a printer's geometry Klipper's arithmetic breaks on, or that leaves no
 # range, is one line naming the file, the section and the option the user wrote.
 

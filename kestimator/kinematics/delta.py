@@ -169,7 +169,9 @@ class DeltaKinematics(Kinematics):
     def check_move(self, move: Move) -> None:
         """Range (radius tapered near the top), Z limits, and the slow-down radii."""
         end_x, end_y, end_z = move.end_x, move.end_y, move.end_z
-        end_xy2 = end_x**2 + end_y**2
+        # Squares of positions from the file: math.pow (upstream: x**2), the same bits, and an
+        # overflow raises on PyPy as it does on CPython, where PyPy's ** would give inf.
+        end_xy2 = math.pow(end_x, 2.0) + math.pow(end_y, 2.0)
         if end_xy2 <= self.limit_xy2 and not move.axes_d_z:
             # Normal XY move
             return
@@ -179,8 +181,8 @@ class DeltaKinematics(Kinematics):
         if end_z > self.limit_z:
             above_z_limit = end_z - self.limit_z
             allowed_radius = self.radius - math.sqrt(
-                self.min_arm2 - (self.min_arm_length - above_z_limit)**2)
-            limit_xy2 = min(limit_xy2, allowed_radius**2)
+                self.min_arm2 - math.pow(self.min_arm_length - above_z_limit, 2.0))
+            limit_xy2 = min(limit_xy2, math.pow(allowed_radius, 2.0))
         if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
             # Move out of range - verify not a homing move
             if ((end_x, end_y) != (self.home_position[0], self.home_position[1])
@@ -193,7 +195,7 @@ class DeltaKinematics(Kinematics):
             limit_xy2 = -1.0
         # Limit the speed/accel of this move if is is at the extreme
         # end of the build envelope
-        extreme_xy2 = max(end_xy2, move.start_x**2 + move.start_y**2)
+        extreme_xy2 = max(end_xy2, math.pow(move.start_x, 2.0) + math.pow(move.start_y, 2.0))
         if extreme_xy2 > self.slow_xy2:
             r = 0.5
             if extreme_xy2 > self.very_slow_xy2:

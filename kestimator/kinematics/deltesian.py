@@ -105,8 +105,9 @@ class DeltesianKinematics(Kinematics):
 
     def _pillars_z_max(self, x: float) -> float:
         arm_x, arm2 = self.arm_x, self.arm2
-        dz = (math.sqrt(arm2[0] - (arm_x[0] + x)**2),
-              math.sqrt(arm2[1] - (arm_x[1] - x)**2))
+        # math.pow (upstream: **): x comes from the file, see check_move.
+        dz = (math.sqrt(arm2[0] - math.pow(arm_x[0] + x, 2.0)),
+              math.sqrt(arm2[1] - math.pow(arm_x[1] - x, 2.0)))
         return min([self._abs_endstop[i] - dz[i] for i in range(2)])
 
     def set_position(self, newpos: Position, homing_axes: str) -> None:
@@ -156,7 +157,9 @@ class DeltesianKinematics(Kinematics):
             z_ratio = move.move_d / abs(move.axes_d[2])
             move.limit_speed(self.max_z_velocity * z_ratio, self.max_z_accel * z_ratio)
         if move.axes_d[0] and self.slow_x2 and self.very_slow_x2:
-            move_x2 = max(spos[0] ** 2, epos[0] ** 2)
+            # Squares of positions from the file: math.pow (upstream: x**2), the same bits,
+            # and an overflow raises on PyPy as it does on CPython (PyPy's ** gives inf).
+            move_x2 = max(math.pow(spos[0], 2.0), math.pow(epos[0], 2.0))
             if move_x2 > self.very_slow_x2 or move_x2 > self.slow_x2:
                 raise MoveError("Internal error: %s (Klipper 84104bbbd's deltesian fails on "
                                 "moves beyond its slow-down X and shuts down)" % SLOW_DOWN_BUG)

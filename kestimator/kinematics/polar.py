@@ -35,12 +35,14 @@ def distance_to_center(p1: tuple[float, float], p2: tuple[float, float]) -> floa
     ap_x = -p1[0]
     ap_y = -p1[1]
     ab_ap_dot_product = ab_x * ap_x + ab_y * ap_y
-    ab_length = math.sqrt(ab_x ** 2 + ab_y ** 2)
+    # Squares of positions from the file: math.pow (upstream: x**2), the same bits, and an
+    # overflow raises on PyPy as it does on CPython, where PyPy's ** would give inf.
+    ab_length = math.sqrt(math.pow(ab_x, 2.0) + math.pow(ab_y, 2.0))
     # Check if the projected point lies on the bounded line segment
     if ab_ap_dot_product <= 0:
-        dist = math.sqrt(ap_x ** 2 + ap_y ** 2)
-    elif ab_ap_dot_product >= ab_length ** 2:
-        dist = math.sqrt(p2[0] ** 2 + p2[1] ** 2)
+        dist = math.sqrt(math.pow(ap_x, 2.0) + math.pow(ap_y, 2.0))
+    elif ab_ap_dot_product >= math.pow(ab_length, 2.0):
+        dist = math.sqrt(math.pow(p2[0], 2.0) + math.pow(p2[1], 2.0))
     else:
         dist = abs(ab_x * ap_y - ab_y * ap_x) / ab_length
     return dist
@@ -94,7 +96,9 @@ class PolarKinematics(Kinematics):
     def check_move(self, move: Move) -> None:
         """The disc, Z's range and speed, and the slow-down near the centre."""
         end_x, end_y, end_z = move.end_x, move.end_y, move.end_z
-        xy2 = end_x**2 + end_y**2
+        # Squares of positions from the file: math.pow (upstream: x**2), the same bits, and an
+        # overflow raises on PyPy as it does on CPython, where PyPy's ** would give inf.
+        xy2 = math.pow(end_x, 2.0) + math.pow(end_y, 2.0)
         if xy2 > self.limit_xy2:
             if self.limit_xy2 < 0.0:
                 raise move.move_error("Must home axis first")

@@ -156,7 +156,9 @@ class RotaryDeltaKinematics(Kinematics):
     def check_move(self, move: Move) -> None:
         """Range (radius tapered near the top) and the Z velocity cap."""
         end_x, end_y, end_z = move.end_x, move.end_y, move.end_z
-        end_xy2 = end_x**2 + end_y**2
+        # Squares of positions from the file: math.pow (upstream: x**2), the same bits, and an
+        # overflow raises on PyPy as it does on CPython, where PyPy's ** would give inf.
+        end_xy2 = math.pow(end_x, 2.0) + math.pow(end_y, 2.0)
         if end_xy2 <= self.limit_xy2 and not move.axes_d_z:
             # Normal XY move
             return
@@ -164,7 +166,7 @@ class RotaryDeltaKinematics(Kinematics):
             raise move.move_error("Must home first")
         limit_xy2 = self.max_xy2
         if end_z > self.limit_z:
-            limit_xy2 = min(limit_xy2, (self.max_z - end_z)**2)
+            limit_xy2 = min(limit_xy2, math.pow(self.max_z - end_z, 2.0))
         if end_xy2 > limit_xy2 or end_z > self.max_z or end_z < self.min_z:
             # Move out of range - verify not a homing move
             if ((end_x, end_y) != (self.home_position[0], self.home_position[1])
