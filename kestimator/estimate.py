@@ -478,25 +478,31 @@ class Timeline:
         """Process every line of `lines`, in order."""
         gcode_move = self.interp.gcode_move
         lineno = self.lineno
-        for raw in lines:
-            lineno += 1
+        try:
+            for raw in lines:
+                lineno += 1
+                if SCAN_PLAIN_MOVES:
+                    plain, x, y, z, e, f = parse_plain_move_scan(raw)
+                else:
+                    plain, x, y, z, e, f = parse_plain_move_regex(raw)
+                if not plain:
+                    self.lineno = lineno
+                    self._feed_other(raw)
+                    continue
+                # A plain G0/G1 line: what `_feed_other` would do, without a Command.
+                if self.first_command_line is None:
+                    self.first_command_line = lineno
+                gcode_move.tag = lineno
+                try:
+                    gcode_move.plain_move(x, y, z, e, f)
+                except MoveError as exc:
+                    self.lineno = lineno
+                    gcode_move.reset_last_position()
+                    self._reject(raw.decode("utf-8", "replace").strip(), exc)
+        finally:
+            # A plain move needs no self.lineno (its move carries the line): it is stored
+            # only where something reads it, and here, whatever ends the loop.
             self.lineno = lineno
-            if SCAN_PLAIN_MOVES:
-                plain, x, y, z, e, f = parse_plain_move_scan(raw)
-            else:
-                plain, x, y, z, e, f = parse_plain_move_regex(raw)
-            if not plain:
-                self._feed_other(raw)
-                continue
-            # A plain G0/G1 line: what `_feed_other` would do, without building a Command.
-            if self.first_command_line is None:
-                self.first_command_line = lineno
-            gcode_move.tag = lineno
-            try:
-                gcode_move.plain_move(x, y, z, e, f)
-            except MoveError as exc:
-                gcode_move.reset_last_position()
-                self._reject(raw.decode("utf-8", "replace").strip(), exc)
 
     def _feed_other(self, raw: bytes) -> None:
         """Any line but a plain G0/G1 one (self.lineno is already this line's number)."""
