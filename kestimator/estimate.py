@@ -239,6 +239,39 @@ def over_long_line(head: bytes, lineno: int, path: str) -> bytes:
                           "command line that long" % (MAX_LINE_BYTES >> 20), path, lineno)
 
 
+class Warnings:
+    """The warnings of one file, each naming file and line: the first MAX_WARNINGS kept, the
+    rest counted; repeats of the same key are counted on the first ("N more like it")."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.kept: list[str] = []
+        self.repeats: list[int] = []
+        self.keys: dict[str, int] = {}
+        self.dropped = 0
+
+    def add(self, message: str, line: int | None, key: str | None) -> None:
+        """One warning at `line` (None: the whole file)."""
+        if key is not None:
+            index = self.keys.get(key)
+            if index is not None:
+                self.repeats[index] += 1
+                return
+        if len(self.kept) >= MAX_WARNINGS:
+            self.dropped += 1
+            return
+        where = "%s:%d: " % (self.path, line) if line is not None else "%s: " % self.path
+        if key is not None:
+            self.keys[key] = len(self.kept)
+        self.kept.append(where + message)
+        self.repeats.append(0)
+
+    def final(self) -> list[str]:
+        """The warnings as reported, with their repeat counts."""
+        return [w if not n else "%s (%d more like it)" % (w, n)
+                for w, n in zip(self.kept, self.repeats)]
+
+
 class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
@@ -251,10 +284,7 @@ class Timeline:
         self.path = path
         self.observer = observer
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
-        self.warnings: list[str] = []
-        self.warnings_dropped = 0
-        self._warning_keys: dict[str, int] = {}
-        self._warning_repeats: list[int] = []
+        self.warnings = Warnings(path)
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
                                   homing_time=homing_time, heat_time=heat_time,
                                   add_time=self.add_time)
@@ -430,23 +460,7 @@ class Timeline:
 
     def warn(self, message: str, line: int | None = None, key: str | None = None) -> None:
         """Keep a warning naming file and line; repeats of the same key are only counted."""
-        if key is not None:
-            index = self._warning_keys.get(key)
-            if index is not None:
-                self._warning_repeats[index] += 1
-                return
-        if len(self.warnings) >= MAX_WARNINGS:
-            self.warnings_dropped += 1
-            return
-        where = "%s:%d: " % (self.path, line) if line is not None else "%s: " % self.path
-        if key is not None:
-            self._warning_keys[key] = len(self.warnings)
-        self.warnings.append(where + message)
-        self._warning_repeats.append(0)
-
-    def _final_warnings(self) -> list[str]:
-        return [w if not n else "%s (%d more like it)" % (w, n)
-                for w, n in zip(self.warnings, self._warning_repeats)]
+        self.warnings.add(message, line, key)
 
     def _record(self, store: TimedLines, lineno: int) -> None:
         """The time at which the printer reaches ``lineno``: when every move queued before
@@ -635,7 +649,7 @@ class Timeline:
             n_moves=self.n_moves, n_lines=self.lineno,
             ignored_commands=dict(sorted(interp.ignored.items())),
             ignored_unlisted=interp.ignored_unlisted,
-            warnings=self._final_warnings(), warnings_dropped=self.warnings_dropped,
+            warnings=self.warnings.final(), warnings_dropped=self.warnings.dropped,
             sample_lines=self.sample_lines, sample_times=self.sample_times,
             marks=self.marks, noted_lines=self.noted_lines,
             first_command_line=self.first_command_line,
