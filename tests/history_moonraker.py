@@ -22,6 +22,7 @@ import urllib.parse
 from typing import Any
 
 from tests.fake_moonraker import CORPUS_SETTINGS
+from tests.hostile_moonraker import read_request
 
 LIFETIME_S = 20.0
 DRIP_S = 0.2
@@ -96,16 +97,7 @@ class HistoryMoonraker:
             conn.close()
 
     def _read_request(self, conn: socket.socket) -> bytes:
-        data = b""
-        while b"\r\n\r\n" not in data and len(data) < 65536 and self._alive():
-            try:
-                chunk = conn.recv(4096)
-            except TimeoutError:
-                continue
-            if not chunk:
-                break
-            data += chunk
-        return data
+        return read_request(conn, self._alive)
 
     def _serve(self, conn: socket.socket, path: str) -> None:
         kind = ("history" if path.startswith(HISTORY_PREFIX) else

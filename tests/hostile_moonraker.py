@@ -18,11 +18,26 @@ import random
 import socket
 import threading
 import time
+from collections.abc import Callable
 
 LIFETIME_S = 20.0
 DRIP_S = 0.2
 HUGE_BYTES = 64 * 1024 * 1024
 BEHAVIOURS = ("silent", "drip", "garbage", "huge", "redirect", "echo_key")
+
+
+def read_request(conn: socket.socket, alive: Callable[[], bool]) -> bytes:
+    """An HTTP request's head (at most 64 KiB), read while `alive()`."""
+    data = b""
+    while b"\r\n\r\n" not in data and len(data) < 65536 and alive():
+        try:
+            chunk = conn.recv(4096)
+        except TimeoutError:
+            continue
+        if not chunk:
+            break
+        data += chunk
+    return data
 
 
 class HostileMoonraker:
@@ -82,16 +97,7 @@ class HostileMoonraker:
             conn.close()
 
     def _read_request(self, conn: socket.socket) -> bytes:
-        data = b""
-        while b"\r\n\r\n" not in data and len(data) < 65536 and self._alive():
-            try:
-                chunk = conn.recv(4096)
-            except TimeoutError:
-                continue
-            if not chunk:
-                break
-            data += chunk
-        return data
+        return read_request(conn, self._alive)
 
     def _record(self, conn: socket.socket, request: bytes) -> None:
         self.seen_headers.append(request)
