@@ -7,7 +7,8 @@ changes by split_delta_z, looking every move_check_distance mm (`MoveSplitter`).
 a saved profile ([bed_mesh NAME] in printer.cfg or its SAVE_CONFIG block) built into a
 `ZMesh` with upstream's interpolation (lagrange, bicubic, direct) and read by bilinear
 interpolation. Commands: BED_MESH_PROFILE (LOAD/SAVE/REMOVE), BED_MESH_CLEAR,
-BED_MESH_OFFSET. Probing (BED_MESH_CALIBRATE) is not modelled: it measures the bed.
+BED_MESH_OFFSET. Probing (BED_MESH_CALIBRATE) is not modelled: it measures the bed; the
+command clears the mesh, as upstream does first, and says so in a warning.
 
 Re-implemented, not copied; the arithmetic is upstream's, in its order, so that the moves
 the toolhead gets are bit-identical to Klipper's.
@@ -21,13 +22,17 @@ from typing import Final
 from kestimator.config.machine import MachineConfig, Section
 from kestimator.errors import CommandError, KestimatorError
 from kestimator.gcode import Command, command_params, get_float
-from kestimator.gcode_move import GCodeMove, MoveTransform
+from kestimator.gcode_move import GCodeMove, MoveTransform, WarnFn
 
 PROFILE_VERSION: Final = 1
 # A saved profile's mesh parameters and their types (upstream's PROFILE_OPTIONS).
 _INT_OPTIONS: Final = ("x_count", "y_count", "mesh_x_pps", "mesh_y_pps")
 _FLOAT_OPTIONS: Final = ("min_x", "max_x", "min_y", "max_y", "tension")
-FADE_DISABLE: Final = 0x7FFFFFFF
+# upstream: the int 0x7FFFFFFF (exact as a float; only compared with heights)
+FADE_DISABLE: Final = 2147483647.0
+# A move longer than this many move_check_distance steps is refused: Klipper's splitter
+# would step along it for hours (a 1e200 mm move never ends), stalling the printer.
+MAX_SPLIT_CHECKS: Final = 1e7
 
 
 class BedMeshError(Exception):
@@ -118,6 +123,11 @@ class MoveSplitter:
         self.total_move_length = math.sqrt(
             axes_d[0] * axes_d[0] + axes_d[1] * axes_d[1] + axes_d[2] * axes_d[2])
         self.axis_move = [not isclose(d, 0., abs_tol=1e-10) for d in axes_d]
+        if not self.total_move_length / self.move_check_distance <= MAX_SPLIT_CHECKS:
+            self.traverse_complete = True
+            raise CommandError("bed_mesh: a move of %.3f mm is too long to split (Klipper "
+                               "would check it every %g mm for hours)"
+                               % (self.total_move_length, self.move_check_distance))
 
     def _calc_z_offset(self, pos: list[float]) -> float:
         z_mesh = self.z_mesh
@@ -446,9 +456,10 @@ class BedMesh:
     """[bed_mesh]: the move transform and its commands (upstream's BedMesh, with its
     ProfileManager's profiles)."""
 
-    def __init__(self, config: MachineConfig, gcode_move: GCodeMove) -> None:
+    def __init__(self, config: MachineConfig, gcode_move: GCodeMove, warn: WarnFn) -> None:
         section = config.getsection("bed_mesh")
         self.gcode_move = gcode_move
+        self.warn = warn
         self.last_position: list[float] = [0., 0., 0., 0.]
         self.z_mesh: ZMesh | None = None
         self.fade_start = section.getfloat("fade_start", 1.)
@@ -583,6 +594,15 @@ class BedMesh:
         if tool_offset is not None:
             self.tool_offset = tool_offset
         self.gcode_move.reset_last_position()
+
+    def cmd_BED_MESH_CALIBRATE(self, cmd: Command) -> None:
+        """Probing: upstream first clears the mesh, then probes and loads what it measured,
+        which the file cannot tell. The mesh is cleared; the warning says the rest."""
+        self.set_mesh(None)
+        self.warn("BED_MESH_CALIBRATE probes the bed: the probing time and the mesh it "
+                  "measures are unknown (0 s, and later moves are timed without a mesh; a "
+                  "mesh splits moves and changes Klipper's time by up to a few tenths of a "
+                  "second)", "bed_mesh_calibrate")
 
     def cmd_BED_MESH_PROFILE(self, cmd: Command) -> None:
         """LOAD, SAVE or REMOVE a profile (the first of these the command gives)."""

@@ -152,8 +152,9 @@ class Interpreter:
         machine = limits.machine
         self.bed_mesh: BedMesh | None = None
         if machine is not None and machine.has_section("bed_mesh"):
-            self.bed_mesh = bed_mesh = BedMesh(machine, gcode_move)
-            for name in ("BED_MESH_PROFILE", "BED_MESH_CLEAR", "BED_MESH_OFFSET"):
+            self.bed_mesh = bed_mesh = BedMesh(machine, gcode_move, warn)
+            for name in ("BED_MESH_PROFILE", "BED_MESH_CLEAR", "BED_MESH_OFFSET",
+                         "BED_MESH_CALIBRATE"):
                 self.register_command(name, getattr(bed_mesh, "cmd_" + name))
         if machine is not None and machine.has_section("skew_correction"):
             skew = PrinterSkew(machine, gcode_move)

@@ -127,3 +127,35 @@ def test_a_mesh_beyond_the_fade_range_is_refused(tmp_path: Path) -> None:
     assert any("Mesh extends outside of the fade range" in w for w in est.warnings)
     assert est.n_moves == 1
     assert math.isfinite(est.total_s)
+
+
+def test_bed_mesh_calibrate_clears_the_mesh_and_says_its_probing_is_unknown(
+        tmp_path: Path) -> None:
+    text = ("G28\nBED_MESH_PROFILE LOAD=default\nBED_MESH_CALIBRATE\nG1 Z0.3 F600\n"
+            "G1 X200 Y30 F12000\n")
+    est = estimate_text(text, _mesh_limits(tmp_path))
+    assert est.n_moves == 2
+    assert any("BED_MESH_CALIBRATE probes the bed" in w for w in est.warnings)
+
+
+def test_profiles_from_moonrakers_settings_are_the_same_profiles() -> None:
+    from kestimator.config.machine import MachineConfig
+    from kestimator.config.moonraker import machine_from_settings
+    from kestimator.config.printer_cfg import read_printer_cfg
+
+    cfg = REFS / "mesh_skew" / "printer.cfg"
+    limits, _ = limits_from_printer_cfg(cfg)
+    # configfile.settings as Klipper reports them: parsed values, points as rows of floats
+    settings: dict[str, dict[str, object]] = {}
+    for name, options in read_printer_cfg(cfg).items():
+        settings[name] = {option: raw.value for option, raw in options.items()}
+    profile = settings["bed_mesh default"]
+    profile["points"] = [[float(v) for v in row.split(",")]
+                         for row in str(profile["points"]).strip().split("\n")]
+    machine = machine_from_settings(settings, "moonraker http://printer")
+    assert isinstance(machine, MachineConfig) and machine.has_section("bed_mesh default")
+    gcode = REFS.parent / "snippets" / "mesh_skew_commands.gcode"
+    from_cfg = estimate_file(gcode, limits)
+    from_moonraker = estimate_file(gcode, limits.replace(machine=machine))
+    assert from_moonraker.total_s == from_cfg.total_s
+    assert from_moonraker.n_moves == from_cfg.n_moves
