@@ -36,6 +36,8 @@ COMPILED_MODULES = [
     "kestimator/gcode_arcs.py",
     "kestimator/firmware_retraction.py",
     "kestimator/input_shaper.py",
+    "kestimator/bed_mesh.py",
+    "kestimator/skew_correction.py",
     "kestimator/interpreter.py",
     "kestimator/segments.py",
     "kestimator/estimate.py",

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from typing import Final
+from typing import Final, Protocol
 
 from kestimator.errors import CommandError
 from kestimator.gcode import Command, command_params, get_float, get_int
@@ -31,6 +31,31 @@ _MOVE_PARAMS: Final = frozenset("XYZEFG")
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
 SavedState = dict[str, object]
+
+
+class MoveTransform(Protocol):
+    """What upstream's `set_move_transform` takes (bed_mesh, skew_correction): a move to a
+    G-code position (x, y, z, e) and the G-code position of the toolhead's; `tag` is the
+    source line every toolhead move carries."""
+
+    def move(self, newpos: list[float], speed: float, tag: int) -> None: ...
+
+    def get_position(self) -> list[float]: ...
+
+
+class ToolHeadTransform:
+    """The toolhead as the last transform of the chain (upstream passes the toolhead)."""
+
+    def __init__(self, toolhead: ToolHead) -> None:
+        self.toolhead = toolhead
+
+    def move(self, newpos: list[float], speed: float, tag: int) -> None:
+        """toolhead.move"""
+        self.toolhead.move_to(newpos[0], newpos[1], newpos[2], newpos[3], speed, tag)
+
+    def get_position(self) -> list[float]:
+        """toolhead.get_position"""
+        return list(self.toolhead.commanded_pos)
 
 
 class GCodeMove:
@@ -53,6 +78,20 @@ class GCodeMove:
         # What the file told us about itself.
         self.extrude_mode_set = False
         self.moved_e_before_mode = False
+        # bed_mesh / skew_correction (upstream's move_transform); None moves the toolhead.
+        self.move_transform: MoveTransform | None = None
+
+    def set_move_transform(self, transform: MoveTransform,
+                           force: bool = False) -> MoveTransform:
+        """Route every move through `transform`; returns the transform it replaces (the
+        toolhead first), which `transform` passes its moves on to."""
+        if self.move_transform is not None and not force:
+            raise CommandError("G-Code move transform already specified")
+        old_transform = self.move_transform
+        if old_transform is None:
+            old_transform = ToolHeadTransform(self.toolhead)
+        self.move_transform = transform
+        return old_transform
 
     def _handle_activate_extruder(self) -> None:
         """ACTIVATE_EXTRUDER: the new extruder's E position, no extrusion factor."""
@@ -68,7 +107,11 @@ class GCodeMove:
 
     def reset_last_position(self) -> None:
         """After an error or a jump, the G-code position is the toolhead's again."""
-        self.last_position = list(self.toolhead.commanded_pos)
+        transform = self.move_transform
+        if transform is None:
+            self.last_position = list(self.toolhead.commanded_pos)
+        else:
+            self.last_position = transform.get_position()
 
     # G-Code movement commands
     def cmd_G1(self, cmd: Command) -> None:
@@ -145,12 +188,20 @@ class GCodeMove:
                 self.moved_e_before_mode = True
         if f == f:
             self.speed = f * self.speed_factor
-        self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
+        transform = self.move_transform
+        if transform is None:
+            self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
+        else:
+            transform.move(lp, self.speed, self.tag)
 
     def move_with_speed(self, speed: float) -> None:
         """Move to last_position at `speed` (mm/s): upstream's `move_with_transform`."""
         lp = self.last_position
-        self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], speed, self.tag)
+        transform = self.move_transform
+        if transform is None:
+            self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], speed, self.tag)
+        else:
+            transform.move(lp, speed, self.tag)
 
     # G-Code coordinate manipulation
     def cmd_G20(self, cmd: Command) -> None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Final
 
+from kestimator.bed_mesh import BedMesh
 from kestimator.errors import CommandError, MoveError, ParamError
 from kestimator.extruder import PrinterExtruders
 from kestimator.firmware_retraction import FirmwareRetraction
@@ -36,6 +37,7 @@ from kestimator.klipper_modules import (
 from kestimator.limits import Limits
 from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
 from kestimator.preflight import Preflight
+from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
 
 __all__ = ["CommandError", "Interpreter", "MoveError", "ParamError"]
@@ -145,6 +147,20 @@ class Interpreter:
             retraction = FirmwareRetraction(limits, gcode_move)
             for name in ("G10", "G11", "SET_RETRACTION"):
                 self.register_command(name, getattr(retraction, "cmd_" + name))
+        # Move transforms, in upstream's order: bed_mesh at config load, skew_correction at
+        # connect (forced in front of it).
+        machine = limits.machine
+        self.bed_mesh: BedMesh | None = None
+        if machine is not None and machine.has_section("bed_mesh"):
+            self.bed_mesh = bed_mesh = BedMesh(machine, gcode_move, warn)
+            for name in ("BED_MESH_PROFILE", "BED_MESH_CLEAR", "BED_MESH_OFFSET",
+                         "BED_MESH_CALIBRATE"):
+                self.register_command(name, getattr(bed_mesh, "cmd_" + name))
+        if machine is not None and machine.has_section("skew_correction"):
+            skew = PrinterSkew(machine, gcode_move)
+            for name in ("SKEW_PROFILE", "SET_SKEW", "GET_CURRENT_SKEW",
+                         "CALC_MEASURED_SKEW"):
+                self.register_command(name, getattr(skew, "cmd_" + name))
 
     def register_command(self, name: str, handler: Handler) -> None:
         """`handler` runs the command `name` from now on."""

@@ -154,6 +154,26 @@ def generated_programs(folder: Path) -> list[Path]:
     return paths
 
 
+def transform_runs(folder: Path) -> list[tuple[Path, list[Path]]]:
+    """(printer.cfg, G-code files) of every bed_mesh / skew_correction reference
+    (tests/oracle_refs/transforms), with the extreme programs run through a mesh and a skew
+    too: the move transforms' arithmetic must be the same bits in every build."""
+    from .oracle_refs.transforms.runs import HERE, RUNS, derive
+
+    runs: dict[str, list[Path]] = {}
+    for cfg, gcode, commands in RUNS:
+        out = folder / cfg
+        out.mkdir(exist_ok=True)
+        runs.setdefault(cfg, []).append(derive(gcode, commands, out))
+    extreme = folder / "extreme"
+    extreme.mkdir(exist_ok=True)
+    loads = "G28\nSKEW_PROFILE LOAD=my_skew\nBED_MESH_PROFILE LOAD=default\n"
+    for path in extreme_programs(extreme):
+        path.write_text(loads + path.read_text(), encoding="ascii")
+        runs["mesh_skew"].append(path)
+    return [(HERE / cfg / "printer.cfg", paths) for cfg, paths in runs.items()]
+
+
 def compared_files() -> list[Path]:
     """Every corpus file (the builds must agree on all of them)."""
     return corpus_files()

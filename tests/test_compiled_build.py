@@ -31,6 +31,7 @@ from .builds import (
     digests,
     generated_programs,
     pure_cli_outputs,
+    transform_runs,
 )
 from .conftest import IN_CI, PROJECT
 
@@ -166,6 +167,17 @@ def test_compiled_estimate_equals_pure_field_by_field_on_corpus_and_programs(
     assert len(compiled) == len(pure) == len(paths) + 1
     for path, a, b in zip(paths, compiled[1:], pure[1:]):
         assert a == b, path.name
+
+
+def test_compiled_equals_pure_with_a_bed_mesh_and_skew_correction(
+        compiled_python: str, tmp_path: Path) -> None:
+    for cfg, paths in transform_runs(tmp_path):
+        compiled = digests(compiled_python, paths, on_path=False, printer_cfg=cfg)
+        pure = digests(sys.executable, paths, printer_cfg=cfg)
+        assert compiled[0] == '{"build": "compiled"}'
+        assert len(compiled) == len(pure) == len(paths) + 1
+        for path, a, b in zip(paths, compiled[1:], pure[1:]):
+            assert a == b, (cfg.parent.name, path.name)
 
 
 def test_the_wheel_compiles_on_python_3_9_and_gives_the_same_fields(

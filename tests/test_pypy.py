@@ -24,6 +24,7 @@ from .builds import (
     extreme_programs,
     generated_programs,
     pure_cli_outputs,
+    transform_runs,
 )
 from .conftest import PROJECT, require_program
 from .test_hook_checks import build_zipapp
@@ -71,6 +72,15 @@ def test_pypy_equals_cpython_on_extreme_values_with_every_kinematics_that_square
     assert len(pypy) == len(cpython) == len(paths) + 1
     for path, a, b in zip(paths, pypy[1:], cpython[1:]):
         assert a == b, path.name
+
+
+def test_pypy_equals_cpython_with_a_bed_mesh_and_skew_correction(tmp_path: Path) -> None:
+    for cfg, paths in transform_runs(tmp_path):
+        pypy = digests(_pypy(), paths, printer_cfg=cfg)
+        cpython = digests(sys.executable, paths, printer_cfg=cfg)
+        assert len(pypy) == len(cpython) == len(paths) + 1
+        for path, a, b in zip(paths, pypy[1:], cpython[1:]):
+            assert a == b, (cfg.parent.name, path.name)
 
 
 def test_the_zipapp_runs_under_pypy_a_python_3_9(tmp_path: Path) -> None:

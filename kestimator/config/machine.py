@@ -36,12 +36,15 @@ _FALSE = frozenset(("0", "no", "false", "off"))
 # Prefixes of the sections generic_cartesian reads ([carriage x], [stepper a], ...).
 MACHINE_SECTION_PREFIXES = ("stepper_", "stepper ", "carriage ", "dual_carriage ",
                             "extra_carriage ")
+# Move transforms that change where the toolhead goes (kestimator.bed_mesh,
+# kestimator.skew_correction): the section and its saved profiles ("bed_mesh default").
+TRANSFORM_SECTIONS = ("bed_mesh", "skew_correction")
 
 
 def is_machine_section(name: str) -> bool:
     """Whether a kinematics reads the section called ``name`` (lower-case)."""
     return (name == "printer" or name.startswith(MACHINE_SECTION_PREFIXES)
-            or name in EXTRA_SECTIONS)
+            or name in EXTRA_SECTIONS or name.split(" ", 1)[0] in TRANSFORM_SECTIONS)
 
 
 # Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
