@@ -80,6 +80,7 @@ def test_every_config_has_references() -> None:
     configs = sorted(p.parent.name for p in REFS.glob("*/printer.cfg"))
     assert configs == ["cartesian_idex", "corexy_maxend", "corexy_probe", "corexz",
                        "corexz_force_move", "delta", "delta_tight", "deltesian",
-                       "generic_cartesian", "none", "polar", "rotary_delta", "winch"]
+                       "generic_cartesian", "none", "polar", "rotary_delta", "safe_z_home",
+                       "safe_z_home_previous", "winch"]
     for config in configs:
         assert list((REFS / config).glob("*.json")), config

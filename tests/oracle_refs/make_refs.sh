@@ -59,6 +59,10 @@ deltesian snippets/deltesian_moves.gcode
 deltesian snippets/deltesian_slow_x.gcode
 rotary_delta snippets/rotary_moves.gcode
 rotary_delta snippets/rotary_out.gcode
+safe_z_home cura/cura413_ender3_nut_small.gcode
+safe_z_home snippets/safe_z_home.gcode
+safe_z_home_previous cura/cura413_ender3_nut_small.gcode
+safe_z_home_previous snippets/safe_z_home.gcode
 cartesian_idex cura/cura413_ender3_nut_small.gcode
 cartesian_idex snippets/out_of_range_x.gcode
 RUNS
