@@ -6,7 +6,8 @@ the printer's objects up as klippy does from its config sections: `GCodeMove` (g
 `ToolHeadCommandHelper` (toolhead.py), `PrinterExtruders` (extruder.py), `InputShaper`
 (input_shaper.py), `ArcSupport` (gcode_arcs.py) with [gcode_arcs], `FirmwareRetraction`
 (firmware_retraction.py) with [firmware_retraction]. The few commands whose upstream
-object holds nothing else are here, each naming its file: G28 (homing.py),
+object holds nothing else are here, each naming its file: G28 (homing.py; [safe_z_home] and
+[homing_override] take it over: kestimator/safe_z_home.py, kestimator/homing_override.py),
 SET_KINEMATIC_POSITION (force_move.py), M109/M190/TEMPERATURE_WAIT (heaters.py, the wait
 only), M84/M18 (stepper_enable.py). Literal [gcode_macro]s run their commands; macros with
 a template are counted (gcode_macro.py's templates are not rendered).
@@ -27,6 +28,7 @@ from kestimator.firmware_retraction import FirmwareRetraction
 from kestimator.gcode import Command, command_params, get_float, parse_line
 from kestimator.gcode_arcs import ArcSupport
 from kestimator.gcode_move import GCodeMove
+from kestimator.homing_override import HomingOverride
 from kestimator.input_shaper import InputShaper
 from kestimator.klipper_modules import (
     COMMAND_MODULE,
@@ -37,6 +39,7 @@ from kestimator.klipper_modules import (
 from kestimator.limits import Limits
 from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
 from kestimator.preflight import Preflight
+from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
 
@@ -132,6 +135,11 @@ class Interpreter:
         motion_queuing.register_scan_windows(self.input_shaper.scan_windows)
         motion_queuing.check_step_generation_scan_windows()
         self.register_command("G28", self.cmd_G28)
+        self._load_homing_modules(limits)
+        # The G28 a line runs: the module's that took it over, with the homing time.
+        self._home_G28 = self.gcode_handlers["G28"]
+        self._homing_depth = 0
+        self.register_command("G28", self._cmd_G28_timed)
         self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
         self.register_command("M109", self.cmd_M109)
         if self.modules is None or "heater_bed" in self.modules:
@@ -232,12 +240,16 @@ class Interpreter:
         self._count(KIND_EXPANDED_MACRO, name)
         self._running_macros.add(name)
         try:
-            for line in template.split("\n"):
-                sub = parse_line(line.strip())
-                if sub.name:
-                    self.execute(sub)
+            self.run_script(template)
         finally:
             self._running_macros.discard(name)
+
+    def run_script(self, script: str) -> None:
+        """gcode.run_script_from_command: each line of a literal script, in turn."""
+        for line in script.split("\n"):
+            sub = parse_line(line.strip())
+            if sub.name:
+                self.execute(sub)
 
     def _count(self, kind: str, name: str) -> None:
         counts = self.command_kinds.setdefault(kind, {})
@@ -254,9 +266,37 @@ class Interpreter:
         toolhead = self.toolhead
         newpos, homed = toolhead.kin.home(toolhead.commanded_pos, axes)
         toolhead.set_position(newpos, homed)
-        if self.homing_time > 0.0:
-            self.add_time(self.homing_time, "G28", HOMING_SOURCE)
         self.gcode_move._handle_home_rails_end(homed)
+
+    def _load_homing_modules(self, limits: Limits) -> None:
+        """[safe_z_home] and [homing_override] take G28 over, as their modules do when
+        klippy loads them (safe_z_home refuses to share it with homing_override)."""
+        machine = limits.machine
+        if machine is None:
+            return
+        section = machine.section("safe_z_home")
+        if section is not None:
+            safe_z_home = SafeZHoming(section, machine, self.toolhead,
+                                      self.gcode_handlers["G28"],
+                                      self.gcode_move.reset_last_position)
+            self.register_command("G28", safe_z_home.cmd_G28)
+        section = machine.section("homing_override")
+        if section is not None:
+            override = HomingOverride(section, self.toolhead, self.gcode_handlers["G28"],
+                                      self.run_script, self.gcode_move.reset_last_position,
+                                      self.warn)
+            self.register_command("G28", override.cmd_G28)
+
+    def _cmd_G28_timed(self, cmd: Command) -> None:
+        """A G28 line: the G28 of the module that owns it; the homing time once per line
+        (a G28 a homing_override runs is part of its line's)."""
+        self._homing_depth += 1
+        try:
+            self._home_G28(cmd)
+        finally:
+            self._homing_depth -= 1
+        if self._homing_depth == 0 and self.homing_time > 0.0:
+            self.add_time(self.homing_time, "G28", HOMING_SOURCE)
 
     # force_move.py ForceMove.cmd_SET_KINEMATIC_POSITION
     def cmd_SET_KINEMATIC_POSITION(self, cmd: Command) -> None:

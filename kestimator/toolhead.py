@@ -513,6 +513,23 @@ class ToolHead:
             self._process_lookahead(lazy=True)
         return move
 
+    def untimed_manual_move(self, coord: list[float | None], speed: float) -> None:
+        """upstream's manual_move (coordinates given, None: unchanged) as the homing
+        modules make it inside G28: checked as that move would be, then the head is set
+        there without taking time (G28 takes no time: the oracle's convention, which
+        --homing-time completes)."""
+        pos = [self.commanded_x, self.commanded_y, self.commanded_z, self.commanded_e]
+        for i, value in enumerate(coord):
+            if value is not None:
+                pos[i] = value
+        move = Move(self, self.commanded_x, self.commanded_y, self.commanded_z,
+                    self.commanded_e, pos[0], pos[1], pos[2], pos[3], speed, 0)
+        if not move.move_d:
+            return
+        if move.is_kinematic_move:
+            self.kin.check_move(move)
+        self.set_position((pos[0], pos[1], pos[2], pos[3]))
+
     def dwell(self, delay: float) -> None:
         """G4: stop, then wait delay seconds."""
         self._flush_lookahead()

@@ -2,7 +2,8 @@
 
 Generated from mainline Klipper 84104bbbd's own config reads: every `config.get*('name'`
 call of klippy/toolhead.py, klippy/kinematics/*.py, klippy/extras/gcode_arcs.py,
-klippy/extras/firmware_retraction.py and klippy/extras/input_shaper.py. An [extruder]
+klippy/extras/firmware_retraction.py, klippy/extras/input_shaper.py,
+klippy/extras/safe_z_home.py and klippy/extras/homing_override.py. An [extruder]
 section is shared by the extruder, its stepper, its heater and its temperature sensor of
 any type: it accepts every option name that any part of klippy reads (and the numbered
 options of the sensor tables), so that no valid config is refused and a misspelt option
@@ -39,6 +40,10 @@ KINEMATICS_OPTIONS: dict[str, frozenset[str]] = {
     "winch": frozenset(),
 }
 SECTION_OPTIONS: dict[str, frozenset[str]] = {
+    "safe_z_home": frozenset((
+        "home_xy_position", "z_hop", "z_hop_speed", "speed", "move_to_previous")),
+    "homing_override": frozenset((
+        "set_position_x", "set_position_y", "set_position_z", "axes", "gcode")),
     "gcode_arcs": frozenset(("resolution",)),
     "firmware_retraction": frozenset((
         "retract_length", "retract_speed", "unretract_extra_length", "unretract_speed")),

@@ -6,7 +6,8 @@ Re-implemented from mainline Klipper at commit 84104bbbd (GNU GPLv3): `klippy/co
 position_endstop / position_min / position_max / homing_positive_dir, `parse_step_distance`).
 
 A `MachineConfig` is the part of the printer's configuration a kinematics reads: [printer],
-the [stepper_*] sections, [dual_carriage] and the probe sections a Z endstop may be, as raw
+the [stepper_*] sections, [dual_carriage] and the probe sections a Z endstop may be (and the
+[safe_z_home] / [homing_override] that decide where G28 leaves the head), as raw
 option text (from a printer.cfg) or as Klipper's own settings (from Moonraker, turned to
 text the same way), each option with where it came from. It is frozen and travels inside
 `Limits.machine`; sources without steppers (profile, slicer settings, --set) leave it None.
@@ -27,8 +28,9 @@ from collections.abc import Mapping
 from kestimator.errors import KestimatorError
 
 # Sections (lower-case) a kinematics may read, besides [printer] and every [stepper_*].
+# [safe_z_home] and [homing_override] decide where G28 leaves the head.
 EXTRA_SECTIONS = ("dual_carriage", "probe", "bltouch", "smart_effector",
-                  "probe_eddy_current", "load_cell_probe")
+                  "probe_eddy_current", "load_cell_probe", "safe_z_home", "homing_override")
 _TRUE = frozenset(("1", "yes", "true", "on"))
 _FALSE = frozenset(("0", "no", "false", "off"))
 
@@ -193,6 +195,28 @@ class Section:
             if bound is not None and bad(value, bound):
                 raise self._error(option, "option '%s' must %s %s" % (option, words, bound))
         return value
+
+    def getfloatlist(self, option: str, default: object = _NO_DEFAULT, *,
+                     count: int | None = None) -> tuple[float, ...]:
+        """configfile's getfloatlist: comma-separated numbers (exactly ``count`` of them)."""
+        text = self._lookup(option, default)
+        if isinstance(text, tuple):
+            return text
+        parts = [p.strip() for p in str(text).split(",")] if str(text).strip() else []
+        values = []
+        for part in parts:
+            try:
+                value = float(part)
+            except ValueError:
+                raise self._error(option, "option '%s': %r is not a list of numbers"
+                                  % (option, text)) from None
+            problem = arithmetic_violation(value)
+            if problem is not None:
+                raise self._error(option, "option '%s' %s" % (option, problem))
+            values.append(value)
+        if count is not None and len(values) != count:
+            raise self._error(option, "option '%s' must have %d elements" % (option, count))
+        return tuple(values)
 
     def getint(self, option: str, default: object = _NO_DEFAULT, *,
                minval: int | None = None) -> int:

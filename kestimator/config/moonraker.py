@@ -398,8 +398,16 @@ def machine_from_settings(settings: Mapping[str, Mapping[str, Any]],
     (so the kinematics read both the same way), each sourced ``<description>: [section]``."""
     return MachineConfig.build(description, {
         name: {option: (_as_text(value), f"{description}: [{name}] {option}")
-               for option, value in options.items()}
+               for option, value in _machine_options(name, options).items()}
         for name, options in settings.items() if is_machine_section(name)})
+
+
+def _machine_options(name: str, options: Mapping[str, Any]) -> Mapping[str, Any]:
+    """A machine section's settings, without [homing_override]'s gcode: like a macro's, its
+    text is never taken from Moonraker nor cached (it may hold anything)."""
+    if name == "homing_override":
+        return {option: value for option, value in options.items() if option != "gcode"}
+    return options
 
 
 def _as_text(value: object) -> str:
@@ -510,7 +518,7 @@ def _write_cache(path: Path, url: str, settings: Settings,
 def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
     """What the cache keeps of one section's settings."""
     if name in CACHED_SECTIONS or _EXTRUDER_RE.match(name) or is_machine_section(name):
-        return dict(options)
+        return dict(_machine_options(name, options))
     return {}
 
 

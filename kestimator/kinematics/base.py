@@ -38,6 +38,11 @@ class Kinematics:
     def clear_homing_state(self, clear_axes: str) -> None:
         """SET_KINEMATIC_POSITION CLEAR: ``clear_axes`` ("xyz" letters) are no longer homed."""
 
+    def homed_axes(self) -> str:
+        """The homed axes ("xyz" letters): upstream's ``get_status()['homed_axes']``, which
+        [safe_z_home] reads (none.py: none)."""
+        return ""
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """Where G28 of ``axes`` (0..2) leaves the head, and the axes it homed: as the
         oracle's stand-in for homing does (klippy's G28 ends there)."""

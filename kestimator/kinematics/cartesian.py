@@ -75,6 +75,10 @@ class CartKinematics(Kinematics):
             if axis_name in clear_axes:
                 self.limits[axis] = UNHOMED
 
+    def homed_axes(self) -> str:
+        """The axes whose limits are set (get_status's homed_axes)."""
+        return "".join(a for a, (low, high) in zip("xyz", self.limits) if low <= high)
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """Each homed axis ends at its position_endstop."""
         newpos = list(pos)

@@ -161,6 +161,10 @@ class DeltaKinematics(Kinematics):
             self.limit_xy2 = -1.0
             self.need_home = True
 
+    def homed_axes(self) -> str:
+        """All or nothing (get_status's homed_axes)."""
+        return "" if self.need_home else "xyz"
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """All towers home together: the head ends at home_position, whatever was asked."""
         hp = self.home_position

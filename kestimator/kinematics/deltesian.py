@@ -121,6 +121,10 @@ class DeltesianKinematics(Kinematics):
             if axis_name in clear_axes:
                 self.homed_axis[axis] = False
 
+    def homed_axes(self) -> str:
+        """The axes homed one by one (get_status's homed_axes)."""
+        return "".join(a for a, homed in zip("xyz", self.homed_axis) if homed)
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """X or Z: both towers, to X=0 and the top; Y: to stepper_y's position_endstop."""
         newpos = list(pos)

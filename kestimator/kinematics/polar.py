@@ -80,6 +80,12 @@ class PolarKinematics(Kinematics):
         if "z" in clear_axes:
             self.limit_z = (1.0, -1.0)
 
+    def homed_axes(self) -> str:
+        """X and Y together, Z alone (get_status's homed_axes)."""
+        xy_home = "xy" if self.limit_xy2 >= 0.0 else ""
+        z_home = "z" if self.limit_z[0] <= self.limit_z[1] else ""
+        return xy_home + z_home
+
     def home(self, pos: Position, axes: list[int]) -> tuple[Position, str]:
         """X or Y homes both (arm endstop, 0); Z homes to its position_endstop."""
         newpos = list(pos)

@@ -35,6 +35,11 @@ class WinchKinematics(Kinematics):
                 section.getfloat("anchor_" + axis)
 
 
+    def homed_axes(self) -> str:
+        """Always all of them: upstream implements no homing checks (get_status)."""
+        return "xyz"
+
+
 def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
     """The kinematics for [printer] kinematics: winch."""
     return WinchKinematics(config, limits)

@@ -43,6 +43,10 @@ delta snippets/delta_radius.gcode
 delta snippets/delta_out_of_range.gcode
 delta snippets/motors_off.gcode
 delta snippets/motors_off_g28.gcode
+delta snippets/delta_home_xy.gcode
+delta snippets/delta_lower_xy.gcode
+delta_mini snippets/delta_home_xy.gcode
+delta_mini snippets/delta_lower_xy.gcode
 delta_tight orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode
 polar slic3r/cancelobj_slic3r1.3.1dev.gcode
 polar snippets/polar_center.gcode
@@ -59,6 +63,12 @@ deltesian snippets/deltesian_moves.gcode
 deltesian snippets/deltesian_slow_x.gcode
 rotary_delta snippets/rotary_moves.gcode
 rotary_delta snippets/rotary_out.gcode
+rotary_delta snippets/delta_home_xy.gcode
+rotary_delta snippets/delta_lower_xy.gcode
+safe_z_home cura/cura413_ender3_nut_small.gcode
+safe_z_home snippets/safe_z_home.gcode
+safe_z_home_previous cura/cura413_ender3_nut_small.gcode
+safe_z_home_previous snippets/safe_z_home.gcode
 cartesian_idex cura/cura413_ender3_nut_small.gcode
 cartesian_idex snippets/out_of_range_x.gcode
 RUNS
