@@ -18,7 +18,7 @@ from kestimator.config.printer_cfg import (
     read_printer_cfg,
 )
 from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
+from kestimator.limits import HeaterLimits, Limits
 
 CORPUS_CFG = Path(__file__).resolve().parents[2] / "shared" / "corpus" / "printer.cfg"
 
@@ -422,9 +422,13 @@ def test_corpus_printer_cfg_gives_the_reference_limits() -> None:
     # The corpus config also has an [extruder1], the same as [extruder] but for its name.
     assert limits.extruders == (dataclasses.replace(limits.primary_extruder,
                                                     name="extruder1"),)
+    # Every heater 0..300 C; the extruders extrude at any temperature (min_extrude_temp 0).
+    assert limits.heaters == (HeaterLimits("extruder", 0.0, 300.0, 0.0),
+                              HeaterLimits("extruder1", 0.0, 300.0, 0.0),
+                              HeaterLimits("heater_bed", 0.0, 300.0, 170.0))
     assert limits == dataclasses.replace(Limits.from_values({}), extruders=limits.extruders,
                                          configured_sections=limits.configured_sections,
-                                         **expected)
+                                         heaters=limits.heaters, **expected)
     for name in expected:
         assert provenance[name].startswith(str(CORPUS_CFG) + ":"), name
     assert provenance["max_velocity"] == f"{CORPUS_CFG}:7"

@@ -37,8 +37,11 @@ from kestimator.files import read_config_bytes
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
     ExtruderLimits,
+    HeaterLimits,
     Limits,
     find_generation_directive,
+    heater_limits,
+    heater_sections,
 )
 from kestimator.stepgen import (
     DEFAULT_DAMPING_RATIO,
@@ -204,6 +207,10 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
         provenance["extruders"] = ", ".join(
             config.headers[e.name] for e in extruders)
         limits = limits.replace(extruders=extruders)
+    heaters = _read_heaters(config)
+    if heaters:
+        values["heaters"] = heaters
+        provenance["heaters"] = ", ".join(config.headers[h.name] for h in heaters)
     for field, bound, allowed, text in RELATIVE_BOUNDS:
         raw = read_from.get(field)
         if raw is not None and not allowed(getattr(limits, field), getattr(limits, bound)):
@@ -328,6 +335,32 @@ def _read_extra_extruders(config: _Config, limits: Limits) -> tuple[ExtruderLimi
                                   f"got {raw.value}", raw.path, raw.line)
         extruders.append(extruder)
     return tuple(extruders)
+
+
+def _read_heaters(config: _Config) -> tuple[HeaterLimits, ...]:
+    """The range of each heater (klippy/extras/heaters.py `Heater`) whose min_temp and
+    max_temp the config gives (Klipper requires both: without them the range is unknown and
+    not checked)."""
+    heaters = []
+    for name in heater_sections(list(config.sections)):
+        section = config.sections[name]
+        raws = [section.get(option) for option in HEATER_OPTIONS]
+        if raws[0] is None or raws[1] is None:
+            continue
+        numbers = [None if raw is None else
+                   FloatOption(name, option, option).parse(raw)
+                   for option, raw in zip(HEATER_OPTIONS, raws)]
+        found = heater_limits(name, numbers[0] or 0.0, numbers[1] or 0.0, numbers[2])
+        if isinstance(found, str):
+            raw = next(r for option, r in zip(HEATER_OPTIONS, raws)
+                       if r is not None and found.startswith(option))
+            raise KestimatorError(f"[{name}] {found}", raw.path, raw.line)
+        heaters.append(found)
+    return tuple(heaters)
+
+
+# A heater's options that kestimator reads (the first two are required by Klipper).
+HEATER_OPTIONS = ("min_temp", "max_temp", "min_extrude_temp")
 
 
 # Klipper loads [extruder] ... [extruder98] while the sections follow on without a gap.
