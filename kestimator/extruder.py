@@ -7,8 +7,8 @@ check_move, ACTIVATE_EXTRUDER), and, as upstream's `register_mux_command` does, 
 them a command's EXTRUDER= names (`PrinterExtruders`).
 
 The extruder's junction limit (upstream's `PrinterExtruder.calc_junction`) is computed in
-`toolhead.Move.calc_junction`, where it runs once per move. Heaters (M104/M109) and the
-cold-extrusion check of `check_move` (`heater.can_extrude`) are not modelled here.
+`toolhead.Move.calc_junction`, where it runs once per move. Heaters (M104/M109, with
+`check_move`'s `heater.can_extrude`) are `kestimator.heaters`'.
 """
 
 from __future__ import annotations
@@ -58,9 +58,16 @@ class PrinterExtruder:
         self.instant_corner_v = limits.instantaneous_corner_velocity
         # Its E position while another extruder is active.
         self.last_position = 0.0
+        # Upstream's heater.can_extrude; False until kestimator.heaters sees the heater
+        # set hot, and then `cold_extrude` decides (Klipper's error or a pre-flight note).
+        self.can_extrude = True
+        self.cold_extrude: Callable[[PrinterExtruder], None] | None = None
 
     def check_move(self, move: Move) -> None:
-        """Limit an extrude-only or retracting move; refuse over-extrusion."""
+        """Refuse extruding while cold; limit an extrude-only or retracting move; refuse
+        over-extrusion."""
+        if not self.can_extrude and self.cold_extrude is not None:
+            self.cold_extrude(self)
         axis_r = move.axes_r_e
         axis_d = move.axes_d_e
         if (not move.axes_d_x and not move.axes_d_y) or axis_r < 0.0:
