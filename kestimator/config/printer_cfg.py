@@ -193,8 +193,9 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     if "input_shaper" in config.sections:
         _read_input_shaper(config.sections["input_shaper"], values, read_from)
     values["configured_sections"] = tuple(config.sections)
-    if config.headers:
-        provenance["configured_sections"] = next(iter(config.headers.values()))
+    # A config of comments only (Klipper's config/example.cfg) has no section to point at.
+    provenance["configured_sections"] = (next(iter(config.headers.values())) if config.headers
+                                         else f"{os.fspath(path)}: no sections")
     macros = _read_macros(config)
     if macros:
         values["gcode_macros"] = macros
