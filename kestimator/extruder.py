@@ -24,7 +24,7 @@ from kestimator.stepgen import MAX_SMOOTH_TIME_T, pressure_advance_window
 if TYPE_CHECKING:
     from kestimator.toolhead import Move, ToolHead
 
-# Smooth time Klipper gives an [extruder_stepper] (its own pressure advance is not read).
+# pressure_advance_smooth_time's default (of an [extruder_stepper] whose options are unknown).
 EXTRUDER_STEPPER_SMOOTH_TIME = 0.040
 
 
@@ -107,16 +107,25 @@ class PrinterExtruders:
         for extruder in limits.extruders:
             self.extruders[extruder.name] = PrinterExtruder(extruder)
         self.active = "extruder"
-        # Extruders with a stepper, then each [extruder_stepper NAME]: its pressure advance
-        # is not read (it counts as off in the flush delay).
+        # Extruders with a stepper, then each [extruder_stepper NAME] with its own
+        # pressure advance, following its extruder's motion queue from the start (as
+        # extras/extruder_stepper.py syncs it at connect) or none.
         self.steppers: dict[str, ExtruderStepper] = {
             name: ExtruderStepper(name, e.limits.pressure_advance,
                                   e.limits.pressure_advance_smooth_time)
             for name, e in self.extruders.items() if e.limits.has_stepper}
+        for config in limits.extruder_steppers:
+            stepper = ExtruderStepper(config.name, config.pressure_advance,
+                                      config.pressure_advance_smooth_time)
+            stepper.motion_queue = config.extruder in self.extruders
+            self.steppers[config.name] = stepper
+        # [extruder_stepper NAME]s known by name only (a Moonraker cache of an older
+        # kestimator): their pressure advance is not known and counts as off.
         self.extra_steppers = [section.split(None, 1)[1].strip()
                                for section in limits.configured_sections
                                if section.startswith("extruder_stepper ")
-                               and len(section.split(None, 1)) == 2]
+                               and len(section.split(None, 1)) == 2
+                               and section.split()[-1] not in self.steppers]
         for name in self.extra_steppers:
             self.steppers[name] = ExtruderStepper(name, 0.0, EXTRUDER_STEPPER_SMOOTH_TIME)
 

@@ -92,6 +92,19 @@ class ExtruderLimits:
         return cls(name=name, has_stepper=bool(values.get("has_stepper", True)), **v)
 
 
+@dataclasses.dataclass(frozen=True)
+class ExtruderStepperLimits:
+    """An [extruder_stepper NAME] (kinematics/extruder.py `ExtruderStepper`, as
+    extras/extruder_stepper.py sets it up): the extruder whose motion it follows from the
+    start ('' for none) and its own pressure advance, which widens the step-generation scan
+    window while it follows one."""
+
+    name: str = ""
+    extruder: str = ""
+    pressure_advance: float = 0.0
+    pressure_advance_smooth_time: float = 0.040
+
+
 # Klipper's lowest temperature (klippy/extras/heaters.py KELVIN_TO_CELSIUS) and the default
 # min_extrude_temp of a heater.
 KELVIN_TO_CELSIUS = -273.15
@@ -160,7 +173,8 @@ def json_value(value: object) -> object:
     """A Limits field's value as JSON holds it (extruders and heaters as objects, pairs as
     lists)."""
     if isinstance(value, tuple):
-        return [dataclasses.asdict(item) if isinstance(item, (ExtruderLimits, HeaterLimits))
+        return [dataclasses.asdict(item) if isinstance(
+                    item, (ExtruderLimits, HeaterLimits, ExtruderStepperLimits))
                 else json_value(item) for item in value]
     return value
 
@@ -183,8 +197,8 @@ def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
                    for m in value):
             raise ValueError("gcode_macros must be a list of [name, template] pairs")
         return tuple((str(m[0]), str(m[1])) for m in value)
-    if field in ("extruders", "heaters"):
-        kind: Any = ExtruderLimits if field == "extruders" else HeaterLimits
+    if field in _ITEM_KINDS:
+        kind: Any = _ITEM_KINDS[field]
         names = {f.name: type(f.default) for f in dataclasses.fields(kind)}
         result = []
         for item in value:
@@ -192,13 +206,19 @@ def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
                     isinstance(v, names[k]) or (names[k] is float and isinstance(v, int)
                                                 and not isinstance(v, bool))
                     for k, v in item.items()):
-                what = "an extruder" if field == "extruders" else "a heater"
+                what = {"extruders": "an extruder", "heaters": "a heater"}.get(
+                    field, "an extruder stepper")
                 raise ValueError(f"{field}: not {what}: {item!r}")
             fields: dict[str, Any] = {k: float(v) if names[k] is float else v
                                       for k, v in item.items()}
             result.append(kind(**fields))
         return tuple(result)
     raise ValueError(f"{field} is not a list setting")
+
+
+# The list settings whose items are dataclasses, and their class.
+_ITEM_KINDS: dict[str, Any] = {"extruders": ExtruderLimits, "heaters": HeaterLimits,
+                               "extruder_steppers": ExtruderStepperLimits}
 
 
 # Values [printer] requires in Klipper but that a user without a printer.cfg may not give;
@@ -234,6 +254,8 @@ class Limits:
     # [heater_generic NAME]), in the order Klipper loads them: their temperature ranges are
     # checked (kestimator.heaters). Empty when no printer config is known.
     heaters: tuple[HeaterLimits, ...] = ()
+    # Each [extruder_stepper NAME] (empty when no printer config gives their options).
+    extruder_steppers: tuple[ExtruderStepperLimits, ...] = ()
     # [input_shaper] (shaper_type_<axis> defaults to shaper_type; a frequency of 0 is off)
     input_shaper_enabled: bool = False
     shaper_type_x: str = "mzv"
@@ -327,6 +349,10 @@ class Limits:
         if not isinstance(heaters, tuple) or not all(
                 isinstance(h, HeaterLimits) for h in heaters):
             raise ValueError("heaters must be a tuple of HeaterLimits")
+        steppers = v.get("extruder_steppers", ())
+        if not isinstance(steppers, tuple) or not all(
+                isinstance(e, ExtruderStepperLimits) for e in steppers):
+            raise ValueError("extruder_steppers must be a tuple of ExtruderStepperLimits")
         return cls(**v)
 
     @property

@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any
 from kestimator.config.fields import SourcedValues
 from kestimator.config.machine import MachineConfig, is_machine_section
 from kestimator.config.printer_cfg import (
+    EXTRUDER_STEPPER_OPTIONS,
     FLOAT_OPTIONS,
     HEATER_OPTIONS,
     MACRO_PREFIX,
@@ -38,6 +39,7 @@ from kestimator.limits import (
     FALLBACK_MAX_ACCEL,
     FALLBACK_MAX_VELOCITY_V,
     ExtruderLimits,
+    ExtruderStepperLimits,
     heater_limits,
     heater_sections,
 )
@@ -372,6 +374,7 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             sources["shaper_type_" + axis] = f"{description}: [input_shaper] shaper_type_{axis}"
     _extra_extruders(settings, description, values, sources)
     _heaters(settings, description, values, sources)
+    _extruder_steppers(settings, description, values, sources)
     values["configured_sections"] = tuple(sorted(str(name).lower() for name in settings))
     sources["configured_sections"] = f"{description}: its sections"
     # Macros by name only (""): known commands, not run. Their text may hold anything and
@@ -481,6 +484,37 @@ def _heaters(settings: Mapping[str, Mapping[str, Any]], description: str,
         sources["heaters"] = f"{description}: " + ", ".join(f"[{h.name}]" for h in heaters)
 
 
+EXTRUDER_STEPPER_PREFIX = "extruder_stepper "
+
+
+def _extruder_steppers(settings: Mapping[str, Mapping[str, Any]], description: str,
+                       values: dict[str, object], sources: dict[str, str]) -> None:
+    """Each [extruder_stepper NAME] whose settings say which extruder it follows (Klipper
+    always reports that option; a section without it is one cached by name only)."""
+    steppers = []
+    for key, section in settings.items():
+        name = str(key).lower()
+        if not name.startswith(EXTRUDER_STEPPER_PREFIX) or not isinstance(section, Mapping) \
+                or not isinstance(section.get("extruder"), str):
+            continue
+        found: dict[str, float] = {}
+        for option, spec in EXTRUDER_STEPPER_OPTIONS.items():
+            raw = section.get(option)
+            if raw is None:
+                continue
+            value = _number(raw)
+            problem = "is not a number" if value is None else spec.violation(value)
+            if problem is not None or value is None:
+                raise KestimatorError(f"{description}: [{name}] {option} = {raw!r} {problem}")
+            found[option] = value
+        steppers.append(ExtruderStepperLimits(name.split()[-1], section["extruder"].strip(),
+                                              **found))
+    if steppers:
+        values["extruder_steppers"] = tuple(steppers)
+        sources["extruder_steppers"] = f"{description}: " + ", ".join(
+            f"[extruder_stepper {e.name}]" for e in steppers)
+
+
 def _number(raw: object) -> float | None:
     if isinstance(raw, bool):
         return None
@@ -552,6 +586,9 @@ def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
         return dict(options)
     if name in heater_sections([name]):
         return {option: options[option] for option in HEATER_OPTIONS if option in options}
+    if name.startswith(EXTRUDER_STEPPER_PREFIX):
+        return {option: options[option] for option in ("extruder", *EXTRUDER_STEPPER_OPTIONS)
+                if option in options}
     return {}
 
 

@@ -37,6 +37,7 @@ from kestimator.files import read_config_bytes
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
     ExtruderLimits,
+    ExtruderStepperLimits,
     HeaterLimits,
     Limits,
     find_generation_directive,
@@ -208,6 +209,11 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
         provenance["extruders"] = ", ".join(
             config.headers[e.name] for e in extruders)
         limits = limits.replace(extruders=extruders)
+    steppers = _read_extruder_steppers(config)
+    if steppers:
+        values["extruder_steppers"] = steppers
+        provenance["extruder_steppers"] = ", ".join(
+            config.headers["extruder_stepper " + e.name] for e in steppers)
     heaters = _read_heaters(config)
     if heaters:
         values["heaters"] = heaters
@@ -360,6 +366,28 @@ def _read_heaters(config: _Config) -> tuple[HeaterLimits, ...]:
     return tuple(heaters)
 
 
+def _read_extruder_steppers(config: _Config) -> tuple[ExtruderStepperLimits, ...]:
+    """Each [extruder_stepper NAME]: the extruder it follows (Klipper requires the option;
+    empty for none) and its pressure advance (kinematics/extruder.py `ExtruderStepper`)."""
+    steppers = []
+    for section_name, section in config.sections.items():
+        words = section_name.split()
+        if len(words) < 2 or words[0] != "extruder_stepper":
+            continue
+        extruder = section.get("extruder")
+        if extruder is None:
+            path, _, line = config.headers[section_name].rpartition(":")
+            raise KestimatorError(f"[{section_name}] needs an 'extruder' option (the extruder "
+                                  "it follows; Klipper requires it)", path, int(line))
+        found = {}
+        for option, spec in EXTRUDER_STEPPER_OPTIONS.items():
+            raw = section.get(option)
+            if raw is not None:
+                found[option] = dataclasses.replace(spec, section=section_name).parse(raw)
+        steppers.append(ExtruderStepperLimits(words[-1], extruder.value.strip(), **found))
+    return tuple(steppers)
+
+
 # A heater's options that kestimator reads (the first two are required by Klipper).
 HEATER_OPTIONS = ("min_temp", "max_temp", "min_extrude_temp")
 
@@ -468,6 +496,16 @@ FLOAT_OPTIONS = (
                  minval=0.0),
     FloatOption("firmware_retraction", "unretract_speed", "unretract_speed", minval=1.0),
 )
+
+
+# An [extruder_stepper]'s options that change time, with Klipper's bounds.
+EXTRUDER_STEPPER_OPTIONS = {
+    "pressure_advance": FloatOption("extruder_stepper", "pressure_advance",
+                                    "pressure_advance", minval=0.0),
+    "pressure_advance_smooth_time": FloatOption(
+        "extruder_stepper", "pressure_advance_smooth_time", "pressure_advance_smooth_time",
+        above=0.0, maxval=MAX_SMOOTH_TIME_T),
+}
 
 
 # Bounds Klipper sets from another option: (field, other field, test, wording).

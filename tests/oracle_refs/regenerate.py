@@ -58,6 +58,14 @@ REFERENCES = (
     ("cura_nut_pa_is_max_endstops", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
      "pa_is_max_endstops.cfg", 500),
     ("cura_nut_pa_is", "corpus:gcode/cura/cura413_ender3_nut_small.gcode", "pa_is.cfg", 500),
+    # An [extruder_stepper]'s own pressure advance widens the flush delay while it follows
+    # an extruder (issue 26); without one, or unsynced, it adds nothing.
+    ("cura_nut_extruder_stepper_pa", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
+     "extruder_stepper_pa.cfg", 500),
+    ("cura_nut_extruder_stepper_no_pa", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
+     "extruder_stepper_no_pa.cfg", 500),
+    ("cura_nut_extruder_stepper_unsynced",
+     "corpus:gcode/cura/cura413_ender3_nut_small.gcode", "extruder_stepper_unsynced.cfg", 500),
     ("orca_cube_pa_is",
      "corpus:gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode", "pa_is.cfg", 500),
 )
