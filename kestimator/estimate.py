@@ -611,7 +611,8 @@ class Timeline:
         total = self._correct_motion(total)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
-            self.warn("[extruder_stepper %s]: its pressure advance is not modelled in the "
+            self.warn("[extruder_stepper %s]: its pressure advance is not known (its options "
+                      "are not in the printer's settings), so not counted in the "
                       "step-generation flush delay (times after full stops may be short by "
                       "up to its pressure_advance_smooth_time)" % name)
         if interp.gcode_move.moved_e_before_mode:

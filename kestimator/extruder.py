@@ -7,8 +7,8 @@ check_move, ACTIVATE_EXTRUDER), and, as upstream's `register_mux_command` does, 
 them a command's EXTRUDER= names (`PrinterExtruders`).
 
 The extruder's junction limit (upstream's `PrinterExtruder.calc_junction`) is computed in
-`toolhead.Move.calc_junction`, where it runs once per move. Heaters (M104/M109) and the
-cold-extrusion check of `check_move` (`heater.can_extrude`) are not modelled here.
+`toolhead.Move.calc_junction`, where it runs once per move. Heaters (M104/M109, with
+`check_move`'s `heater.can_extrude`) are `kestimator.heaters`'.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from kestimator.stepgen import MAX_SMOOTH_TIME_T, pressure_advance_window
 if TYPE_CHECKING:
     from kestimator.toolhead import Move, ToolHead
 
-# Smooth time Klipper gives an [extruder_stepper] (its own pressure advance is not read).
+# pressure_advance_smooth_time's default (of an [extruder_stepper] whose options are unknown).
 EXTRUDER_STEPPER_SMOOTH_TIME = 0.040
 
 
@@ -58,9 +58,16 @@ class PrinterExtruder:
         self.instant_corner_v = limits.instantaneous_corner_velocity
         # Its E position while another extruder is active.
         self.last_position = 0.0
+        # Upstream's heater.can_extrude; False until kestimator.heaters sees the heater
+        # set hot, and then `cold_extrude` decides (Klipper's error or a pre-flight note).
+        self.can_extrude = True
+        self.cold_extrude: Callable[[PrinterExtruder], None] | None = None
 
     def check_move(self, move: Move) -> None:
-        """Limit an extrude-only or retracting move; refuse over-extrusion."""
+        """Refuse extruding while cold; limit an extrude-only or retracting move; refuse
+        over-extrusion."""
+        if not self.can_extrude and self.cold_extrude is not None:
+            self.cold_extrude(self)
         axis_r = move.axes_r_e
         axis_d = move.axes_d_e
         if (not move.axes_d_x and not move.axes_d_y) or axis_r < 0.0:
@@ -100,16 +107,25 @@ class PrinterExtruders:
         for extruder in limits.extruders:
             self.extruders[extruder.name] = PrinterExtruder(extruder)
         self.active = "extruder"
-        # Extruders with a stepper, then each [extruder_stepper NAME]: its pressure advance
-        # is not read (it counts as off in the flush delay).
+        # Extruders with a stepper, then each [extruder_stepper NAME] with its own
+        # pressure advance, following its extruder's motion queue from the start (as
+        # extras/extruder_stepper.py syncs it at connect) or none.
         self.steppers: dict[str, ExtruderStepper] = {
             name: ExtruderStepper(name, e.limits.pressure_advance,
                                   e.limits.pressure_advance_smooth_time)
             for name, e in self.extruders.items() if e.limits.has_stepper}
+        for config in limits.extruder_steppers:
+            stepper = ExtruderStepper(config.name, config.pressure_advance,
+                                      config.pressure_advance_smooth_time)
+            stepper.motion_queue = config.extruder in self.extruders
+            self.steppers[config.name] = stepper
+        # [extruder_stepper NAME]s known by name only (a Moonraker cache of an older
+        # kestimator): their pressure advance is not known and counts as off.
         self.extra_steppers = [section.split(None, 1)[1].strip()
                                for section in limits.configured_sections
                                if section.startswith("extruder_stepper ")
-                               and len(section.split(None, 1)) == 2]
+                               and len(section.split(None, 1)) == 2
+                               and section.split()[-1] not in self.steppers]
         for name in self.extra_steppers:
             self.steppers[name] = ExtruderStepper(name, 0.0, EXTRUDER_STEPPER_SMOOTH_TIME)
 

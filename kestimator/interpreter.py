@@ -3,14 +3,18 @@
 Klipper's G-code dispatch (`GCodeDispatch`: `register_command`, `cmd_default`): which
 object runs each command, and what happens to commands Klipper does not know. It also sets
 the printer's objects up as klippy does from its config sections: `GCodeMove` (gcode_move.py),
-`ToolHeadCommandHelper` (toolhead.py), `PrinterExtruders` (extruder.py), `InputShaper`
-(input_shaper.py), `ArcSupport` (gcode_arcs.py) with [gcode_arcs], `FirmwareRetraction`
-(firmware_retraction.py) with [firmware_retraction]. The few commands whose upstream
-object holds nothing else are here, each naming its file: G28 (homing.py; [safe_z_home] and
-[homing_override] take it over: kestimator/safe_z_home.py, kestimator/homing_override.py),
-SET_KINEMATIC_POSITION (force_move.py), M109/M190/TEMPERATURE_WAIT (heaters.py, the wait
-only), M84/M18 (stepper_enable.py). Literal [gcode_macro]s run their commands; macros with
-a template are counted (gcode_macro.py's templates are not rendered).
+`ToolHeadCommandHelper` (toolhead.py), `PrinterExtruders` (extruder.py), `PrinterHeaters`
+(heaters.py: M104/M109 with [extruder], M140/M190 with [heater_bed], SET_HEATER_TEMPERATURE
+and TEMPERATURE_WAIT), `InputShaper` (input_shaper.py), `ArcSupport` (gcode_arcs.py) with
+[gcode_arcs], `FirmwareRetraction` (firmware_retraction.py) with [firmware_retraction]. The
+few commands whose upstream object holds nothing else are here, each naming its file: G28
+(homing.py; [safe_z_home] and [homing_override] take it over: kestimator/safe_z_home.py,
+kestimator/homing_override.py), SET_KINEMATIC_POSITION (force_move.py), M84/M18
+(stepper_enable.py), and, when no printer config is known, M109/M190 (heaters.py: the wait
+only, nothing to check). Bed mesh and skew correction are move transforms of GCodeMove
+(bed_mesh.py, skew_correction.py). Literal
+[gcode_macro]s run their commands; macros with a template are counted (gcode_macro.py's
+templates are not rendered).
 
 A command Klipper would reject raises `CommandError`/`MoveError` after the G-code position
 is reset to the toolhead's, as Klipper does after a command error.
@@ -28,6 +32,7 @@ from kestimator.firmware_retraction import FirmwareRetraction
 from kestimator.gcode import Command, command_params, get_float, parse_line
 from kestimator.gcode_arcs import ArcSupport
 from kestimator.gcode_move import GCodeMove
+from kestimator.heaters import PrinterHeaters
 from kestimator.homing_override import HomingOverride
 from kestimator.input_shaper import InputShaper
 from kestimator.klipper_modules import (
@@ -37,7 +42,7 @@ from kestimator.klipper_modules import (
     silently_ignored,
 )
 from kestimator.limits import Limits
-from kestimator.macros import HEAT_SOURCE, HOMING_SOURCE
+from kestimator.macros import HOMING_SOURCE
 from kestimator.preflight import Preflight
 from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
@@ -141,10 +146,16 @@ class Interpreter:
         self._homing_depth = 0
         self.register_command("G28", self._cmd_G28_timed)
         self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
-        self.register_command("M109", self.cmd_M109)
-        if self.modules is None or "heater_bed" in self.modules:
+        self.heaters = heaters = PrinterHeaters(limits, toolhead, extruders, heat_time,
+                                                self.add_time)
+        heaters.on_maybe_cold = self._maybe_cold
+        if self.modules is None:
+            # No printer config: nothing to check, the waits only wait.
+            self.register_command("M109", self.cmd_M109)
             self.register_command(HEATER_BED_WAIT, self.cmd_M109)
-        self.register_command("TEMPERATURE_WAIT", self.cmd_TEMPERATURE_WAIT)
+            self.register_command("TEMPERATURE_WAIT", heaters.cmd_TEMPERATURE_WAIT)
+        else:
+            self._register_heater_commands(heaters, self.modules)
         for name in ("M18", "M84"):
             self.register_command(name, self.cmd_M84)
         if limits.arcs_enabled:
@@ -169,6 +180,32 @@ class Interpreter:
             for name in ("SKEW_PROFILE", "SET_SKEW", "GET_CURRENT_SKEW",
                          "CALC_MEASURED_SKEW"):
                 self.register_command(name, getattr(skew, "cmd_" + name))
+
+    def _register_heater_commands(self, heaters: PrinterHeaters,
+                                  modules: frozenset[str]) -> None:
+        """The heater commands each configured object registers (a [gcode_macro] of the
+        same name, renaming the original, takes its place)."""
+        commands: list[tuple[str, Handler]] = []
+        if "extruder" in modules:
+            commands += [("M104", heaters.cmd_M104), ("M109", heaters.cmd_M109)]
+        if "heater_bed" in modules:
+            # M140 stays counted as a module command (Estimate.commands), as before.
+            def cmd_M140(cmd: Command) -> None:
+                self._count(KIND_MODULE, "M140")
+                heaters.cmd_M140(cmd)
+            commands += [("M140", cmd_M140), (HEATER_BED_WAIT, heaters.cmd_M190)]
+        if heaters.heaters:
+            commands.append(("SET_HEATER_TEMPERATURE", heaters.cmd_SET_HEATER_TEMPERATURE))
+        if heaters.sensors:
+            commands.append(("TEMPERATURE_WAIT", heaters.cmd_TEMPERATURE_WAIT))
+        for name, handler in commands:
+            if name not in self.macros:
+                self.register_command(name, handler)
+
+    def _maybe_cold(self, message: str) -> None:
+        """Klipper may refuse this extrusion (a macro may have heated the extruder)."""
+        if self.preflight is not None:
+            self.preflight.may_stop(self.gcode_move.tag, message)
 
     def register_command(self, name: str, handler: Handler) -> None:
         """`handler` runs the command `name` from now on."""
@@ -232,6 +269,7 @@ class Interpreter:
         """
         if not template.strip() or "{" in template or "%" in template:
             self._count(KIND_MACRO, name)
+            self.heaters.macro_ran(name, template)
             if self.on_unknown is not None:
                 self.on_unknown(name)
             return
@@ -320,27 +358,11 @@ class Interpreter:
         toolhead.kin.clear_homing_state(cleared)
         self.gcode_move.reset_last_position()
 
-    # Heaters (heaters.py): only the wait, which brings the toolhead to rest
+    # Heaters (heaters.py) without the printer's config: only the wait
     def cmd_M109(self, cmd: Command) -> None:
         """M109/M190: set a temperature and, when S is not 0, wait for it."""
-        temp = get_float(cmd.params, "S", 0.0)
-        if temp:
-            self.toolhead.wait_heater()
-            if self.heat_time > 0.0:
-                self.add_time(self.heat_time, cmd.name, HEAT_SOURCE)
-
-    def cmd_TEMPERATURE_WAIT(self, cmd: Command) -> None:
-        """Wait until a sensor is in range."""
-        params = command_params(cmd)
-        if "SENSOR" not in params:
-            raise ParamError("missing SENSOR")
-        low = get_float(params, "MINIMUM")
-        high = get_float(params, "MAXIMUM")
-        if low is None and high is None:
-            raise CommandError("Error on 'TEMPERATURE_WAIT': missing MINIMUM or MAXIMUM.")
-        self.toolhead.wait_heater()
-        if self.heat_time > 0.0:
-            self.add_time(self.heat_time, "TEMPERATURE_WAIT", HEAT_SOURCE)
+        if get_float(cmd.params, "S", 0.0):
+            self.heaters.wait(cmd.name)
 
     # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:

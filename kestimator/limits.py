@@ -92,16 +92,95 @@ class ExtruderLimits:
         return cls(name=name, has_stepper=bool(values.get("has_stepper", True)), **v)
 
 
+@dataclasses.dataclass(frozen=True)
+class ExtruderStepperLimits:
+    """An [extruder_stepper NAME] (kinematics/extruder.py `ExtruderStepper`, as
+    extras/extruder_stepper.py sets it up): the extruder whose motion it follows from the
+    start ('' for none) and its own pressure advance, which widens the step-generation scan
+    window while it follows one."""
+
+    name: str = ""
+    extruder: str = ""
+    pressure_advance: float = 0.0
+    pressure_advance_smooth_time: float = 0.040
+
+
+# Klipper's lowest temperature (klippy/extras/heaters.py KELVIN_TO_CELSIUS) and the default
+# min_extrude_temp of a heater.
+KELVIN_TO_CELSIUS = -273.15
+DEFAULT_MIN_EXTRUDE_TEMP = 170.0
+
+
+@dataclasses.dataclass(frozen=True)
+class HeaterLimits:
+    """One heater's temperature range (klippy/extras/heaters.py `Heater`): its config section
+    ('extruder', 'extruder1', 'heater_bed', 'heater_generic chamber'), `min_temp`/`max_temp`
+    (what M104/M140/SET_HEATER_TEMPERATURE accept) and `min_extrude_temp` (below it an
+    extruder refuses to extrude)."""
+
+    name: str = "extruder"
+    min_temp: float = 0.0
+    max_temp: float = 0.0
+    min_extrude_temp: float = DEFAULT_MIN_EXTRUDE_TEMP
+
+    @property
+    def short_name(self) -> str:
+        """The name SET_HEATER_TEMPERATURE HEATER= takes (the section's last word)."""
+        return self.name.split()[-1]
+
+
+# Klipper loads [extruder] ... [extruder98] while the sections follow on without a gap.
+MAX_EXTRUDERS = 99
+
+
+def heater_sections(sections: tuple[str, ...] | list[str]) -> list[str]:
+    """The heaters a config with these (lower-case) sections has, in Klipper's load order:
+    the extruders first (the toolhead loads them), then [heater_bed] and each
+    [heater_generic NAME] in the order of the config."""
+    present = set(sections)
+    names = []
+    if "extruder" in present:
+        names.append("extruder")
+        for index in range(1, MAX_EXTRUDERS):
+            if "extruder%d" % index not in present:
+                break
+            names.append("extruder%d" % index)
+    names += [s for s in sections if s == "heater_bed"
+              or (s.startswith("heater_generic ") and len(s.split()) > 1)]
+    return names
+
+
+def heater_limits(name: str, min_temp: float, max_temp: float,
+                  min_extrude_temp: float | None, given: bool = True) -> HeaterLimits | str:
+    """A heater's range checked as Klipper's config reads it, or what is wrong with it
+    (``min_temp`` at least -273.15, ``max_temp`` above it, ``min_extrude_temp`` within).
+
+    Klipper does not check a default: where ``min_extrude_temp`` may be its default (not
+    ``given``: Klipper's settings list defaults too), it is not checked."""
+    if min_temp < KELVIN_TO_CELSIUS:
+        return "min_temp must be at least %g, got %g" % (KELVIN_TO_CELSIUS, min_temp)
+    if not max_temp > min_temp:
+        return "max_temp must be above min_temp (%g), got %g" % (min_temp, max_temp)
+    if min_extrude_temp is None:
+        min_extrude_temp = DEFAULT_MIN_EXTRUDE_TEMP
+    elif given and not min_temp <= min_extrude_temp <= max_temp:
+        return "min_extrude_temp must be between min_temp (%g) and max_temp (%g), got %g" % (
+            min_temp, max_temp, min_extrude_temp)
+    return HeaterLimits(name, min_temp, max_temp, min_extrude_temp)
+
+
 def json_value(value: object) -> object:
-    """A Limits field's value as JSON holds it (extruders as objects, pairs as lists)."""
+    """A Limits field's value as JSON holds it (extruders and heaters as objects, pairs as
+    lists)."""
     if isinstance(value, tuple):
-        return [dataclasses.asdict(item) if isinstance(item, ExtruderLimits)
+        return [dataclasses.asdict(item) if isinstance(
+                    item, (ExtruderLimits, HeaterLimits, ExtruderStepperLimits))
                 else json_value(item) for item in value]
     return value
 
 
 def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
-    """``extruders`` or ``gcode_macros`` back from their JSON form (``json_value``).
+    """``extruders``, ``heaters`` or ``gcode_macros`` back from their JSON form (``json_value``).
 
     Raises ValueError for anything else.
     """
@@ -118,20 +197,28 @@ def tuple_field_value(field: str, value: object) -> tuple[Any, ...]:
                    for m in value):
             raise ValueError("gcode_macros must be a list of [name, template] pairs")
         return tuple((str(m[0]), str(m[1])) for m in value)
-    if field == "extruders":
-        names = {f.name: type(f.default) for f in dataclasses.fields(ExtruderLimits)}
+    if field in _ITEM_KINDS:
+        kind: Any = _ITEM_KINDS[field]
+        names = {f.name: type(f.default) for f in dataclasses.fields(kind)}
         result = []
         for item in value:
             if not isinstance(item, dict) or set(item) - set(names) or not all(
                     isinstance(v, names[k]) or (names[k] is float and isinstance(v, int)
                                                 and not isinstance(v, bool))
                     for k, v in item.items()):
-                raise ValueError(f"extruders: not an extruder: {item!r}")
+                what = {"extruders": "an extruder", "heaters": "a heater"}.get(
+                    field, "an extruder stepper")
+                raise ValueError(f"{field}: not {what}: {item!r}")
             fields: dict[str, Any] = {k: float(v) if names[k] is float else v
                                       for k, v in item.items()}
-            result.append(ExtruderLimits(**fields))
+            result.append(kind(**fields))
         return tuple(result)
     raise ValueError(f"{field} is not a list setting")
+
+
+# The list settings whose items are dataclasses, and their class.
+_ITEM_KINDS: dict[str, Any] = {"extruders": ExtruderLimits, "heaters": HeaterLimits,
+                               "extruder_steppers": ExtruderStepperLimits}
 
 
 # Values [printer] requires in Klipper but that a user without a printer.cfg may not give;
@@ -163,6 +250,12 @@ class Limits:
     pressure_advance_smooth_time: float = 0.040
     # [extruder1] ... [extruderN], in order (ACTIVATE_EXTRUDER switches to them).
     extruders: tuple[ExtruderLimits, ...] = ()
+    # Every heater whose min_temp and max_temp are known ([extruder]..., [heater_bed],
+    # [heater_generic NAME]), in the order Klipper loads them: their temperature ranges are
+    # checked (kestimator.heaters). Empty when no printer config is known.
+    heaters: tuple[HeaterLimits, ...] = ()
+    # Each [extruder_stepper NAME] (empty when no printer config gives their options).
+    extruder_steppers: tuple[ExtruderStepperLimits, ...] = ()
     # [input_shaper] (shaper_type_<axis> defaults to shaper_type; a frequency of 0 is off)
     input_shaper_enabled: bool = False
     shaper_type_x: str = "mzv"
@@ -252,6 +345,14 @@ class Limits:
         if not isinstance(extruders, tuple) or not all(
                 isinstance(e, ExtruderLimits) for e in extruders):
             raise ValueError("extruders must be a tuple of ExtruderLimits")
+        heaters = v.get("heaters", ())
+        if not isinstance(heaters, tuple) or not all(
+                isinstance(h, HeaterLimits) for h in heaters):
+            raise ValueError("heaters must be a tuple of HeaterLimits")
+        steppers = v.get("extruder_steppers", ())
+        if not isinstance(steppers, tuple) or not all(
+                isinstance(e, ExtruderStepperLimits) for e in steppers):
+            raise ValueError("extruder_steppers must be a tuple of ExtruderStepperLimits")
         return cls(**v)
 
     @property
@@ -267,6 +368,13 @@ class Limits:
         for extruder in self.extruders:
             if extruder.name == name:
                 return extruder
+        return None
+
+    def heater(self, name: str) -> HeaterLimits | None:
+        """The heater of the config section ``name``, if its range is known."""
+        for heater in self.heaters:
+            if heater.name == name:
+                return heater
         return None
 
     def replace(self, **changes: Any) -> "Limits":

@@ -11,6 +11,9 @@ Owns the findings the one streaming pass collects (`Preflight`) and their wordin
   kestimator could not (a kinematics mainline does not ship, or the printer's [printer] /
   [stepper_*] sections are not known): a move Klipper refuses would not be found, so the
   pre-flight cannot say Klipper runs every command.
+- ``may_stop`` (severity ``warning``): Klipper stops the print here unless something the
+  file cannot show happened before: an extrusion before any command heats the extruder,
+  after a macro whose commands are not known (a start macro may heat). Its first line.
 - ``skipped`` (severity ``warning``): commands Klipper answers with ``Unknown command`` and
   skips while the print goes on: G2/G3 without ``[gcode_arcs]``, G10/G11 without
   ``[firmware_retraction]``, M-codes of modules the printer does not have, macros the
@@ -36,6 +39,7 @@ SEVERITY_WARNING = "warning"
 KIND_STOP = "stop"
 KIND_SKIPPED = "skipped"
 KIND_UNCHECKED = "unchecked"
+KIND_MAY_STOP = "may_stop"
 # Skipped commands listed one finding per name, at most; the rest share one finding.
 MAX_SKIPPED_NAMES = 1000
 # Commands that need a section, and the section (extras/gcode_arcs.py,
@@ -51,6 +55,7 @@ _MISSING_SECTION_EFFECT = {
     "firmware_retraction": "the file's retractions are not done",
 }
 STOP_PREFIX = "Klipper stops the print here: "
+MAY_STOP_PREFIX = "Klipper may stop the print here: "
 SUMMARY_HEAD = "Pre-flight: "
 # Exit status of `inject` and `check` when Klipper will stop the print (docs/CLI.md).
 EXIT_KLIPPER_STOPS = 4
@@ -92,6 +97,7 @@ class Preflight:
         self.skipped_unlisted: Finding | None = None
         # Why moves were not range-checked, if they were not.
         self.unchecked: Finding | None = None
+        self.maybe: Finding | None = None
 
     def moves_unchecked(self, why: str) -> None:
         """Moves are not range-checked as Klipper checks them; `why` says why."""
@@ -105,6 +111,14 @@ class Preflight:
             return None
         self.stop = Finding(SEVERITY_ERROR, KIND_STOP, line, STOP_PREFIX + message)
         return self.stop
+
+    def may_stop(self, line: int, message: str) -> None:
+        """Klipper may answer this line with an error (`message`), depending on what the
+        file cannot show; later ones are counted in the first."""
+        if self.maybe is not None:
+            self.maybe.count += 1
+            return
+        self.maybe = Finding(SEVERITY_WARNING, KIND_MAY_STOP, line, MAY_STOP_PREFIX + message)
 
     def unknown_command(self, name: str, line: int) -> None:
         """Klipper answers `Unknown command` to ``name`` and goes on."""
@@ -130,9 +144,11 @@ class Preflight:
         self.skipped[name] = Finding(SEVERITY_WARNING, KIND_SKIPPED, line, message)
 
     def findings(self) -> list[Finding]:
-        """The stop first, then unchecked moves, then skipped commands in the order first
-        seen."""
+        """The stop first, then a possible stop, unchecked moves, then skipped commands in
+        the order first seen."""
         found = [self.stop] if self.stop is not None else []
+        if self.maybe is not None:
+            found.append(self.maybe)
         if self.unchecked is not None:
             found.append(self.unchecked)
         found += sorted(self.skipped.values(), key=lambda f: f.line or 0)
@@ -148,12 +164,15 @@ def summary_lines(findings: list[dict[str, object]]) -> list[str]:
     stops = [f for f in findings if f["kind"] == KIND_STOP]
     skipped = [f for f in findings if f["kind"] == KIND_SKIPPED]
     unchecked = [f for f in findings if f["kind"] == KIND_UNCHECKED]
+    maybe = [f for f in findings if f["kind"] == KIND_MAY_STOP]
     head = []
     if stops:
         when = stops[0].get("t")
         head.append("Klipper will stop the print at line %s%s" % (
             stops[0]["line"], "" if when is None
             else ", %s in" % format_duration(float(str(when)))))
+    if maybe:
+        head.append("Klipper may stop the print at line %s" % maybe[0]["line"])
     if unchecked:
         head.append("moves not range-checked")
     if skipped:

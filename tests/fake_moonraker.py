@@ -31,7 +31,10 @@ CORPUS_SETTINGS: dict[str, dict[str, Any]] = {
                  "filament_diameter": 1.75, "max_extrude_only_velocity": 120.0,
                  "max_extrude_only_accel": 1500.0, "max_extrude_only_distance": 10000.0,
                  "max_extrude_cross_section": 1000.0, "instantaneous_corner_velocity": 1.0,
-                 "pressure_advance": 0.0, "min_extrude_temp": 0.0},
+                 "pressure_advance": 0.0, "min_temp": 0.0, "max_temp": 300.0,
+                 "min_extrude_temp": 0.0},
+    "heater_bed": {"heater_pin": "gpio16", "min_temp": 0.0, "max_temp": 300.0,
+                   "min_extrude_temp": 170.0},
     "gcode_arcs": {"resolution": 1.0},
     "firmware_retraction": {"retract_length": 0.8, "retract_speed": 35.0,
                             "unretract_extra_length": 0.0, "unretract_speed": 35.0},
@@ -41,7 +44,8 @@ CORPUS_SETTINGS: dict[str, dict[str, Any]] = {
                   "filament_diameter": 1.75, "max_extrude_only_velocity": 120.0,
                   "max_extrude_only_accel": 1500.0, "max_extrude_only_distance": 10000.0,
                   "max_extrude_cross_section": 1000.0, "instantaneous_corner_velocity": 1.0,
-                  "pressure_advance": 0.0, "min_extrude_temp": 0.0},
+                  "pressure_advance": 0.0, "min_temp": 0.0, "max_temp": 300.0,
+                  "min_extrude_temp": 0.0},
 }
 
 

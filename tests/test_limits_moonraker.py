@@ -102,7 +102,10 @@ def test_the_cache_holds_the_sections_read_and_never_the_key(
     # The sections read are kept whole; of the others only the names (which commands
     # the printer knows), never a macro's text.
     assert {name for name, options in document["settings"].items() if options} == {
-        "extruder", "extruder1", "firmware_retraction", "gcode_arcs", "printer"}
+        "extruder", "extruder1", "firmware_retraction", "gcode_arcs", "printer", "heater_bed"}
+    # Of a heater that is not an extruder, only its range (not its pins).
+    assert document["settings"]["heater_bed"] == {"min_temp": 0.0, "max_temp": 300.0,
+                                                  "min_extrude_temp": 170.0}
     assert "gcode_macro secret" in document["settings"]
     assert document["url"] == moonraker.url
     written = everything_in(tmp_path)

@@ -18,7 +18,7 @@ from kestimator.config.printer_cfg import (
     read_printer_cfg,
 )
 from kestimator.errors import KestimatorError
-from kestimator.limits import Limits
+from kestimator.limits import HeaterLimits, Limits
 
 CORPUS_CFG = Path(__file__).resolve().parents[2] / "shared" / "corpus" / "printer.cfg"
 
@@ -422,9 +422,13 @@ def test_corpus_printer_cfg_gives_the_reference_limits() -> None:
     # The corpus config also has an [extruder1], the same as [extruder] but for its name.
     assert limits.extruders == (dataclasses.replace(limits.primary_extruder,
                                                     name="extruder1"),)
+    # Every heater 0..300 C; the extruders extrude at any temperature (min_extrude_temp 0).
+    assert limits.heaters == (HeaterLimits("extruder", 0.0, 300.0, 0.0),
+                              HeaterLimits("extruder1", 0.0, 300.0, 0.0),
+                              HeaterLimits("heater_bed", 0.0, 300.0, 170.0))
     assert limits == dataclasses.replace(Limits.from_values({}), extruders=limits.extruders,
                                          configured_sections=limits.configured_sections,
-                                         **expected)
+                                         heaters=limits.heaters, **expected)
     for name in expected:
         assert provenance[name].startswith(str(CORPUS_CFG) + ":"), name
     assert provenance["max_velocity"] == f"{CORPUS_CFG}:7"
@@ -437,3 +441,22 @@ def test_corpus_printer_cfg_reads_every_section() -> None:
                               "display_status", "extruder1"]
     assert sections["display_status"] == {}
     assert sections["extruder"]["sensor_type"].value == "EPCOS 100K B57560G104F"
+
+
+def test_a_config_of_comments_only_is_a_config_without_sections(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Klipper's config/example.cfg is only comments: it was "internal error: KeyError:
+    # 'configured_sections'". Now it is a config that gives nothing (every value guessed).
+    from kestimator import cli
+
+    cfg = tmp_path / "example.cfg"
+    cfg.write_text("# This file serves as documentation for config parameters.\n#[printer]\n"
+                   "#kinematics: cartesian\n")
+    limits, provenance = limits_from_printer_cfg(cfg)
+    assert limits.configured_sections == ()
+    assert provenance["configured_sections"] == f"{cfg}: no sections"
+    gcode = tmp_path / "a.gcode"
+    gcode.write_text("G28\nG1 X10 F3000\n")
+    for command in ("estimate", "check", "limits"):
+        assert cli.main([command, str(gcode), "--printer-cfg", str(cfg)]) == 0, command
+    assert "internal error" not in capsys.readouterr().err

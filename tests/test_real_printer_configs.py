@@ -200,4 +200,31 @@ def test_an_extruder_stepper_is_a_valid_extruder_for_its_commands(tmp_path: Path
                         "SYNC_EXTRUDER_MOTION EXTRUDER=belt MOTION_QUEUE=extruder\n"
                         "G1 X10 F3000\n", limits)
     assert not est.stops_print
-    assert any("[extruder_stepper belt]" in w for w in est.warnings)
+    # Its pressure advance is read from the config (none here): nothing to warn about.
+    assert not any("[extruder_stepper belt]" in w for w in est.warnings)
+
+
+def test_an_extruder_steppers_own_pressure_advance_is_read_and_modelled() -> None:
+    from kestimator.config.moonraker import settings_values
+    from kestimator.estimate import estimate_text
+    from kestimator.limits import ExtruderStepperLimits, Limits
+
+    limits, _ = limits_from_printer_cfg(REFS / "configs" / "extruder_stepper_pa.cfg")
+    belt = ExtruderStepperLimits("belt", "extruder", 0.05, 0.1)
+    assert limits.extruder_steppers == (belt,)
+    unsynced, _ = limits_from_printer_cfg(REFS / "configs" / "extruder_stepper_unsynced.cfg")
+    assert unsynced.extruder_steppers == (ExtruderStepperLimits("belt", "", 0.05, 0.1),)
+    # Moonraker reports the same options; a section cached by name only (an older
+    # kestimator's cache) has unknown pressure advance, which is still said.
+    settings = {"printer": {"kinematics": "cartesian", "max_velocity": 300.0,
+                            "max_accel": 3000.0},
+                "extruder_stepper belt": {"extruder": "extruder", "pressure_advance": 0.05,
+                                          "pressure_advance_smooth_time": 0.1}}
+    found = Limits.from_values(settings_values(settings, "moonraker test").values)
+    assert found.extruder_steppers == (belt,)
+    settings["extruder_stepper belt"] = {}
+    named = Limits.from_values(settings_values(settings, "moonraker test").values)
+    assert named.extruder_steppers == ()
+    est = estimate_text("G28\nG1 X10 F3000\n", named)
+    assert any("[extruder_stepper belt]: its pressure advance is not known" in w
+               for w in est.warnings)

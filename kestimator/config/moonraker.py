@@ -26,14 +26,23 @@ from typing import TYPE_CHECKING, Any
 from kestimator.config.fields import SourcedValues
 from kestimator.config.machine import MachineConfig, is_machine_section
 from kestimator.config.printer_cfg import (
+    EXTRUDER_STEPPER_OPTIONS,
     FLOAT_OPTIONS,
+    HEATER_OPTIONS,
     MACRO_PREFIX,
     MAX_EXTRUDERS,
     STEPPER_OPTIONS,
 )
 from kestimator.errors import KestimatorError
 from kestimator.files import read_config_bytes, write_json_privately
-from kestimator.limits import FALLBACK_MAX_ACCEL, FALLBACK_MAX_VELOCITY_V, ExtruderLimits
+from kestimator.limits import (
+    FALLBACK_MAX_ACCEL,
+    FALLBACK_MAX_VELOCITY_V,
+    ExtruderLimits,
+    ExtruderStepperLimits,
+    heater_limits,
+    heater_sections,
+)
 
 if TYPE_CHECKING:
     import urllib.error
@@ -47,8 +56,9 @@ API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction",
                    "input_shaper")
 """The Klipper sections kestimator reads (and [extruderN]), besides the kinematics' ones
-(``config.machine.is_machine_section``: [stepper_*], [dual_carriage], probes); of the others
-(macros included: their templates may hold anything) only the names are cached."""
+(``config.machine.is_machine_section``: [stepper_*], [dual_carriage], probes) and the heaters'
+ranges ([heater_bed], [heater_generic NAME]: `HEATER_OPTIONS` only); of the others (macros
+included: their templates may hold anything) only the names are cached."""
 _EXTRUDER_RE = re.compile(r"extruder[1-9][0-9]?$")
 MAX_ANSWER_BYTES = 16 * 1024 * 1024
 # Server text shown to the user (error messages, reasons) is cut to this many characters;
@@ -363,6 +373,8 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
             values["shaper_type_" + axis] = raw
             sources["shaper_type_" + axis] = f"{description}: [input_shaper] shaper_type_{axis}"
     _extra_extruders(settings, description, values, sources)
+    _heaters(settings, description, values, sources)
+    _extruder_steppers(settings, description, values, sources)
     values["configured_sections"] = tuple(sorted(str(name).lower() for name in settings))
     sources["configured_sections"] = f"{description}: its sections"
     # Macros by name only (""): known commands, not run. Their text may hold anything and
@@ -450,6 +462,67 @@ def _extra_extruders(settings: Mapping[str, Mapping[str, Any]], description: str
             f"[{e.name}]" for e in extruders)
 
 
+def _heaters(settings: Mapping[str, Mapping[str, Any]], description: str,
+             values: dict[str, object], sources: dict[str, str]) -> None:
+    """Each heater's range, where the settings give its min_temp and max_temp."""
+    heaters = []
+    sections = [str(name).lower() for name in settings]
+    for name in heater_sections(sections):
+        section = next(options for key, options in settings.items()
+                       if str(key).lower() == name)
+        if "min_temp" not in section or "max_temp" not in section:
+            continue
+        numbers = []
+        for option in HEATER_OPTIONS:
+            raw = section.get(option)
+            value = None if raw is None else _number(raw)
+            if raw is not None and value is None:
+                raise KestimatorError(f"{description}: [{name}] {option} = {raw!r} is not a "
+                                      "number")
+            numbers.append(value)
+        # The settings hold min_extrude_temp's default too (170, even above a bed's
+        # max_temp), which Klipper does not check.
+        found = heater_limits(name, numbers[0] or 0.0, numbers[1] or 0.0, numbers[2],
+                              given=False)
+        if isinstance(found, str):
+            raise KestimatorError(f"{description}: [{name}] {found}")
+        heaters.append(found)
+    if heaters:
+        values["heaters"] = tuple(heaters)
+        sources["heaters"] = f"{description}: " + ", ".join(f"[{h.name}]" for h in heaters)
+
+
+EXTRUDER_STEPPER_PREFIX = "extruder_stepper "
+
+
+def _extruder_steppers(settings: Mapping[str, Mapping[str, Any]], description: str,
+                       values: dict[str, object], sources: dict[str, str]) -> None:
+    """Each [extruder_stepper NAME] whose settings say which extruder it follows (Klipper
+    always reports that option; a section without it is one cached by name only)."""
+    steppers = []
+    for key, section in settings.items():
+        name = str(key).lower()
+        if not name.startswith(EXTRUDER_STEPPER_PREFIX) or not isinstance(section, Mapping) \
+                or not isinstance(section.get("extruder"), str):
+            continue
+        found: dict[str, float] = {}
+        for option, spec in EXTRUDER_STEPPER_OPTIONS.items():
+            raw = section.get(option)
+            if raw is None:
+                continue
+            value = _number(raw)
+            problem = "is not a number" if value is None else spec.violation(value)
+            if problem is not None or value is None:
+                raise KestimatorError(f"{description}: [{name}] {option} = {raw!r} {problem}")
+            found[option] = value
+        steppers.append(ExtruderStepperLimits(name.split()[-1], section["extruder"].strip(),
+                                              **found))
+    if steppers:
+        values["extruder_steppers"] = tuple(steppers)
+        sources["extruder_steppers"] = f"{description}: " + ", ".join(
+            f"[extruder_stepper {e.name}]" for e in steppers)
+
+
 def _number(raw: object) -> float | None:
     if isinstance(raw, bool):
         return None
@@ -519,6 +592,11 @@ def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
     """What the cache keeps of one section's settings."""
     if name in CACHED_SECTIONS or _EXTRUDER_RE.match(name) or is_machine_section(name):
         return dict(_machine_options(name, options))
+    if name in heater_sections([name]):
+        return {option: options[option] for option in HEATER_OPTIONS if option in options}
+    if name.startswith(EXTRUDER_STEPPER_PREFIX):
+        return {option: options[option] for option in ("extruder", *EXTRUDER_STEPPER_OPTIONS)
+                if option in options}
     return {}
 
 

@@ -37,8 +37,12 @@ from kestimator.files import read_config_bytes
 from kestimator.limits import (
     KLIPPER_GENERATIONS,
     ExtruderLimits,
+    ExtruderStepperLimits,
+    HeaterLimits,
     Limits,
     find_generation_directive,
+    heater_limits,
+    heater_sections,
 )
 from kestimator.stepgen import (
     DEFAULT_DAMPING_RATIO,
@@ -190,8 +194,9 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
     if "input_shaper" in config.sections:
         _read_input_shaper(config.sections["input_shaper"], values, read_from)
     values["configured_sections"] = tuple(config.sections)
-    if config.headers:
-        provenance["configured_sections"] = next(iter(config.headers.values()))
+    # A config of comments only (Klipper's config/example.cfg) has no section to point at.
+    provenance["configured_sections"] = (next(iter(config.headers.values())) if config.headers
+                                         else f"{os.fspath(path)}: no sections")
     macros = _read_macros(config)
     if macros:
         values["gcode_macros"] = macros
@@ -204,6 +209,15 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
         provenance["extruders"] = ", ".join(
             config.headers[e.name] for e in extruders)
         limits = limits.replace(extruders=extruders)
+    steppers = _read_extruder_steppers(config)
+    if steppers:
+        values["extruder_steppers"] = steppers
+        provenance["extruder_steppers"] = ", ".join(
+            config.headers["extruder_stepper " + e.name] for e in steppers)
+    heaters = _read_heaters(config)
+    if heaters:
+        values["heaters"] = heaters
+        provenance["heaters"] = ", ".join(config.headers[h.name] for h in heaters)
     for field, bound, allowed, text in RELATIVE_BOUNDS:
         raw = read_from.get(field)
         if raw is not None and not allowed(getattr(limits, field), getattr(limits, bound)):
@@ -330,6 +344,54 @@ def _read_extra_extruders(config: _Config, limits: Limits) -> tuple[ExtruderLimi
     return tuple(extruders)
 
 
+def _read_heaters(config: _Config) -> tuple[HeaterLimits, ...]:
+    """The range of each heater (klippy/extras/heaters.py `Heater`) whose min_temp and
+    max_temp the config gives (Klipper requires both: without them the range is unknown and
+    not checked)."""
+    heaters = []
+    for name in heater_sections(list(config.sections)):
+        section = config.sections[name]
+        raws = [section.get(option) for option in HEATER_OPTIONS]
+        if raws[0] is None or raws[1] is None:
+            continue
+        numbers = [None if raw is None else
+                   FloatOption(name, option, option).parse(raw)
+                   for option, raw in zip(HEATER_OPTIONS, raws)]
+        found = heater_limits(name, numbers[0] or 0.0, numbers[1] or 0.0, numbers[2])
+        if isinstance(found, str):
+            raw = next(r for option, r in zip(HEATER_OPTIONS, raws)
+                       if r is not None and found.startswith(option))
+            raise KestimatorError(f"[{name}] {found}", raw.path, raw.line)
+        heaters.append(found)
+    return tuple(heaters)
+
+
+def _read_extruder_steppers(config: _Config) -> tuple[ExtruderStepperLimits, ...]:
+    """Each [extruder_stepper NAME]: the extruder it follows (Klipper requires the option;
+    empty for none) and its pressure advance (kinematics/extruder.py `ExtruderStepper`)."""
+    steppers = []
+    for section_name, section in config.sections.items():
+        words = section_name.split()
+        if len(words) < 2 or words[0] != "extruder_stepper":
+            continue
+        extruder = section.get("extruder")
+        if extruder is None:
+            path, _, line = config.headers[section_name].rpartition(":")
+            raise KestimatorError(f"[{section_name}] needs an 'extruder' option (the extruder "
+                                  "it follows; Klipper requires it)", path, int(line))
+        found = {}
+        for option, spec in EXTRUDER_STEPPER_OPTIONS.items():
+            raw = section.get(option)
+            if raw is not None:
+                found[option] = dataclasses.replace(spec, section=section_name).parse(raw)
+        steppers.append(ExtruderStepperLimits(words[-1], extruder.value.strip(), **found))
+    return tuple(steppers)
+
+
+# A heater's options that kestimator reads (the first two are required by Klipper).
+HEATER_OPTIONS = ("min_temp", "max_temp", "min_extrude_temp")
+
+
 # Klipper loads [extruder] ... [extruder98] while the sections follow on without a gap.
 MAX_EXTRUDERS = 99
 # An [extruderN] with one of these has its own stepper (PrinterExtruder.__init__).
@@ -434,6 +496,16 @@ FLOAT_OPTIONS = (
                  minval=0.0),
     FloatOption("firmware_retraction", "unretract_speed", "unretract_speed", minval=1.0),
 )
+
+
+# An [extruder_stepper]'s options that change time, with Klipper's bounds.
+EXTRUDER_STEPPER_OPTIONS = {
+    "pressure_advance": FloatOption("extruder_stepper", "pressure_advance",
+                                    "pressure_advance", minval=0.0),
+    "pressure_advance_smooth_time": FloatOption(
+        "extruder_stepper", "pressure_advance_smooth_time", "pressure_advance_smooth_time",
+        above=0.0, maxval=MAX_SMOOTH_TIME_T),
+}
 
 
 # Bounds Klipper sets from another option: (field, other field, test, wording).

@@ -32,6 +32,23 @@ PREFLIGHT = (
     ("preflight_orca_overextrusion",
      "corpus:gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
      "stock_cross_section.cfg", 1, (3000, "G1 X100 Y100 E40")),
+) + tuple(
+    # Heater limits (issue 26): each snippet's first error, or none (heater_in_range).
+    ("preflight_heater_" + name, "snippets/heater_%s.gcode" % name, "heaters.cfg", 1, None)
+    for name in ("m104_over", "m109_over", "m140_over", "m190_over", "generic_over",
+                 "t1_over", "t1_under", "negative", "t2_missing", "unknown_heater",
+                 "wait_unknown_sensor", "wait_max_below_min", "in_range"))
+
+# Cold extrusion: batch mode lets every extruder extrude (heaters.py sets `can_extrude` for
+# file output), so these come from a copy of the same Klipper whose heaters.py line 39 lacks
+# `or is_fileoutput` (ORACLE_KLIPPER_COLD): with no temperatures in batch mode, every
+# extrusion there is cold, which is what a printer does before its hotend was heated.
+COLD_KLIPPER = ("mainline Klipper 84104bbbd (2026-08-07), klippy batch mode, with "
+                "extras/heaters.py line 39 `or is_fileoutput` removed (no temperatures: "
+                "every extruder is cold)")
+COLD_PREFLIGHT = (
+    ("preflight_cold_extrude", "snippets/cold_extrude.gcode", "heaters.cfg", 1, None),
+    ("preflight_cold_retract", "snippets/cold_retract.gcode", "heaters.cfg", 1, None),
 )
 
 REFERENCES = (
@@ -41,6 +58,14 @@ REFERENCES = (
     ("cura_nut_pa_is_max_endstops", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
      "pa_is_max_endstops.cfg", 500),
     ("cura_nut_pa_is", "corpus:gcode/cura/cura413_ender3_nut_small.gcode", "pa_is.cfg", 500),
+    # An [extruder_stepper]'s own pressure advance widens the flush delay while it follows
+    # an extruder (issue 26); without one, or unsynced, it adds nothing.
+    ("cura_nut_extruder_stepper_pa", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
+     "extruder_stepper_pa.cfg", 500),
+    ("cura_nut_extruder_stepper_no_pa", "corpus:gcode/cura/cura413_ender3_nut_small.gcode",
+     "extruder_stepper_no_pa.cfg", 500),
+    ("cura_nut_extruder_stepper_unsynced",
+     "corpus:gcode/cura/cura413_ender3_nut_small.gcode", "extruder_stepper_unsynced.cfg", 500),
     ("orca_cube_pa_is",
      "corpus:gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode", "pa_is.cfg", 500),
 )
@@ -80,18 +105,28 @@ def main() -> int:
         (HERE / (ref + ".json")).write_text(json.dumps(doc, indent=1) + "\n")
         print(ref, doc["total_s"])
     import tempfile
-    for ref, gcode, cfg, every, insert in PREFLIGHT:
+    runs = [(entry, None, "mainline Klipper 84104bbbd (2026-08-07), klippy batch mode")
+            for entry in PREFLIGHT]
+    runs += [(entry, os.environ.get("ORACLE_KLIPPER_COLD"), COLD_KLIPPER)
+             for entry in COLD_PREFLIGHT]
+    for (ref, gcode, cfg, every, insert), klipper, label in runs:
         if wanted and ref not in wanted:
+            continue
+        env = dict(os.environ)
+        if klipper is not None:
+            env["ORACLE_KLIPPER"] = klipper
+        elif label == COLD_KLIPPER:
+            print(ref, "skipped: ORACLE_KLIPPER_COLD is not set")
             continue
         with tempfile.TemporaryDirectory() as tmp:
             path = with_insert(gcode_path(gcode), insert, Path(tmp))
             out = subprocess.run(
                 [sys.executable, str(ORACLE), str(path), "--cfg",
                  str(HERE / "configs" / cfg), "--mark-every", str(every)],
-                capture_output=True, text=True, env=os.environ)
+                capture_output=True, text=True, env=env)
         full = json.loads(out.stdout)
         doc = {"file": gcode, "insert": insert, "config": "configs/" + cfg,
-               "klipper": "mainline Klipper 84104bbbd (2026-08-07), klippy batch mode",
+               "klipper": label,
                "total_s": full["total_s"], "errors": full["errors"],
                "unknown_commands": full["unknown_commands"],
                "marks": [{"line": m["line"], "t": m["t"]} for m in full["marks"]]}
