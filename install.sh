@@ -209,7 +209,7 @@ if [ "${#missing[@]}" -gt 0 ]; then
         if ! { as_root apt-get update -qq && as_root apt-get install -y -qq "${missing[@]}"; }; then
             python3 -c 'import ensurepip' 2>/dev/null \
                 || die "could not install python3-venv: sudo apt-get install python3-venv"
-            say "apt-get failed: installing the pure-Python build (slower), not the compiled one"
+            say "apt-get failed: installing the pure-Python build (slower) instead of compiling it."
             BUILD=pure
         fi
     else
@@ -223,8 +223,10 @@ if [ ! -x "$VENV/bin/python" ]; then
     python3 -m venv "$VENV" || die "python3 -m venv $VENV failed"
 fi
 head=$(git -C "$REPO" rev-parse HEAD 2>/dev/null || echo unknown)
-if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] \
-    || ! "$VENV/bin/kestimator" --version >/dev/null 2>&1; then
+built=$("$VENV/bin/kestimator" --version 2>/dev/null || true)
+# Build again for another commit, a broken venv, or a pure build that can be compiled now.
+if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] || [ -z "$built" ] \
+    || { [ "$BUILD" != pure ] && [[ "$built" == *pure* ]]; }; then
     say "Building kestimator into $VENV (compiling takes a few minutes on a Raspberry Pi)..."
     pip_args=(install -v --no-cache-dir --force-reinstall --disable-pip-version-check)
     log="$VENV/pip.log"
@@ -242,9 +244,9 @@ if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] \
     printf '%s\n' "$head" > "$VENV/kestimator-commit"
 fi
 version_line=$("$VENV/bin/kestimator" --version)
-case "$version_line" in
-    *pure*) say "pure-Python build: install gcc and python3-dev (or ./install.sh -y) and run ./install.sh again to compile it." ;;
-esac
+if [ "$BUILD" != pure ] && [[ "$version_line" == *pure* ]]; then
+    say "The pure-Python build (slower) is installed: compiling failed (see $VENV/pip.log)."
+fi
 
 # --- the link Moonraker runs ---------------------------------------------------
 sections=$(conf_tool sections "$CONF")

@@ -172,6 +172,16 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
         assert entry["is_dirty"] is False
         assert entry["warnings"] == []
 
+    # After an update through Moonraker (a git pull, no rebuild) the checkout's own code
+    # answers until install.sh builds the new commit.
+    stamp = checkout / ".venv-host" / "kestimator-commit"
+    built = stamp.read_bytes()
+    stamp.write_text("0" * 40 + "\n")
+    answer = subprocess.run([str(link), "--version"], env=_environment(data),
+                            capture_output=True, text=True, timeout=60)
+    assert answer.stdout.startswith("klipper_estimator %s " % __version__), answer.stderr
+    stamp.write_bytes(built)
+
     second = _install(checkout, data, "-y")
     assert second.returncode == 0, second.stdout + second.stderr
     assert conf.read_bytes() == installed
@@ -219,3 +229,27 @@ def test_install_sh_is_shellcheck_clean() -> None:
     proc = subprocess.run([shellcheck, "install.sh", "plugins/moonraker/klipper_estimator"],
                           cwd=PROJECT, capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None:
+    """Without gcc and without -y it says which apt packages to install and changes nothing."""
+    data, conf_before = _host(tmp_path / "home", 7125)
+    programs = tmp_path / "bin"
+    programs.mkdir()
+    for folder in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(folder):
+            continue
+        for name in os.listdir(folder):
+            target = programs / name
+            if name != "gcc" and not target.exists() and not target.is_symlink():
+                target.symlink_to(os.path.join(folder, name))
+    env = dict(_environment(data), PATH=str(programs))
+    env.pop("KESTIMATOR_BUILD")
+    proc = subprocess.run([str(PROJECT / "install.sh"), "--allow-root", "--no-restart",
+                           "-d", str(data)], env=env, capture_output=True, text=True,
+                          timeout=60, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 1
+    assert "missing apt packages: gcc\n" in proc.stderr
+    assert "sudo apt-get install gcc" in proc.stderr and "-y" in proc.stderr
+    assert (data / "config" / "moonraker.conf").read_bytes() == conf_before
+    assert proc.stdout == ""  # nothing done
