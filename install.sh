@@ -227,7 +227,11 @@ built=$("$VENV/bin/kestimator" --version 2>/dev/null || true)
 # Build again for another commit, a broken venv, or a pure build that can be compiled now.
 if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] || [ -z "$built" ] \
     || { [ "$BUILD" != pure ] && [[ "$built" == *pure* ]]; }; then
-    say "Building kestimator into $VENV (compiling takes a few minutes on a Raspberry Pi)..."
+    if [ "$BUILD" = pure ]; then
+        say "Installing kestimator (pure Python) into $VENV..."
+    else
+        say "Building kestimator into $VENV (compiling takes a few minutes on a Raspberry Pi)..."
+    fi
     pip_args=(install -v --no-cache-dir --force-reinstall --disable-pip-version-check)
     log="$VENV/pip.log"
     if [ "$BUILD" = pure ]; then
@@ -239,7 +243,8 @@ if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] || [ -z
         tail -n 20 "$log" >&2
         die "pip install failed (whole log: $log)"
     fi
-    grep -m1 'kestimator build: ' "$log" | sed 's/^[[:space:]]*//' | cut -c1-160 || true
+    grep -m1 'kestimator build: ' "$log" \
+        | sed -e 's/^[[:space:]]*//' -e 's/\(compiled with mypyc\): .*/\1/' | cut -c1-200 || true
     rm -rf "$REPO/build"
     printf '%s\n' "$head" > "$VENV/kestimator-commit"
 fi

@@ -4,7 +4,9 @@ manager lists the checkout, a second run changes nothing and --uninstall undoes 
 The host is a temporary data folder (HOME) with a git clone of this project whose origin is a
 local bare repository (no network), a printer.cfg from the corpus and a stand-in
 klipper_estimator that install.sh must keep and --uninstall must bring back. The build is the
-pure one (KESTIMATOR_BUILD=pure), so no mypy is fetched and nothing is compiled.
+pure one (KESTIMATOR_BUILD=pure), so no mypy is fetched and nothing is compiled; the compiled
+install (about 45 s of CPU) runs with KESTIMATOR_TEST_COMPILED_INSTALL=1 (tests/
+test_compiled_build.py covers the mypyc build itself).
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ FAKE_ESTIMATOR = b"#!/bin/sh\necho 'klipper_estimator v3.7.3'\n"
 FAKE_RELEASE = b'{"project_name": "klipper_estimator", "version": "v3.7.3"}'
 INSTALL_TIMEOUT_S = 300.0
 UPDATE_TIMEOUT_S = 60.0
+COMPILED_ENVIRONMENT = "KESTIMATOR_TEST_COMPILED_INSTALL"
 
 
 def _git(*args: str, cwd: Path) -> str:
@@ -186,7 +189,7 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert second.returncode == 0, second.stdout + second.stderr
     assert conf.read_bytes() == installed
     assert "moonraker.conf: nothing to add." in second.stdout
-    assert "Building" not in second.stdout  # the venv is this commit's already
+    assert "Installing kestimator" not in second.stdout  # the venv is this commit's already
     assert len(list(conf.parent.glob("moonraker.conf.*.kestimator.bak"))) == 1
 
     removed = _install(checkout, data, "--uninstall")
@@ -253,3 +256,19 @@ def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None
     assert "sudo apt-get install gcc" in proc.stderr and "-y" in proc.stderr
     assert (data / "config" / "moonraker.conf").read_bytes() == conf_before
     assert proc.stdout == ""  # nothing done
+
+
+def test_install_sh_compiled_build(tmp_path: Path) -> None:
+    if os.environ.get(COMPILED_ENVIRONMENT) != "1":
+        pytest.skip("the compiled install takes ~45 s: %s=1 runs it" % COMPILED_ENVIRONMENT)
+    require_program("gcc")
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    env = _environment(data)
+    env.pop("KESTIMATOR_BUILD")
+    proc = subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                           "-d", str(data)], env=env, capture_output=True, text=True,
+                          timeout=INSTALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "kestimator build: compiled with mypyc\n" in proc.stdout
+    assert "Installed: kestimator %s (compiled)" % __version__ in proc.stdout
