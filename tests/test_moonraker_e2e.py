@@ -11,12 +11,9 @@ KESTIMATOR_MOONRAKER_PYTHON to a Python that already has it to skip the install.
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
 import re
 import shutil
-import socket
 import subprocess
 import sys
 import tempfile
@@ -24,8 +21,6 @@ import time
 import urllib.error
 import urllib.parse
 import urllib.request
-import uuid
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -34,98 +29,28 @@ from kestimator import __version__, compat
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.estimate import estimate_file
-from tests.conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT
+from tests.conftest import CORPUS, CORPUS_CFG, PROJECT
 
-MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
-PYTHON_ENVIRONMENT = "KESTIMATOR_MOONRAKER_PYTHON"
-INSTALL_TIMEOUT_S = 600.0
-START_TIMEOUT_S = 60.0
-METADATA_TIMEOUT_S = 120.0
-HTTP_TIMEOUT_S = 60.0
+# Shared with test_install_sh.py; test_learn_moonraker_e2e.py and test_moonraker_metadata.py
+# import these names from here. moonraker_python is the session fixture.
+from tests.moonraker_host import (  # noqa: F401
+    HTTP_TIMEOUT_S,
+    METADATA_TIMEOUT_S,
+    START_TIMEOUT_S,
+    _free_port,
+    _metadata,
+    _moonraker,
+    _request,
+    _upload,
+    _wait_ready,
+    moonraker_python,
+)
+
 UPLOADS = (
     "prusaslicer/ps25_nut_accelA_small.gcode",
     "cura/cura413_ender3_nut_small.gcode",
 )
 M73_RE = re.compile(rb"^M73\b.*$", re.MULTILINE)
-
-
-def _missing(reason: str) -> None:
-    if IN_CI:
-        pytest.fail(reason)
-    pytest.skip(reason)
-
-
-@pytest.fixture(scope="session")
-def moonraker_python(tmp_path_factory: pytest.TempPathFactory) -> str:
-    """A Python that can run `python -m moonraker`."""
-    given = os.environ.get(PYTHON_ENVIRONMENT)
-    if given:
-        return given
-    venv = tmp_path_factory.mktemp("moonraker-venv")
-    try:
-        subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True,
-                       capture_output=True, timeout=INSTALL_TIMEOUT_S)
-        python = str(venv / "bin" / "python")
-        subprocess.run([python, "-m", "pip", "install", "-q", MOONRAKER_REQUIREMENT],
-                       check=True, capture_output=True, timeout=INSTALL_TIMEOUT_S)
-    except (subprocess.CalledProcessError, subprocess.TimeoutExpired, OSError) as exc:
-        detail = getattr(exc, "stderr", b"") or b""
-        _missing("cannot install %s into a venv: %s %s" % (
-            MOONRAKER_REQUIREMENT, exc, detail.decode(errors="replace")[-2000:]))
-    return python
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _request(url: str, method: str = "GET", body: bytes | None = None,
-             headers: dict[str, str] | None = None) -> dict:
-    request = urllib.request.Request(url, data=body, method=method, headers=headers or {})
-    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
-    with opener.open(request, timeout=HTTP_TIMEOUT_S) as response:
-        return json.loads(response.read())
-
-
-def _upload(base: str, path: Path) -> dict:
-    boundary = uuid.uuid4().hex
-    body = b"".join([
-        b"--%s\r\n" % boundary.encode(),
-        b'Content-Disposition: form-data; name="root"\r\n\r\ngcodes\r\n',
-        b"--%s\r\n" % boundary.encode(),
-        b'Content-Disposition: form-data; name="file"; filename="%s"\r\n'
-        % path.name.encode(),
-        b"Content-Type: application/octet-stream\r\n\r\n",
-        path.read_bytes(),
-        b"\r\n--%s--\r\n" % boundary.encode(),
-    ])
-    return _request(base + "/server/files/upload", "POST", body,
-                    {"Content-Type": "multipart/form-data; boundary=" + boundary})
-
-
-@contextlib.contextmanager
-def _moonraker(python: str, data: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
-    log = open(data / "logs" / "stdout.log", "wb")
-    env = dict(os.environ, HOME=str(data), XDG_CONFIG_HOME=str(data / "xdg-config"),
-               XDG_CACHE_HOME=str(data / "xdg-cache"))
-    env.pop(PYTHON_ENVIRONMENT, None)
-    process = subprocess.Popen(
-        [python, "-m", "moonraker", "-d", str(data), "-c", str(data / "config" /
-                                                                "moonraker.conf"),
-         "-l", str(data / "logs" / "moonraker.log")],
-        stdout=log, stderr=subprocess.STDOUT, env=env, cwd=str(data))
-    try:
-        yield process
-    finally:
-        process.terminate()
-        try:
-            process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(timeout=20)
-        log.close()
 
 
 def _install_estimator(data: Path) -> None:
@@ -146,34 +71,8 @@ def _sh(text: str) -> str:
     return "'" + text.replace("'", "'\\''") + "'"
 
 
-def _wait_ready(base: str, process: subprocess.Popen[bytes], log: Path) -> dict:
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while time.monotonic() < deadline:
-        if process.poll() is not None:
-            pytest.fail("Moonraker exited (%s):\n%s" % (process.returncode,
-                                                         log.read_text(errors="replace")[-4000:]))
-        with contextlib.suppress(OSError, ValueError):
-            return _request(base + "/server/info")["result"]
-        time.sleep(0.2)
-    pytest.fail("Moonraker did not answer /server/info in %g s" % START_TIMEOUT_S)
-
-
-def _metadata(base: str, name: str) -> dict:
-    deadline = time.monotonic() + METADATA_TIMEOUT_S
-    query = urllib.parse.urlencode({"filename": name})
-    while time.monotonic() < deadline:
-        try:
-            meta = _request(base + "/server/files/metadata?" + query)["result"]
-        except urllib.error.HTTPError:
-            meta = {}
-        if "klipper_estimator" in meta.get("file_processors", []):
-            return meta
-        time.sleep(0.2)
-    pytest.fail("no metadata with klipper_estimator processing for %s" % name)
-
-
 def test_moonraker_upload_stores_kestimator_times_metadata_and_analysis_estimate(
-        moonraker_python: str, corpus_root: Path, tmp_path: Path) -> None:
+        moonraker_python: str, corpus_root: Path, tmp_path: Path) -> None:  # noqa: F811
     data = tmp_path / "printer_data"
     for folder in ("config", "gcodes", "logs", "comms", "database"):
         (data / folder).mkdir(parents=True)

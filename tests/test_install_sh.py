@@ -1,0 +1,274 @@
+"""install.sh on a Klipper host: the real Moonraker runs kestimator after it, its update
+manager lists the checkout, a second run changes nothing and --uninstall undoes it byte for byte.
+
+The host is a temporary data folder (HOME) with a git clone of this project whose origin is a
+local bare repository (no network), a printer.cfg from the corpus and a stand-in
+klipper_estimator that install.sh must keep and --uninstall must bring back. The build is the
+pure one (KESTIMATOR_BUILD=pure), so no mypy is fetched and nothing is compiled; the compiled
+install (about 45 s of CPU) runs with KESTIMATOR_TEST_COMPILED_INSTALL=1 (tests/
+test_compiled_build.py covers the mypyc build itself).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+import subprocess
+import time
+import urllib.parse
+from pathlib import Path
+
+import pytest
+
+from kestimator import __version__, compat
+from kestimator.config.resolve import LimitRequest, resolve_limits
+from kestimator.estimate import estimate_file
+from tests.conftest import CORPUS, CORPUS_CFG, PROJECT, require_program
+from tests.moonraker_host import (  # noqa: F401 (moonraker_python is the session fixture)
+    _free_port,
+    _metadata,
+    _moonraker,
+    _request,
+    _upload,
+    _wait_ready,
+    moonraker_python,
+)
+
+UPLOAD = "prusaslicer/ps25_nut_accelA_small.gcode"
+FAKE_ESTIMATOR = b"#!/bin/sh\necho 'klipper_estimator v3.7.3'\n"
+FAKE_RELEASE = b'{"project_name": "klipper_estimator", "version": "v3.7.3"}'
+INSTALL_TIMEOUT_S = 300.0
+UPDATE_TIMEOUT_S = 60.0
+COMPILED_ENVIRONMENT = "KESTIMATOR_TEST_COMPILED_INSTALL"
+
+
+def _git(*args: str, cwd: Path) -> str:
+    return subprocess.run(["git", *args], cwd=cwd, check=True, capture_output=True,
+                          text=True, timeout=60).stdout
+
+
+def _checkout(root: Path) -> Path:
+    """`git clone` of this project as it is now (uncommitted changes included), with a local
+    bare repository as its origin."""
+    require_program("git")
+    source = root / "source"
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",
+                             "--exclude-standard"], cwd=PROJECT, check=True,
+                            capture_output=True, timeout=60).stdout.decode().split("\0")
+    for name in filter(None, listed):
+        path = PROJECT / name
+        if path.is_file():
+            (source / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(path, source / name)
+    identity = ("-c", "user.name=test", "-c", "user.email=test@example.invalid")
+    _git("init", "-q", "-b", "main", cwd=source)
+    _git("add", "-A", cwd=source)
+    _git(*identity, "commit", "-q", "-m", "kestimator", cwd=source)
+    _git("clone", "-q", "--bare", str(source), str(root / "origin.git"), cwd=root)
+    checkout = root / "home" / "kestimator"
+    checkout.parent.mkdir(parents=True)
+    _git("clone", "-q", str(root / "origin.git"), str(checkout), cwd=root)
+    return checkout
+
+
+def _host(home: Path, port: int) -> tuple[Path, bytes]:
+    data = home / "printer_data"
+    for folder in ("config", "gcodes", "logs", "comms", "database"):
+        (data / folder).mkdir(parents=True)
+    shutil.copyfile(CORPUS_CFG, data / "config" / "printer.cfg")
+    tools = data / "tools" / "klipper_estimator"
+    tools.mkdir(parents=True)
+    (tools / "klipper_estimator_linux").write_bytes(FAKE_ESTIMATOR)
+    (tools / "klipper_estimator_linux").chmod(0o755)
+    (tools / "release_info.json").write_bytes(FAKE_RELEASE)
+    # A host's moonraker.conf, without systemd (provider: none) and no system updates.
+    conf = ("[server]\nhost: 127.0.0.1\nport: %d\nklippy_uds_address: %s\n\n"
+            "[machine]\nprovider: none\nvalidate_service: False\n\n"
+            "[authorization]\ntrusted_clients:\n  127.0.0.0/8\n\n"
+            "[file_manager]\nenable_object_processing: False\n\n"
+            "[update_manager]\nenable_system_updates: False\n"
+            % (port, data / "comms" / "klippy.sock")).encode()
+    (data / "config" / "moonraker.conf").write_bytes(conf)
+    return data, conf
+
+
+def _environment(data: Path) -> dict[str, str]:
+    """Moonraker's user as tests/moonraker_host.py starts Moonraker: HOME is the data folder's
+    parent here, the profile in XDG_CONFIG_HOME (the same for install.sh and Moonraker)."""
+    env = dict(os.environ, HOME=str(data.parent), XDG_CONFIG_HOME=str(data / "xdg-config"),
+               KESTIMATOR_BUILD="pure")
+    for name in ("PYTHONPATH", "VIRTUAL_ENV", "PIP_REQUIRE_VIRTUALENV"):
+        env.pop(name, None)
+    return env
+
+
+def _install(checkout: Path, data: Path, *options: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                           "-d", str(data), *options],
+                          env=_environment(data), capture_output=True, text=True,
+                          timeout=INSTALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+
+
+def _update_status(base: str) -> dict:
+    """kestimator's entry in /machine/update/status, once the update manager has read it."""
+    deadline = time.monotonic() + UPDATE_TIMEOUT_S
+    entry: dict = {}
+    while time.monotonic() < deadline:
+        info = _request(base + "/machine/update/status")["result"]["version_info"]
+        entry = info.get("kestimator", {})
+        if entry.get("is_valid") and entry.get("version") not in (None, "", "?"):
+            return entry
+        time.sleep(0.5)
+    pytest.fail("kestimator is not valid in /machine/update/status: %r" % entry)
+
+
+def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
+        moonraker_python: str, corpus_root: Path, tmp_path: Path) -> None:  # noqa: F811
+    checkout = _checkout(tmp_path)
+    port = _free_port()
+    data, conf_before = _host(tmp_path / "home", port)
+    conf = data / "config" / "moonraker.conf"
+    tools = data / "tools" / "klipper_estimator"
+
+    first = _install(checkout, data, "-y")
+    assert first.returncode == 0, first.stdout + first.stderr
+    assert "kestimator build: pure Python (KESTIMATOR_BUILD=pure)" in first.stdout
+    assert "Moonraker not restarted (--no-restart)" in first.stdout
+    link = tools / "klipper_estimator_linux"
+    assert os.readlink(link) == str(checkout / "plugins" / "moonraker" / "klipper_estimator")
+    assert (tools / "klipper_estimator_linux.orig").read_bytes() == FAKE_ESTIMATOR
+    installed = conf.read_bytes()
+    assert installed.startswith(conf_before)
+    added = installed[len(conf_before):].decode()
+    assert "[analysis]\nenable_auto_analysis: True\n" in added
+    assert "enable_estimator_updates: False\n" in added
+    assert ("[update_manager kestimator]\ntype: git_repo\npath: %s\norigin: %s\n"
+            "primary_branch: main\nmanaged_services: moonraker\ninstall_script: install.sh\n"
+            % (checkout, tmp_path / "origin.git")) in added
+    assert "[update_manager]\n" not in added  # the host has one
+    backups = list(conf.parent.glob("moonraker.conf.*.kestimator.bak"))
+    assert [b.read_bytes() for b in backups] == [conf_before]
+    profile = data / "xdg-config" / "kestimator" / "config.toml"
+    assert 'printer_cfg = "%s"' % (data / "config" / "printer.cfg") in profile.read_text()
+
+    base = "http://127.0.0.1:%d" % port
+    source = CORPUS / "gcode" / UPLOAD
+    expected = estimate_file(source, resolve_limits(LimitRequest(
+        printer_cfg=CORPUS_CFG, use_profile=False)).limits).total_s
+    with _moonraker(moonraker_python, data, port) as process:
+        _wait_ready(base, process, data / "logs" / "stdout.log")
+        status = _request(base + "/server/analysis/status")["result"]
+        assert status["estimator_ready"] is True
+        assert status["estimator_version"] == __version__
+        _upload(base, source)
+        meta = _metadata(base, source.name)
+        stored = (data / "gcodes" / source.name).read_bytes()
+        assert b"; kestimator %s klipper_s=%.3f " % (__version__.encode(), expected) in stored
+        assert stored.rstrip(b"\r\n").endswith(compat.IDENT_LINE.encode())
+        assert abs(meta["estimated_time"] - expected) <= 1.0
+        answer = _request(base + "/server/analysis/estimate?" + urllib.parse.urlencode(
+            {"filename": source.name}), "POST")["result"]
+        assert answer["total_time"] == pytest.approx(expected, abs=1e-6)
+        entry = _update_status(base)
+        assert entry["configured_type"] == "git_repo"
+        assert entry["is_dirty"] is False
+        assert entry["warnings"] == []
+
+    # After an update through Moonraker (a git pull, no rebuild) the checkout's own code
+    # answers until install.sh builds the new commit.
+    stamp = checkout / ".venv-host" / "kestimator-commit"
+    built = stamp.read_bytes()
+    stamp.write_text("0" * 40 + "\n")
+    answer = subprocess.run([str(link), "--version"], env=_environment(data),
+                            capture_output=True, text=True, timeout=60)
+    assert answer.stdout.startswith("klipper_estimator %s " % __version__), answer.stderr
+    stamp.write_bytes(built)
+
+    second = _install(checkout, data, "-y")
+    assert second.returncode == 0, second.stdout + second.stderr
+    assert conf.read_bytes() == installed
+    assert "moonraker.conf: nothing to add." in second.stdout
+    assert "Installing kestimator" not in second.stdout  # the venv is this commit's already
+    assert len(list(conf.parent.glob("moonraker.conf.*.kestimator.bak"))) == 1
+
+    removed = _install(checkout, data, "--uninstall")
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    assert conf.read_bytes() == conf_before
+    assert not link.is_symlink()
+    assert link.read_bytes() == FAKE_ESTIMATOR
+    assert stat.S_IMODE(link.stat().st_mode) == 0o755
+    assert (tools / "release_info.json").read_bytes() == FAKE_RELEASE
+    assert not (tools / "klipper_estimator_linux.orig").exists()
+    assert not profile.exists()
+    assert not (tools / "default_estimator_cfg.json").exists()
+    assert not (checkout / ".venv-host").exists()
+    assert _git("status", "--porcelain", cwd=checkout) == ""
+
+
+def test_install_sh_refuses_root_and_says_why(tmp_path: Path) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("runs as root only")
+    proc = subprocess.run([str(PROJECT / "install.sh"), "-d", str(tmp_path)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 1
+    assert "refusing to run as root" in proc.stderr
+    assert "--allow-root" in proc.stderr
+    assert not any(tmp_path.iterdir())
+
+
+def test_install_sh_help_and_unknown_option(tmp_path: Path) -> None:
+    run = [str(PROJECT / "install.sh"), "--allow-root"]
+    shown = subprocess.run([*run, "-h"], capture_output=True, text=True, timeout=60)
+    assert shown.returncode == 0
+    for option in ("-d DIR", "-y", "--uninstall", "--no-restart", "--allow-root"):
+        assert option in shown.stdout
+    wrong = subprocess.run([*run, "--frobnicate"], capture_output=True, text=True, timeout=60)
+    assert wrong.returncode == 1 and "unknown option: --frobnicate" in wrong.stderr
+
+
+def test_install_sh_is_shellcheck_clean() -> None:
+    shellcheck = require_program("shellcheck")
+    proc = subprocess.run([shellcheck, "install.sh", "plugins/moonraker/klipper_estimator"],
+                          cwd=PROJECT, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None:
+    """Without gcc and without -y it says which apt packages to install and changes nothing."""
+    data, conf_before = _host(tmp_path / "home", 7125)
+    programs = tmp_path / "bin"
+    programs.mkdir()
+    for folder in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(folder):
+            continue
+        for name in os.listdir(folder):
+            target = programs / name
+            if name != "gcc" and not target.exists() and not target.is_symlink():
+                target.symlink_to(os.path.join(folder, name))
+    env = dict(_environment(data), PATH=str(programs))
+    env.pop("KESTIMATOR_BUILD")
+    proc = subprocess.run([str(PROJECT / "install.sh"), "--allow-root", "--no-restart",
+                           "-d", str(data)], env=env, capture_output=True, text=True,
+                          timeout=60, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 1
+    assert "missing apt packages: gcc\n" in proc.stderr
+    assert "sudo apt-get install gcc" in proc.stderr and "-y" in proc.stderr
+    assert (data / "config" / "moonraker.conf").read_bytes() == conf_before
+    assert proc.stdout == ""  # nothing done
+
+
+def test_install_sh_compiled_build(tmp_path: Path) -> None:
+    if os.environ.get(COMPILED_ENVIRONMENT) != "1":
+        pytest.skip("the compiled install takes ~45 s: %s=1 runs it" % COMPILED_ENVIRONMENT)
+    require_program("gcc")
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    env = _environment(data)
+    env.pop("KESTIMATOR_BUILD")
+    proc = subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                           "-d", str(data)], env=env, capture_output=True, text=True,
+                          timeout=INSTALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "kestimator build: compiled with mypyc\n" in proc.stdout
+    assert "Installed: kestimator %s (compiled)" % __version__ in proc.stdout
