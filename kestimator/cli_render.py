@@ -251,9 +251,10 @@ LIMIT_UNITS = {
 SLICER_SOURCE_PREFIX = "slicer:"
 
 
-# What the printer config holds besides limits (its section names and macro texts): in
-# `limits --json`, not in the table, where a list of names would widen every row.
-TABLE_HIDDEN_LIMITS = frozenset(("configured_sections", "gcode_macros"))
+# What the printer config holds besides limits of motion (its section names, macro texts,
+# the heaters' temperature ranges the pre-flight checks): in `limits --json`, not in the
+# table, where a list of names would widen every row.
+TABLE_HIDDEN_LIMITS = frozenset(("configured_sections", "gcode_macros", "heaters"))
 
 
 def limit_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
