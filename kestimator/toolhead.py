@@ -48,8 +48,6 @@ MIN_KINEMATIC_MOVE_D: Final = 0.000000001
 NO_CRUISE_V2: Final = -1.0
 # Move.__init__ sets every attribute on PyPy only (see there).
 _PYPY: Final = sys.implementation.name == "pypy"
-# math.pow looked up once (Move.__init__ runs for every line that moves).
-_pow = math.pow
 
 TimingCallback = Callable[[float], None]
 
@@ -143,7 +141,7 @@ class Move:
         # Junction speeds are tracked in velocity squared.  The delta_v2 is the maximum
         # amount of this squared-velocity that can change in this move.
         self.max_start_v2 = 0.0
-        self.max_cruise_v2 = _pow(velocity, 2.0)  # upstream: velocity**2
+        self.max_cruise_v2 = math.pow(velocity, 2.0)  # upstream: velocity**2
         self.delta_v2 = 2.0 * move_d * self.accel
         self.next_junction_v2 = UNLIMITED_JUNCTION_V2
         # Setup for minimum_cruise_ratio checks
