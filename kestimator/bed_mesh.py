@@ -484,9 +484,13 @@ class BedMesh:
             if profile is not None:
                 self.profiles[name.split(" ", 1)[1]] = profile
         self.next_transform: MoveTransform = gcode_move.set_move_transform(self)
+        # Whether the file loaded a mesh at all (else a start macro may have: said).
+        self.ever_loaded = False
 
     def set_mesh(self, mesh: ZMesh | None) -> None:
         """Use `mesh` (None: no mesh) from the next move on."""
+        if mesh is not None:
+            self.ever_loaded = True
         if mesh is not None and self.fade_end != FADE_DISABLE:
             base = self.base_fade_target
             if base is None:

@@ -615,6 +615,9 @@ class Timeline:
                       "are not in the printer's settings), so not counted in the "
                       "step-generation flush delay (times after full stops may be short by "
                       "up to its pressure_advance_smooth_time)" % name)
+        mesh_note = interp.unloaded_mesh_note()
+        if mesh_note is not None:
+            self.warn(mesh_note)
         if interp.gcode_move.moved_e_before_mode:
             self.warn("extrusion moves come before any M82/M83: Klipper starts in absolute "
                       "extrusion mode, which was assumed")

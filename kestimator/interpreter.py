@@ -22,6 +22,7 @@ is reset to the toolhead's, as Klipper does after a command error.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Final
 
@@ -77,6 +78,8 @@ TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 # are counted together (`ignored_unlisted`), so memory stays bounded whatever the file.
 MAX_COMMAND_NAMES: Final = 1000
 
+# A macro text that loads or makes a bed mesh.
+_MESH_COMMAND_RE = re.compile(r"\bBED_MESH_(?:PROFILE|CALIBRATE)\b", re.IGNORECASE)
 # stepper_enable's dwell before and after turning motors off.
 DISABLE_STALL_T: Final = 0.100
 
@@ -206,6 +209,29 @@ class Interpreter:
         """Klipper may refuse this extrusion (a macro may have heated the extruder)."""
         if self.preflight is not None:
             self.preflight.may_stop(self.gcode_move.tag, message)
+
+    def unloaded_mesh_note(self) -> str | None:
+        """Why the times may lack a bed mesh: the printer has saved mesh profiles, the file
+        loaded none, and a macro kestimator does not run loads one (its text says
+        BED_MESH_PROFILE or BED_MESH_CALIBRATE) or may (its text is not known). None when
+        the file is explicit about the mesh."""
+        bed_mesh = self.bed_mesh
+        ran = self.command_kinds.get(KIND_MACRO, {})
+        if bed_mesh is None or not bed_mesh.profiles or bed_mesh.ever_loaded or not ran:
+            return None
+        effect = ("with a mesh Klipper splits moves and follows it, which changes the time "
+                  "a little (tenths of a second on a typical print); add "
+                  "'BED_MESH_PROFILE LOAD=<name>' to the file to have it timed")
+        loaders = [name for name in ran
+                   if _MESH_COMMAND_RE.search(self.macros.get(name, ""))]
+        if loaders:
+            return ("macro %s loads a bed mesh, which kestimator does not run (a template): "
+                    "these times are without a mesh; %s" % (", ".join(loaders), effect))
+        if any(not self.macros.get(name, "").strip() for name in ran):
+            return ("the printer has saved bed mesh profiles (%s) and this file loads none: "
+                    "if its start macro does, %s" % (", ".join(sorted(bed_mesh.profiles)),
+                                                      effect))
+        return None
 
     def register_command(self, name: str, handler: Handler) -> None:
         """`handler` runs the command `name` from now on."""

@@ -159,3 +159,48 @@ def test_profiles_from_moonrakers_settings_are_the_same_profiles() -> None:
     from_moonraker = estimate_file(gcode, limits.replace(machine=machine))
     assert from_moonraker.total_s == from_cfg.total_s
     assert from_moonraker.n_moves == from_cfg.n_moves
+
+
+MESH_MACROS = """
+[gcode_macro PRINT_START]
+gcode:
+    G28
+    {% if params.MESH|default(1)|int %}
+    BED_MESH_PROFILE LOAD=default
+    {% endif %}
+
+[gcode_macro PURGE]
+gcode:
+    {% for i in range(3) %}
+    G1 X{i} Y0
+    {% endfor %}
+"""
+MOVES = "G1 Z0.3 F600\nG1 X200 Y30 F12000\nG1 X30 Y200 E5 F6000\n"
+
+
+def _mesh_warnings(tmp_path: Path, text: str) -> list[str]:
+    est = estimate_text(text, _mesh_limits(tmp_path, MESH_MACROS))
+    return [w for w in est.warnings if "bed mesh" in w]
+
+
+def test_a_start_macro_that_loads_a_mesh_is_said_not_silently_left_out(
+        tmp_path: Path) -> None:
+    (warning,) = _mesh_warnings(tmp_path, "PRINT_START\n" + MOVES)
+    assert "macro PRINT_START loads a bed mesh" in warning
+    assert "BED_MESH_PROFILE LOAD=<name>" in warning
+
+
+def test_a_file_explicit_about_the_mesh_gets_no_mesh_warning(tmp_path: Path) -> None:
+    # It loads the mesh itself, or runs no macro that could, or a macro that does not.
+    assert _mesh_warnings(tmp_path, "PRINT_START\nBED_MESH_PROFILE LOAD=default\n" + MOVES) == []
+    assert _mesh_warnings(tmp_path, "G28\n" + MOVES) == []
+    assert _mesh_warnings(tmp_path, "G28\nPURGE\n" + MOVES) == []
+
+
+def test_a_macro_of_unknown_text_may_load_a_mesh_and_is_said(tmp_path: Path) -> None:
+    # Moonraker gives macros by name only: such a start macro may load a mesh.
+    limits = _mesh_limits(tmp_path)
+    limits = limits.replace(gcode_macros=limits.gcode_macros + (("START", ""),))
+    est = estimate_text("START\n" + MOVES, limits)
+    (warning,) = [w for w in est.warnings if "bed mesh" in w]
+    assert "saved bed mesh profiles (default) and this file loads none" in warning
