@@ -17,7 +17,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from kestimator.errors import CommandError, MoveError, ParamError, fixed
-from kestimator.gcode import Command, command_params, get_float
+from kestimator.gcode import Command, command_params, get_float, mux_error
 from kestimator.limits import ExtruderLimits, Limits
 from kestimator.stepgen import MAX_SMOOTH_TIME_T, pressure_advance_window
 
@@ -146,9 +146,7 @@ class PrinterExtruders:
                 return default
             raise ParamError("missing EXTRUDER")
         if key not in choices:
-            guess = next((". Did you mean '%s'?" % c for c in choices if key and key in c),
-                         ". Options: %s" % ", ".join("'%s'" % c for c in choices))
-            raise CommandError("The value '%s' is not valid for EXTRUDER%s" % (key, guess))
+            raise mux_error(key, "EXTRUDER", choices)
         return key
 
     # PrinterExtruder

@@ -310,3 +310,11 @@ def get_int(params: dict[str, str], name: str) -> int:
         return int(raw)
     except ValueError:
         raise ParamError("unable to parse %s" % raw) from None
+
+
+def mux_error(key: str, name: str, choices: list[str]) -> CommandError:
+    """`_cmd_mux`'s error for a `name=key` no object registered: the last choice holding the
+    key is the guess, as upstream's loop leaves it; else every choice is listed."""
+    guesses = [". Did you mean '%s'?" % c for c in choices if key and key in c]
+    guess = guesses[-1] if guesses else ". Options: %s" % ", ".join("'%s'" % c for c in choices)
+    return CommandError("The value '%s' is not valid for %s%s" % (key, name, guess))

@@ -31,7 +31,7 @@ from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 from kestimator.errors import CommandError, MoveError, ParamError
-from kestimator.gcode import Command, command_params, get_float
+from kestimator.gcode import Command, command_params, get_float, mux_error
 from kestimator.limits import HeaterLimits, Limits, heater_sections
 from kestimator.macros import HEAT_SOURCE
 
@@ -196,7 +196,7 @@ class PrinterHeaters:
             raise ParamError("missing HEATER")
         heater = self.heaters.get(key.lower())
         if heater is None:
-            raise _not_valid(key, "HEATER", [h.short_name for h in self.heaters.values()])
+            raise mux_error(key, "HEATER", [h.short_name for h in self.heaters.values()])
         temp = get_float(params, "TARGET", 0.0)
         self.set_temperature(heater, temp)
 
@@ -209,7 +209,7 @@ class PrinterHeaters:
         if key is None:
             raise ParamError("missing SENSOR")
         if self.sensors and key.lower() not in self.sensors:
-            raise _not_valid(key, "SENSOR", self.sensors)
+            raise mux_error(key, "SENSOR", self.sensors)
         low = get_float(params, "MINIMUM", -math.inf)
         high = get_float(params, "MAXIMUM", math.inf, above=low)
         if low == -math.inf and high == math.inf:
@@ -230,9 +230,3 @@ def _get_index(params: dict[str, str]) -> int | None:
         raise ParamError("T must have minimum of 0")
     return value
 
-
-def _not_valid(key: str, name: str, choices: list[str]) -> CommandError:
-    """gcode.py `_cmd_mux`'s error for a value no object registered."""
-    guesses = [". Did you mean '%s'?" % c for c in choices if key and key in c]
-    guess = guesses[-1] if guesses else ". Options: %s" % ", ".join("'%s'" % c for c in choices)
-    return CommandError("The value '%s' is not valid for %s%s" % (key, name, guess))
