@@ -826,19 +826,12 @@ STDIN_SHOWN = "<stdin>"
 
 
 def _run(args: argparse.Namespace) -> int:
-    if args.command == "estimate":
-        return cmd_estimate(args)
-    if args.command == "inject":
-        return cmd_inject(args)
-    if args.command == "check":
-        return cmd_check(args)
-    if args.command == "limits":
-        return cmd_limits(args)
-    if args.command == "report":
-        return cmd_report(args)
-    if args.command == "learn":
-        return cmd_learn(args)
-    raise UsageError("unknown command %r" % args.command)
+    command = {"estimate": cmd_estimate, "inject": cmd_inject, "check": cmd_check,
+               "limits": cmd_limits, "report": cmd_report, "learn": cmd_learn
+               }.get(args.command)
+    if command is None:
+        raise UsageError("unknown command %r" % args.command)
+    return command(args)
 
 
 def _run_on_stdin(args: argparse.Namespace) -> int:
