@@ -1,0 +1,558 @@
+# kestimator: Klipper-exact remaining print time, kept true during the print.
+#
+# A Klipper extras module (link it into klippy/extras/ and add a [kestimator]
+# section). During a virtual-SD print it publishes `printer.kestimator`:
+#   remaining_s, eta, progress, total_s, source, objects, state, error, ...
+# and keeps display_status's progress (what M73 P sets) true by Klipper time.
+#
+# How: a table maps byte offsets of the file to the time Klipper's planner
+# needs to reach them (read from the table `kestimator inject` wrote into the
+# file, or estimated by kestimator). The table and every re-estimate (after an
+# EXCLUDE_OBJECT or an M220 typed during the print) come from a separate
+# process, `python3 -m kestimator.worker`, whose answers the reactor polls.
+# Klipper's own print_time ties the table to the clock: at each update the
+# module notes the print_time at which the moves queued so far end (a timing
+# callback on the last queued move, as toolhead.register_lookahead_callback
+# does, without flushing anything), so
+#   remaining = (total - table_time(position)) + max(0, anchor_print_time - now)
+# holds through pauses, heater waits and speed changes.
+#
+# It can never hurt a print: every entry point catches everything; an error
+# disables the module with one line in klippy.log and an `error` field in its
+# status, and Klipper goes on as without it. No callback does more than a
+# bisection or a C-speed decode; memory is bounded by the worker's table size.
+#
+# Copyright (C) 2026 the kestimator authors
+# This file may be distributed under the terms of the GNU GPLv3 license
+# (GPL-3.0-or-later). It re-implements no Klipper code; it reads Klipper's
+# objects through the interfaces named above.
+from __future__ import annotations
+
+import array
+import base64
+import bisect
+import json
+import logging
+import os
+import subprocess
+import sys
+import time
+from typing import Any, Callable
+
+# Seconds of reactor time between updates.
+UPDATE_INTERVAL = 0.5
+# The worker's answer is refused past this many bytes (memory stays bounded).
+MAX_ANSWER_BYTES = 16 << 20
+# Events (exclusions, speed changes) kept per print; past this the module
+# says it can no longer follow the print instead of growing.
+MAX_EVENTS = 256
+# Anchors kept (print_time, table time) pending their move's planning.
+MAX_PENDING_ANCHORS = 64
+# display_status keeps an M73 progress this long; refreshed at every update.
+PROGRESS_HOLD = 5.0
+# Objects reported in the status at most (largest remaining first).
+MAX_STATUS_OBJECTS = 64
+# Worker niceness: estimating must never compete with Klipper for the CPU.
+WORKER_NICE = 10
+
+
+def _repo_root() -> str:
+    # plugins/klipper/kestimator.py in a kestimator checkout, linked into
+    # klippy/extras/: the checkout is two folders above the real file.
+    here = os.path.dirname(os.path.realpath(__file__))
+    return os.path.dirname(os.path.dirname(here))
+
+
+def default_python() -> str:
+    """The Python that runs the worker: install.sh's virtualenv when there,
+    else Klipper's own Python with the checkout on its path."""
+    root = _repo_root()
+    venv_python = os.path.join(root, ".venv-host", "bin", "python")
+    if os.path.exists(venv_python):
+        return venv_python
+    return sys.executable
+
+
+def _decode_array(kind: str, text: str) -> array.array[Any]:
+    out = array.array(kind)
+    if text:
+        out.frombytes(base64.b64decode(text))
+    return out
+
+
+class Table:
+    """One answer of the worker: byte offsets of line starts and the Klipper
+    time at which every move on earlier lines has finished."""
+
+    def __init__(self, answer: dict[str, Any]) -> None:
+        self.source = str(answer.get("source", "estimate"))
+        self.total_s = float(answer["total_s"])
+        self.offsets = _decode_array("q", answer.get("offsets_b64", ""))
+        self.times = _decode_array("d", answer.get("times_b64", ""))
+        if len(self.offsets) != len(self.times) or not len(self.offsets):
+            raise ValueError("table without points")
+        names = answer.get("object_names") or []
+        self.object_names = [str(n) for n in names]
+        self.object_offsets = _decode_array(
+            "q", answer.get("object_offsets_b64", ""))
+        flat = _decode_array("d", answer.get("object_remaining_b64", ""))
+        n = len(self.object_offsets)
+        if len(flat) != n * len(self.object_names):
+            raise ValueError("object table of the wrong size")
+        self.object_remaining = [flat[i * n:(i + 1) * n]
+                                 for i in range(len(self.object_names))]
+        self.warnings = [str(w) for w in (answer.get("warnings") or [])][:20]
+
+    def time_at(self, offset: int) -> float:
+        """Table time at byte offset `offset` (linear between points)."""
+        offsets, times = self.offsets, self.times
+        i = bisect.bisect_right(offsets, offset) - 1
+        if i < 0:
+            return times[0]
+        if i >= len(offsets) - 1:
+            return times[-1]
+        o0, o1 = offsets[i], offsets[i + 1]
+        if o1 <= o0:
+            return times[i + 1]
+        t0, t1 = times[i], times[i + 1]
+        return t0 + (t1 - t0) * (offset - o0) / (o1 - o0)
+
+    def objects_at(self, offset: int) -> dict[str, float]:
+        """Each object's remaining seconds from byte offset `offset`."""
+        if not self.object_names or not len(self.object_offsets):
+            return {}
+        j = bisect.bisect_right(self.object_offsets, offset) - 1
+        j = max(0, j)
+        return dict((name, self.object_remaining[i][j])
+                    for i, name in enumerate(self.object_names))
+
+
+class Worker:
+    """The estimating process: JSON lines in, JSON lines out, read through
+    the reactor without ever blocking it."""
+
+    def __init__(self, reactor: Any, python: str,
+                 on_answer: Callable[[dict[str, Any]], Any],
+                 on_exit: Callable[[], Any]) -> None:
+        self.reactor = reactor
+        self.on_answer = on_answer
+        self.on_exit = on_exit
+        env = dict(os.environ)
+        root = _repo_root()
+        path = env.get("PYTHONPATH")
+        env["PYTHONPATH"] = root + (os.pathsep + path if path else "")
+        env["PYTHONDONTWRITEBYTECODE"] = "1"
+        self.proc = subprocess.Popen(
+            [python, "-m", "kestimator.worker"], stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            close_fds=True, env=env, cwd="/")
+        try:
+            os.setpriority(os.PRIO_PROCESS, self.proc.pid, WORKER_NICE)
+        except (OSError, AttributeError):
+            pass
+        assert self.proc.stdout is not None and self.proc.stdin is not None
+        self.out_fd = self.proc.stdout.fileno()
+        self.in_fd = self.proc.stdin.fileno()
+        os.set_blocking(self.out_fd, False)
+        os.set_blocking(self.in_fd, False)
+        self.buf = b""
+        self.fd_handle = reactor.register_fd(self.out_fd, self._readable)
+
+    def send(self, request: dict[str, Any]) -> None:
+        data = (json.dumps(request, separators=(",", ":")) + "\n").encode()
+        written = os.write(self.in_fd, data)
+        if written != len(data):
+            raise OSError("the worker's input is full")
+
+    def _readable(self, eventtime: float) -> None:
+        try:
+            data = os.read(self.out_fd, 1 << 20)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            self.close()
+            self.on_exit()
+            return
+        self.buf += data
+        if len(self.buf) > MAX_ANSWER_BYTES:
+            self.close()
+            raise ValueError("the worker's answer is too large")
+        while b"\n" in self.buf:
+            line, self.buf = self.buf.split(b"\n", 1)
+            if line.strip():
+                self.on_answer(json.loads(line.decode("utf-8", "replace")))
+
+    def close(self) -> None:
+        if self.fd_handle is not None:
+            self.reactor.unregister_fd(self.fd_handle)
+            self.fd_handle = None
+        proc = self.proc
+        for stream in (proc.stdin, proc.stdout):
+            try:
+                if stream is not None:
+                    stream.close()
+            except Exception:
+                pass
+        if proc.poll() is None:
+            try:
+                proc.terminate()
+            except OSError:
+                pass
+        # Reap it later without waiting now.
+        self.reactor.register_callback(lambda e: self._reap())
+
+    def _reap(self) -> None:
+        try:
+            self.proc.wait(timeout=0)
+        except Exception:
+            pass
+
+
+class Kestimator:
+    """The [kestimator] section: status, updates, the worker."""
+
+    def __init__(self, config: Any) -> None:
+        self.printer = printer = config.get_printer()
+        self.reactor = printer.get_reactor()
+        self.python = config.get("python", None) or default_python()
+        self.use_table = config.getboolean("use_file_table", True)
+        self.set_progress = config.getboolean("set_progress", True)
+        self.interval = config.getfloat("update_interval", UPDATE_INTERVAL,
+                                        minval=0.1, maxval=10.)
+        start_args = printer.get_start_args()
+        config_file = start_args.get("config_file")
+        self.config_file = os.path.abspath(config_file) if config_file else None
+        self.gcode = printer.lookup_object("gcode")
+        # Klipper's objects (klippy:ready).
+        self.toolhead: Any = None
+        self.vsd: Any = None
+        self.print_stats: Any = None
+        self.display_status: Any = None
+        self.gcode_move: Any = None
+        self.worker: Worker | None = None
+        self.error: str | None = None
+        self.disabled = False
+        self.timer: Any = None
+        self.max_callback_ms = 0.
+        # Wall clock = reactor time + this (for the ETA).
+        self.wall_offset = time.time() - self.reactor.monotonic()
+        # Clock in print_time: Klipper's estimate of where the head is now.
+        self.now_print_time = self._est_print_time
+        # The worker's answers arrive here (from the reactor's fd callback).
+        self.on_answer = self._guard(self._handle_answer)
+        self._reset_print(None)
+        printer.register_event_handler("klippy:ready", self._guard(
+            self._handle_ready))
+        printer.register_event_handler("klippy:shutdown", self._guard(
+            self._stop_worker))
+        printer.register_event_handler("klippy:disconnect", self._guard(
+            self._stop_worker))
+        printer.register_event_handler("virtual_sdcard:reset_file",
+                                       self._guard(self._handle_reset_file))
+        self.gcode.register_output_handler(self._guard(self._handle_output))
+        self.gcode.register_command("KESTIMATOR_STATUS",
+                                    self._guard(self.cmd_KESTIMATOR_STATUS),
+                                    desc=self.cmd_KESTIMATOR_STATUS_help)
+
+    # Never let anything out
+    def _guard(self, func: Callable[..., Any]) -> Callable[..., Any]:
+        def guarded(*args: Any, **kw: Any) -> Any:
+            if self.disabled:
+                return None
+            start = time.perf_counter()
+            try:
+                return func(*args, **kw)
+            except Exception as e:
+                self._disable(e)
+            finally:
+                ms = (time.perf_counter() - start) * 1000.
+                if ms > self.max_callback_ms:
+                    self.max_callback_ms = ms
+            return None
+        return guarded
+
+    def _disable(self, exc: BaseException) -> None:
+        self.disabled = True
+        self.error = "%s: %s" % (type(exc).__name__, str(exc)[:200])
+        logging.error("kestimator: disabled after an error: %s", self.error)
+        try:
+            self._stop_worker()
+        except Exception:
+            pass
+
+    # Set-up
+    def _handle_ready(self) -> None:
+        lookup = self.printer.lookup_object
+        self.toolhead = lookup("toolhead")
+        self.vsd = lookup("virtual_sdcard", None)
+        self.print_stats = lookup("print_stats", None)
+        self.display_status = lookup("display_status", None)
+        self.gcode_move = lookup("gcode_move", None)
+        if self.vsd is None:
+            raise ValueError("needs [virtual_sdcard]")
+        self._wrap("M220", self._after_M220)
+        if self.set_progress and self.display_status is not None:
+            self._wrap("M73", self._after_M73)
+        self.timer = self.reactor.register_timer(self._update_timer,
+                                                 self.reactor.NOW)
+
+    def _wrap(self, name: str, after: Callable[[Any], None]) -> None:
+        """Run `after` once Klipper's own `name` has run (as gcode_macro's
+        rename_existing keeps the original); our part can never fail it."""
+        original = self.gcode.register_command(name, None)
+        if original is None:
+            return
+        guarded_after = self._guard(after)
+
+        def wrapper(gcmd: Any) -> None:
+            original(gcmd)
+            guarded_after(gcmd)
+        self.gcode.register_command(name, wrapper)
+
+    def _stop_worker(self) -> None:
+        worker, self.worker = self.worker, None
+        if worker is not None:
+            worker.close()
+
+    # One print
+    def _reset_print(self, path: str | None) -> None:
+        self.path = path
+        self.table: Table | None = None
+        self.request_id = 0
+        self.pending_id: int | None = None
+        self.events: list[tuple[int, str]] = []
+        # (print_time, file position) last planned
+        self.anchor: tuple[float, int] | None = None
+        self.anchor_pending = 0
+        # ("speed", factor) or ("exclude", names) until the exact answer
+        self.provisional: tuple[str, Any] | None = None
+        self.excluded: list[str] = []
+        self.speed_factor: float | None = None
+        self.status = self._idle_status()
+
+    def _idle_status(self) -> dict[str, Any]:
+        return {"state": "idle", "remaining_s": None, "eta": None,
+                "progress": None, "total_s": None, "source": None,
+                "objects": {}, "excluded_objects": [], "file": None,
+                "error": self.error, "max_callback_ms": 0.}
+
+    def _handle_reset_file(self) -> None:
+        self._reset_print(None)
+
+    def _request(self) -> None:
+        """Ask the worker for the file's table with every event so far."""
+        if self.worker is None:
+            self.worker = Worker(self.reactor, self.python, self.on_answer,
+                                 self._guard(self._handle_worker_exit))
+        self.request_id += 1
+        self.pending_id = self.request_id
+        self.worker.send({
+            "id": self.request_id, "file": self.path,
+            "config": self.config_file or None,
+            "events": [[pos, text] for pos, text in self.events],
+            "use_table": self.use_table and not self.events,
+            "encoding": "b64"})
+
+    def _handle_answer(self, answer: dict[str, Any]) -> None:
+        if answer.get("id") != self.pending_id:
+            return
+        self.pending_id = None
+        if not answer.get("ok"):
+            self.error = "estimate failed: %s" % (
+                str(answer.get("error", "?"))[:200],)
+            logging.info("kestimator: %s", self.error)
+            return
+        self.table = Table(answer)
+        self.provisional = None
+        self.error = None
+
+    def _handle_worker_exit(self) -> None:
+        self.worker = None
+        if self.pending_id is not None:
+            self.pending_id = None
+            self.error = "the kestimator worker stopped (python: %s)" % (
+                self.python,)
+            logging.info("kestimator: %s", self.error)
+
+    # Events typed during the print
+    def _from_file(self) -> bool:
+        return self.vsd is not None and self.vsd.is_cmd_from_sd()
+
+    def _add_event(self, text: str) -> None:
+        if self.path is None or self._from_file():
+            return
+        if len(self.events) >= MAX_EVENTS:
+            raise ValueError("more than %d changes in one print" % MAX_EVENTS)
+        self.events.append((self.vsd.file_position, text))
+        self._request()
+
+    def _after_M220(self, gcmd: Any) -> None:
+        if self.gcode_move is None or self.path is None or self._from_file():
+            return
+        factor = self.gcode_move.get_status(
+            self.reactor.monotonic())["speed_factor"]
+        old = self.speed_factor or 1.
+        self.speed_factor = factor
+        self.provisional = ("speed", old / factor if factor > 0. else 1.)
+        self._add_event("M220 S%.10g" % (factor * 100.,))
+
+    def _after_M73(self, gcmd: Any) -> None:
+        self._set_display_progress(self.reactor.monotonic())
+
+    def _handle_output(self, msg: str) -> None:
+        if self.path is None or not msg.startswith("// "):
+            return
+        text = msg[3:]
+        for prefix, command in (("Excluding object ", "EXCLUDE_OBJECT NAME="),
+                                ("Unexcluding object ",
+                                 "EXCLUDE_OBJECT RESET=1 NAME=")):
+            if text.startswith(prefix):
+                name = text[len(prefix):].strip().split("\n")[0]
+                if not name or " " in name or self._from_file():
+                    return
+                if command.startswith("EXCLUDE_OBJECT NAME"):
+                    if name not in self.excluded:
+                        self.excluded.append(name)
+                        self.provisional = ("exclude", list(self.excluded))
+                elif name in self.excluded:
+                    self.excluded.remove(name)
+                self._add_event(command + name)
+                return
+
+    # Time
+    def _est_print_time(self, eventtime: float) -> float:
+        return self.toolhead.mcu.estimated_print_time(eventtime)
+
+    def anchor_here(self, position: int) -> None:
+        """Note the print_time at which the moves queued so far end, with file
+        `position` (the start of the next line to run): a timing callback on
+        the last queued move, as register_lookahead_callback does, but never
+        flushing or priming anything when the queue is empty."""
+        if self.anchor_pending >= MAX_PENDING_ANCHORS:
+            return
+        toolhead = self.toolhead
+        queue = getattr(toolhead, "lookahead", None)
+        if queue is None:
+            queue = getattr(toolhead, "move_queue", None)
+        last = queue.get_last() if queue is not None else None
+        if last is None:
+            self.anchor = (toolhead.print_time, position)
+            return
+        self.anchor_pending += 1
+
+        def planned(print_time: float, position: int = position) -> None:
+            self.anchor_pending -= 1
+            self.anchor = (print_time, position)
+        last.timing_callbacks.append(self._guard(planned))
+
+    def remaining_at(self, print_time: float) -> float | None:
+        """Seconds of printing left when the head is at `print_time`: the
+        table's time from the last anchor's position to the end, plus what
+        Klipper had queued past `print_time` at that anchor."""
+        table = self.table
+        anchor = self.anchor
+        if table is None or anchor is None:
+            return None
+        anchor_pt, position = anchor
+        left = (max(0., table.total_s - table.time_at(position))
+                + max(0., anchor_pt - print_time))
+        provisional = self.provisional
+        if provisional is not None and provisional[0] == "speed":
+            left *= provisional[1]
+        elif provisional is not None and provisional[0] == "exclude":
+            objects = table.objects_at(position)
+            cut = sum([objects.get(name, 0.) for name in provisional[1]])
+            left = max(0., left - cut)
+        return left
+
+    def status_at(self, print_time: float, eventtime: float) -> dict[str, Any]:
+        """The status dict with the head at `print_time`."""
+        table = self.table
+        status = self._idle_status()
+        status["file"] = self.path
+        status["max_callback_ms"] = round(self.max_callback_ms, 3)
+        status["excluded_objects"] = list(self.excluded)
+        if self.path is None:
+            return status
+        state = "printing"
+        if self.print_stats is not None:
+            state = self.print_stats.get_status(eventtime)["state"]
+        status["state"] = state if table is not None else "estimating"
+        if table is None:
+            return status
+        remaining = self.remaining_at(print_time)
+        if state == "complete":
+            remaining = 0.
+        if remaining is None:
+            return status
+        total = table.total_s
+        status.update({
+            "remaining_s": round(remaining, 3),
+            "eta": round(self.wall_offset + eventtime + remaining, 3),
+            "total_s": round(total, 3),
+            "progress": round(min(1., max(0., 1. - remaining / total)), 6)
+            if total > 0. else 1.,
+            "source": "provisional" if self.provisional else table.source})
+        objects = table.objects_at(self.vsd.file_position)
+        for name in self.excluded:
+            if name in objects:
+                objects[name] = 0.
+        ranked = sorted(objects.items(), key=lambda kv: -kv[1])
+        status["objects"] = dict(
+            (name, round(left, 3)) for name, left in ranked[:MAX_STATUS_OBJECTS])
+        return status
+
+    def _set_display_progress(self, eventtime: float) -> None:
+        progress = self.status.get("progress")
+        ds = self.display_status
+        if (not self.set_progress or ds is None or progress is None
+                or self.status.get("state") != "printing"):
+            return
+        ds.progress = progress
+        ds.expire_progress = eventtime + PROGRESS_HOLD
+
+    def _update_timer(self, eventtime: float) -> float:
+        self._guard(self.update)(eventtime)
+        if self.disabled:
+            return self.reactor.NEVER
+        return eventtime + self.interval
+
+    def update(self, eventtime: float) -> None:
+        """Once per interval: follow the print, refresh status and progress."""
+        vsd = self.vsd
+        path = vsd.file_path() if vsd is not None else None
+        if path is not None and vsd.is_active() and path != self.path:
+            self._reset_print(path)
+            self._request()
+        if self.path is None:
+            self.status = self._idle_status()
+            return
+        if vsd.is_active() and not vsd.is_cmd_from_sd():
+            self.anchor_here(vsd.file_position)
+        self.status = self.status_at(self.now_print_time(eventtime), eventtime)
+        self._set_display_progress(eventtime)
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        status = dict(self.status)
+        status["error"] = self.error
+        return status
+
+    cmd_KESTIMATOR_STATUS_help = "Report kestimator's remaining print time"  # noqa: N815
+
+    def cmd_KESTIMATOR_STATUS(self, gcmd: Any) -> None:
+        status = self.get_status(self.reactor.monotonic())
+        if status["error"]:
+            gcmd.respond_info("kestimator: %s" % (status["error"],))
+        if status["remaining_s"] is None:
+            gcmd.respond_info("kestimator: %s" % (status["state"],))
+            return
+        gcmd.respond_info(
+            "kestimator: %d s left of %d s (%.1f %%), source %s" % (
+                status["remaining_s"], status["total_s"],
+                status["progress"] * 100., status["source"]))
+
+
+def load_config(config: Any) -> Kestimator:
+    return Kestimator(config)

@@ -1,0 +1,134 @@
+"""A test-only Klipper extras module ([ktest_probe]): drives and samples the kestimator
+module during a batch-mode virtual-SD print of real Klipper.
+
+It loads beside the oracle's own probe ([oracle_probe], ../shared/tools/oracle), whose
+conventions it keeps so that Klipper's times are those of the oracle: G28 is the oracle's
+instant homing (ORACLE_HOME), a heater wait flushes the look-ahead as a real printer's does,
+and step generation is flushed in the background without ever running the look-ahead dry
+(batch mode's "flush everything" timer branch would plan queued moves to a stop that a real
+printer never makes). Commands, placed in the file under test:
+
+  KTEST_SAMPLE ID=n      - note the print_time at which every earlier move has ended and
+                           what kestimator says is left from there (its status_at)
+  KTEST_USER CMD="..."   - run CMD as if typed in the console between two lines (not from
+                           the file), then wait (wall clock, at most 20 s) for kestimator's
+                           answer to it, timing that wait
+  KTEST_END              - wait for every move (M400), note the end print_time, write
+                           the results (JSON) to $KTEST_OUT
+
+Klipper's remaining time at a sample is end - print_time(sample).
+"""
+import json
+import os
+import time
+
+BG_FAUX_LAG = 1.5   # as motion_queuing._flush_handler_debug
+BG_BATCH = 0.25
+MAX_WAIT_S = 20.0
+
+
+class KTestProbe:
+    def __init__(self, config):
+        self.printer = config.get_printer()
+        self.reactor = self.printer.get_reactor()
+        self.gcode = self.printer.lookup_object("gcode")
+        self.out_path = os.environ.get("KTEST_OUT", "/dev/null")
+        self.samples = []
+        self.users = []
+        self.start_wait_s = None
+        self.end_print_time = None
+        self.first_sample = True
+        for name in ("SAMPLE", "USER", "END"):
+            self.gcode.register_command("KTEST_" + name, getattr(self, "cmd_KTEST_" + name))
+        self.printer.register_event_handler("klippy:connect", self._handle_connect)
+        self.printer.register_event_handler("klippy:ready", self._handle_ready)
+
+    def _handle_connect(self):
+        self.toolhead = self.printer.lookup_object("toolhead")
+        self.mq = self.printer.lookup_object("motion_queuing")
+        self.mq.flush_timer.callback = self._bg_flush
+        oracle = self.printer.lookup_object("oracle_probe")
+        self.gcode.register_command("G28", None)
+        self.gcode.register_command("G28", oracle.cmd_ORACLE_HOME)
+
+    def _handle_ready(self):
+        self.vsd = self.printer.lookup_object("virtual_sdcard")
+        self.kest = self.printer.lookup_object("kestimator")
+        for name in ("M109", "M190", "TEMPERATURE_WAIT"):
+            original = self.gcode.register_command(name, None)
+            if original is None:
+                continue
+
+            def waited(gcmd, original=original, name=name):
+                original(gcmd)
+                if name == "TEMPERATURE_WAIT" or gcmd.get_float("S", 0.) > 0.:
+                    self.toolhead.wait_moves()
+            self.gcode.register_command(name, waited)
+
+    def _bg_flush(self, eventtime):
+        mq = self.mq
+        faux_time = mq.need_flush_time - BG_FAUX_LAG
+        while mq.last_step_gen_time < faux_time:
+            mq._advance_flush_time(0., mq.last_step_gen_time + BG_BATCH)
+        mq.do_kick_flush_timer = True
+        return self.reactor.NEVER
+
+    def _wait(self, done):
+        start = time.monotonic()
+        while not done() and time.monotonic() - start < MAX_WAIT_S:
+            self.reactor.pause(self.reactor.monotonic() + 0.005)
+        return time.monotonic() - start
+
+    def cmd_KTEST_SAMPLE(self, gcmd):
+        kest = self.kest
+        if self.first_sample:
+            # The print's start: kestimator reads the file's table or estimates it.
+            self.first_sample = False
+            self.start_wait_s = self._wait(lambda: kest.table is not None)
+        position = self.vsd.file_position
+        kest.anchor_here(position)
+        sample = {"id": gcmd.get_int("ID"), "position": position}
+        self.samples.append(sample)
+
+        def planned(print_time, sample=sample):
+            sample["print_time"] = print_time
+            status = kest.status_at(print_time, self.reactor.monotonic())
+            sample["remaining_s"] = status["remaining_s"]
+            sample["source"] = status["source"]
+            sample["objects"] = status["objects"]
+        last = self.toolhead.lookahead.get_last()
+        if last is None:
+            planned(self.toolhead.print_time)
+        else:
+            last.timing_callbacks.append(planned)
+
+    def cmd_KTEST_USER(self, gcmd):
+        command = gcmd.get("CMD")
+        kest = self.kest
+        before = kest.request_id
+        self.vsd.cmd_from_sd = False
+        try:
+            self.gcode.run_script_from_command(command)
+        finally:
+            self.vsd.cmd_from_sd = True
+        asked = kest.request_id != before
+        waited = self._wait(lambda: kest.pending_id is None)
+        self.users.append({"command": command, "position": self.vsd.file_position,
+                           "asked": asked, "answer_wait_s": round(waited, 3),
+                           "answered": kest.pending_id is None})
+
+    def cmd_KTEST_END(self, gcmd):
+        self.toolhead.wait_moves()
+        self.end_print_time = self.toolhead.print_time
+        oracle = self.printer.lookup_object("oracle_probe")
+        with open(self.out_path, "w") as f:
+            json.dump({"end_print_time": self.end_print_time, "samples": self.samples,
+                       "users": self.users, "start_wait_s": self.start_wait_s,
+                       "n_runout_flushes": oracle.n_runout, "syncs": oracle.syncs,
+                       "origin": oracle.origin, "errors": oracle.errors,
+                       "max_callback_ms": self.kest.max_callback_ms,
+                       "kestimator_error": self.kest.error}, f)
+
+
+def load_config(config):
+    return KTestProbe(config)

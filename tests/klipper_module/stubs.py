@@ -1,0 +1,259 @@
+"""Klipper's objects, stubbed at the interfaces the kestimator module uses (klippy's
+printer, reactor, gcode, toolhead, virtual_sdcard, print_stats, display_status,
+gcode_move and configfile section), for tests that run without Klipper."""
+from __future__ import annotations
+
+import importlib.util
+import os
+import select
+import time
+from typing import Any, Callable
+
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+MODULE_PATH = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
+
+
+def load_module() -> Any:
+    """plugins/klipper/kestimator.py, loaded as Klipper loads an extras module."""
+    spec = importlib.util.spec_from_file_location("klippy_extras_kestimator", MODULE_PATH)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class Timer:
+    def __init__(self, callback: Callable[[float], float], waketime: float) -> None:
+        self.callback = callback
+        self.waketime = waketime
+
+
+class Reactor:
+    NOW = 0.
+    NEVER = 9999999999999999.
+
+    def __init__(self) -> None:
+        self.now = 100.
+        self.timers: list[Timer] = []
+        self.fds: dict[int, Callable[[float], None]] = {}
+        self.callbacks: list[Callable[[float], None]] = []
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def register_timer(self, callback: Callable[[float], float],
+                       waketime: float = 9999999999999999.) -> Timer:
+        timer = Timer(callback, waketime)
+        self.timers.append(timer)
+        return timer
+
+    def register_fd(self, fd: int, callback: Callable[[float], None]) -> int:
+        self.fds[fd] = callback
+        return fd
+
+    def unregister_fd(self, handle: int) -> None:
+        self.fds.pop(handle, None)
+
+    def register_callback(self, callback: Callable[[float], None]) -> None:
+        self.callbacks.append(callback)
+
+    def run_timers(self) -> None:
+        for timer in list(self.timers):
+            if timer.waketime <= self.now:
+                timer.waketime = timer.callback(self.now)
+
+    def advance(self, seconds: float) -> None:
+        self.now += seconds
+        self.run_timers()
+
+    def pump_fds(self, until: Callable[[], bool], timeout: float = 60.) -> None:
+        """Run fd callbacks (what the reactor does) until `until()` or `timeout`."""
+        end = time.monotonic() + timeout
+        while not until() and time.monotonic() < end:
+            if not self.fds:
+                break
+            ready, _, _ = select.select(list(self.fds), [], [], 0.05)
+            for fd in ready:
+                callback = self.fds.get(fd)
+                if callback is not None:
+                    callback(self.now)
+
+
+class GCodeCommand:
+    def __init__(self, params: dict[str, str]) -> None:
+        self.params = params
+        self.responses: list[str] = []
+
+    def get_float(self, name: str, default: Any = None) -> Any:
+        return float(self.params[name]) if name in self.params else default
+
+    def respond_info(self, msg: str) -> None:
+        self.responses.append(msg)
+
+
+class GCode:
+    def __init__(self) -> None:
+        self.handlers: dict[str, Callable[[Any], None]] = {}
+        self.outputs: list[Callable[[str], None]] = []
+
+    def register_command(self, name: str, func: Any, when_not_ready: bool = False,
+                         desc: str | None = None) -> Any:
+        if func is None:
+            return self.handlers.pop(name, None)
+        assert name not in self.handlers, name
+        self.handlers[name] = func
+        return None
+
+    def register_output_handler(self, callback: Callable[[str], None]) -> None:
+        self.outputs.append(callback)
+
+    def respond_info(self, msg: str) -> None:
+        for callback in self.outputs:
+            callback("// " + msg)
+
+    def run(self, name: str, **params: str) -> GCodeCommand:
+        gcmd = GCodeCommand(params)
+        self.handlers[name](gcmd)
+        return gcmd
+
+
+class Move:
+    def __init__(self) -> None:
+        self.timing_callbacks: list[Callable[[float], None]] = []
+
+
+class LookAhead:
+    def __init__(self) -> None:
+        self.queue: list[Move] = []
+
+    def get_last(self) -> Move | None:
+        return self.queue[-1] if self.queue else None
+
+    def plan(self, end_print_time: float) -> None:
+        """Flush: every queued move's callbacks with `end_print_time` (one move)."""
+        for move in self.queue:
+            for callback in move.timing_callbacks:
+                callback(end_print_time)
+        self.queue = []
+
+
+class MCU:
+    def __init__(self) -> None:
+        self.est = 0.
+
+    def estimated_print_time(self, eventtime: float) -> float:
+        return self.est
+
+
+class ToolHead:
+    def __init__(self) -> None:
+        self.lookahead = LookAhead()
+        self.print_time = 0.
+        self.mcu = MCU()
+
+    def plan(self, end_print_time: float) -> None:
+        """The look-ahead flushed: its moves end at `end_print_time`, as print_time."""
+        self.lookahead.plan(end_print_time)
+        self.print_time = end_print_time
+
+
+class VirtualSD:
+    def __init__(self) -> None:
+        self.path: str | None = None
+        self.active = False
+        self.cmd_from_sd = False
+        self.file_position = 0
+
+    def file_path(self) -> str | None:
+        return self.path
+
+    def is_active(self) -> bool:
+        return self.active
+
+    def is_cmd_from_sd(self) -> bool:
+        return self.cmd_from_sd
+
+
+class PrintStats:
+    def __init__(self) -> None:
+        self.state = "standby"
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        return {"state": self.state}
+
+
+class DisplayStatus:
+    def __init__(self, gcode: GCode) -> None:
+        self.progress: float | None = None
+        self.expire_progress = 0.
+        gcode.register_command("M73", self.cmd_M73)
+
+    def cmd_M73(self, gcmd: GCodeCommand) -> None:
+        progress = gcmd.get_float("P")
+        if progress is not None:
+            self.progress = progress / 100.
+
+
+class GCodeMove:
+    def __init__(self, gcode: GCode) -> None:
+        self.speed_factor = 1.
+        gcode.register_command("M220", self.cmd_M220)
+
+    def cmd_M220(self, gcmd: GCodeCommand) -> None:
+        self.speed_factor = gcmd.get_float("S", 100.) / 100.
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        return {"speed_factor": self.speed_factor}
+
+
+class Printer:
+    def __init__(self, config_file: str = "/tmp/printer.cfg") -> None:
+        self.reactor = Reactor()
+        self.gcode = GCode()
+        self.handlers: dict[str, list[Callable[..., Any]]] = {}
+        self.start_args = {"config_file": config_file}
+        self.objects: dict[str, Any] = {"gcode": self.gcode, "toolhead": ToolHead(),
+                                        "virtual_sdcard": VirtualSD(),
+                                        "print_stats": PrintStats()}
+        self.objects["display_status"] = DisplayStatus(self.gcode)
+        self.objects["gcode_move"] = GCodeMove(self.gcode)
+
+    def get_reactor(self) -> Reactor:
+        return self.reactor
+
+    def get_start_args(self) -> dict[str, str]:
+        return self.start_args
+
+    def lookup_object(self, name: str, default: Any = "<required>") -> Any:
+        if name in self.objects:
+            return self.objects[name]
+        if default == "<required>":
+            raise KeyError(name)
+        return default
+
+    def register_event_handler(self, event: str, callback: Callable[..., Any]) -> None:
+        self.handlers.setdefault(event, []).append(callback)
+
+    def send_event(self, event: str, *args: Any) -> None:
+        for callback in self.handlers.get(event, []):
+            callback(*args)
+
+
+class Config:
+    def __init__(self, printer: Printer, options: dict[str, str] | None = None) -> None:
+        self.printer = printer
+        self.options = options or {}
+
+    def get_printer(self) -> Printer:
+        return self.printer
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self.options.get(name, default)
+
+    def getboolean(self, name: str, default: bool) -> bool:
+        value = self.options.get(name)
+        return default if value is None else value.lower() in ("1", "true", "yes")
+
+    def getfloat(self, name: str, default: float, minval: float | None = None,
+                 maxval: float | None = None) -> float:
+        return float(self.options.get(name, default))
