@@ -74,15 +74,15 @@ def test_remaining_is_the_tables_time_left_plus_what_klipper_has_queued() -> Non
     kest, printer, worker = printing()
     kest.on_answer(answer(1))
     toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
-    vsd.file_position = 250        # table: 25 s done, 75 s left
+    vsd.file_position = 500        # table: 50 s done, 50 s left
     toolhead.lookahead.queue.append(stubs.Move())
     printer.reactor.advance(1.)
-    toolhead.plan(40.)   # the moves before byte 250 end at print_time 40
+    toolhead.plan(40.)   # the moves before byte 500 end at print_time 40
     toolhead.mcu.est = 38.5        # the head is 1.5 s behind them
     printer.reactor.advance(1.)    # (no moves queued now: anchor at print_time 40)
     status = kest.get_status(0.)
-    assert status["remaining_s"] == pytest.approx(75. + 1.5)
-    assert status["progress"] == pytest.approx(1. - 76.5 / 100.)
+    assert status["remaining_s"] == pytest.approx(50. + 1.5)
+    assert status["progress"] == pytest.approx(1. - 51.5 / 100.)
     assert status["source"] == "estimate" and status["total_s"] == 100.
 
 
@@ -119,10 +119,10 @@ def test_a_console_M220_is_an_event_at_the_file_position_and_a_new_estimate() ->
     printer.reactor.advance(1.)
     status = kest.get_status(0.)
     assert status["source"] == "provisional"
-    assert status["remaining_s"] == pytest.approx(30. / 1.5)
+    assert status["remaining_s"] == pytest.approx(50. / 1.5, abs=1e-3)
     kest.on_answer(answer(2, total=80.))
     printer.reactor.advance(1.)
-    assert kest.get_status(0.)["remaining_s"] == pytest.approx(80. * 0.3)
+    assert kest.get_status(0.)["remaining_s"] == pytest.approx(40.)
 
 
 def test_an_M220_from_the_file_is_already_in_the_estimate() -> None:
@@ -143,7 +143,7 @@ def test_excluding_an_object_drops_its_time_at_once_then_asks_for_the_exact_one(
     assert worker.requests[-1]["events"] == [[600, "EXCLUDE_OBJECT NAME=B"]]
     printer.reactor.advance(1.)
     status = kest.get_status(0.)
-    assert status["remaining_s"] == pytest.approx(40. - 20.)
+    assert status["remaining_s"] == pytest.approx(50. - 20.)
     assert status["objects"] == {"A": 30., "B": 0.}
     assert status["excluded_objects"] == ["B"]
     printer.gcode.respond_info("Unexcluding object B")
@@ -158,10 +158,10 @@ def test_the_progress_M73_sets_follows_klipper_time_even_after_the_files_M73() -
     printer.objects["toolhead"].print_time = printer.objects["toolhead"].mcu.est = 5.
     printer.reactor.advance(1.)
     display = printer.objects["display_status"]
-    assert display.progress == pytest.approx(0.9)
+    assert display.progress == pytest.approx(0.5)
     vsd.cmd_from_sd = True
     printer.gcode.run("M73", P="12")      # the file's own, sliced before any change
-    assert display.progress == pytest.approx(0.9)
+    assert display.progress == pytest.approx(0.5)
 
 
 def test_set_progress_off_leaves_display_status_alone() -> None:
@@ -227,9 +227,9 @@ def test_a_new_print_starts_over() -> None:
     assert kest.table is None
 
 
-def test_table_interpolates_by_bytes_between_points() -> None:
+def test_table_time_is_the_last_point_at_or_before_the_position() -> None:
     table = MOD.Table(answer(1, total=100.))
-    assert table.time_at(0) == 0. and table.time_at(250) == 25.
+    assert table.time_at(0) == 0. and table.time_at(250) == 0. and table.time_at(500) == 50.
     assert table.time_at(5000) == 100. and table.time_at(-1) == 0.
 
 

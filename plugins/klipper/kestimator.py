@@ -104,18 +104,12 @@ class Table:
         self.warnings = [str(w) for w in (answer.get("warnings") or [])][:20]
 
     def time_at(self, offset: int) -> float:
-        """Table time at byte offset `offset` (linear between points)."""
-        offsets, times = self.offsets, self.times
-        i = bisect.bisect_right(offsets, offset) - 1
-        if i < 0:
-            return times[0]
-        if i >= len(offsets) - 1:
-            return times[-1]
-        o0, o1 = offsets[i], offsets[i + 1]
-        if o1 <= o0:
-            return times[i + 1]
-        t0, t1 = times[i], times[i + 1]
-        return t0 + (t1 - t0) * (offset - o0) / (o1 - o0)
+        """Table time at byte offset `offset`: that of the last point at or
+        before it (exact at a point; between points the time lies between
+        theirs, and the worker keeps them close; interpolating by bytes
+        would guess wrong inside one long move)."""
+        i = bisect.bisect_right(self.offsets, offset) - 1
+        return self.times[max(0, i)]
 
     def objects_at(self, offset: int) -> dict[str, float]:
         """Each object's remaining seconds from byte offset `offset`."""

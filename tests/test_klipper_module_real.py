@@ -1,0 +1,85 @@
+"""The Klipper module in real Klipper: virtual-SD prints of corpus files from five slicers
+in the oracle's Klipper (batch mode, tests/klipper_module/run_print.py), the module's
+remaining time sampled at 12+ points and compared with the time Klipper then really took
+to the end. Runs where the oracle is set up (ORACLE_KLIPPER, ../shared/tools/oracle);
+skipped elsewhere: Klipper cannot be fetched on the CI machine. The module's logic also runs
+without Klipper in tests/test_klipper_module.py."""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
+import run_print  # noqa: E402
+
+CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
+FILES = {
+    "prusaslicer": "prusaslicer/ps25_nut_accelA_small.gcode",
+    "orcaslicer": "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
+    "superslicer": "superslicer/cancelobj_ss2.4_inverted_pyramid.gcode",
+    "slic3r": "slic3r/cancelobj_slic3r1.3.1dev.gcode",
+    "cura": "cura/cancelobj_cura5.0.0_inverted_pyramid.gcode",
+    "ideamaker": "ideamaker/cancelobj_ideamaker4.2.0.gcode",
+}
+# The issue's bars: plain prints 0.5 s + 0.2 %; after a change 1 s + 1 %, from 2 s of
+# print time after it; the answer to a change within 2 s.
+PLAIN_ABS, PLAIN_REL = 0.5, 0.002
+CHANGED_ABS, CHANGED_REL = 1.0, 0.01
+ANSWER_WITHIN_S = 2.0
+
+pytestmark = pytest.mark.skipif(run_print.oracle_paths() is None,
+                                reason="the oracle's Klipper is not set up here")
+
+
+def _print(tmp_path: Path, slicer: str, **kw: Any) -> dict[str, Any]:
+    result = run_print.run_print(str(CORPUS / FILES[slicer]), str(tmp_path), **kw)
+    assert result["kestimator_error"] is None
+    assert result["errors"] == []
+    # Klipper's own times are those of a real printer: no look-ahead run dry by batch mode.
+    assert result["n_runout_flushes"] == 0
+    assert len(result["samples"]) >= 10
+    return result
+
+
+def _bad(samples: list[dict[str, Any]], absolute: float, relative: float) -> list[Any]:
+    return [(s["id"], s["remaining_s"], round(s["truth_s"], 3)) for s in samples
+            if s.get("remaining_s") is None
+            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
+
+
+@pytest.mark.parametrize("slicer", sorted(FILES))
+def test_remaining_time_follows_klipper_through_a_plain_print(tmp_path: Path,
+                                                              slicer: str) -> None:
+    result = _print(tmp_path, slicer)
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert {s["source"] for s in result["samples"]} == {"estimate"}
+
+
+@pytest.mark.parametrize("slicer", ["prusaslicer", "cura", "orcaslicer"])
+def test_an_injected_table_starts_at_once_and_is_as_true(tmp_path: Path, slicer: str) -> None:
+    result = _print(tmp_path, slicer, inject=True)
+    assert {s["source"] for s in result["samples"]} == {"table"}
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+
+
+def _after_change(result: dict[str, Any]) -> list[dict[str, Any]]:
+    (user,) = result["users"]
+    assert user["asked"] and user["answered"]
+    assert user["answer_wait_s"] < ANSWER_WITHIN_S
+    change_t = next(s["print_time"] for s in result["samples"]
+                    if s["position"] >= user["position"])
+    return [s for s in result["samples"] if s["print_time"] >= change_t]
+
+
+@pytest.mark.parametrize("slicer", sorted(FILES))
+@pytest.mark.parametrize("factor", [50, 150])
+def test_a_speed_change_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: str,
+                                                        factor: int) -> None:
+    result = _print(tmp_path, slicer, users=[(0.4, "M220 S%d" % factor)])
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
