@@ -13,6 +13,8 @@ REPO=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd -P)
 VENV="$REPO/.venv-host"
 LAUNCHER="$REPO/plugins/moonraker/klipper_estimator"
 DATA="$HOME/printer_data"
+KLIPPER_DIR="$HOME/klipper"
+MODULE="$REPO/plugins/klipper/kestimator.py"
 YES=0
 UNINSTALL=0
 ALLOW_ROOT=0
@@ -21,16 +23,19 @@ STATE_NAME="kestimator-install.state"
 
 usage() {
     cat <<EOF
-Usage: ./install.sh [-d DIR] [-y] [--no-restart] [--allow-root]
-       ./install.sh --uninstall [-d DIR] [-y] [--no-restart] [--allow-root]
+Usage: ./install.sh [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
+       ./install.sh --uninstall [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
 
 Installs kestimator in its own virtualenv ($VENV), compiled
 when gcc and Python's headers are there, and makes Moonraker's [analysis] run it
 in place of klipper_estimator; adds [analysis] and [update_manager kestimator]
 to moonraker.conf (once, after a dated backup) and writes kestimator's profile
-naming the printer.cfg. Run it again after any change: it changes nothing twice.
+naming the printer.cfg. Where Klipper is, it links kestimator's Klipper module
+into klippy/extras/ (a [kestimator] section in printer.cfg turns it on).
+Run it again after any change: it changes nothing twice.
 
   -d DIR         Moonraker's data folder (default: ~/printer_data)
+  -k DIR         Klipper's checkout (default: ~/klipper)
   -y             answer yes: install missing apt packages (sudo apt-get), restart Moonraker
   --uninstall    undo: klipper_estimator back, moonraker.conf as it was before
   --no-restart   never restart Moonraker
@@ -47,6 +52,7 @@ die() { printf 'install.sh: %s\n' "$*" >&2; exit 1; }
 while [ $# -gt 0 ]; do
     case "$1" in
         -d) [ $# -ge 2 ] || die "-d needs a folder"; DATA="$2"; shift ;;
+        -k) [ $# -ge 2 ] || die "-k needs a folder"; KLIPPER_DIR="$2"; shift ;;
         -y|--yes) YES=1 ;;
         --uninstall) UNINSTALL=1 ;;
         --allow-root) ALLOW_ROOT=1 ;;
@@ -151,8 +157,40 @@ restart_moonraker() {
 state_has() { [ -f "$STATE" ] && grep -qx "$1" "$STATE"; }
 state_add() { state_has "$1" || printf '%s\n' "$1" >> "$STATE"; }
 
+# The Klipper module: klippy/extras/kestimator.py, a link to this checkout's file (as
+# Klipper add-ons install), kept out of Klipper's git status so its updates stay clean.
+EXTRAS="$KLIPPER_DIR/klippy/extras"
+MODULE_LINK="$EXTRAS/kestimator.py"
+link_module() {
+    if [ ! -d "$EXTRAS" ]; then
+        say "no Klipper at $KLIPPER_DIR (-k DIR): the Klipper module is not linked."
+        return
+    fi
+    if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
+        :
+    elif [ -e "$MODULE_LINK" ] || [ -L "$MODULE_LINK" ]; then
+        say "WARNING: $MODULE_LINK exists and is not kestimator's link: left alone."
+        return
+    else
+        ln -s "$MODULE" "$MODULE_LINK"
+        say "Klipper module linked: $MODULE_LINK"
+    fi
+    local exclude="$KLIPPER_DIR/.git/info/exclude"
+    if [ -d "$KLIPPER_DIR/.git/info" ] && ! grep -qx "klippy/extras/kestimator.py" "$exclude" 2>/dev/null; then
+        printf '%s\n' "klippy/extras/kestimator.py" >> "$exclude"
+    fi
+    say "To turn it on, add a [kestimator] section to printer.cfg and restart Klipper (see plugins/klipper/README.md)."
+}
+unlink_module() {
+    if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
+        rm -f "$MODULE_LINK"
+        say "Klipper module link removed: remove [kestimator] from printer.cfg before Klipper restarts."
+    fi
+}
+
 uninstall() {
     local p link
+    unlink_module
     if [ -f "$CONF" ] && [ "$(conf_tool remove "$CONF")" = removed ]; then
         say "moonraker.conf: kestimator's [analysis]/[update_manager kestimator] lines removed"
     fi
@@ -358,6 +396,9 @@ if [ -n "$block" ]; then
 else
     say "moonraker.conf: nothing to add."
 fi
+
+# --- the Klipper module ---------------------------------------------------------
+link_module
 
 say "Installed: $version_line"
 restart_moonraker

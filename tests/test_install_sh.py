@@ -90,6 +90,11 @@ def _host(home: Path, port: int) -> tuple[Path, bytes]:
             "[update_manager]\nenable_system_updates: False\n"
             % (port, data / "comms" / "klippy.sock")).encode()
     (data / "config" / "moonraker.conf").write_bytes(conf)
+    # A Klipper checkout (~/klipper) the Klipper module links into.
+    extras = home / "klipper" / "klippy" / "extras"
+    extras.mkdir(parents=True)
+    (extras / "__init__.py").write_text("")
+    _git("init", "-q", cwd=home / "klipper")
     return data, conf
 
 
@@ -151,6 +156,12 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert [b.read_bytes() for b in backups] == [conf_before]
     profile = data / "xdg-config" / "kestimator" / "config.toml"
     assert 'printer_cfg = "%s"' % (data / "config" / "printer.cfg") in profile.read_text()
+    # The Klipper module is linked as add-ons are, and Klipper's git status stays clean.
+    klipper = tmp_path / "home" / "klipper"
+    module_link = klipper / "klippy" / "extras" / "kestimator.py"
+    assert os.readlink(module_link) == str(checkout / "plugins" / "klipper" / "kestimator.py")
+    assert "kestimator.py" not in _git("status", "--porcelain", cwd=klipper)
+    assert "add a [kestimator] section to printer.cfg" in first.stdout
 
     base = "http://127.0.0.1:%d" % port
     source = CORPUS / "gcode" / UPLOAD
@@ -204,6 +215,7 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert not (tools / "default_estimator_cfg.json").exists()
     assert not (checkout / ".venv-host").exists()
     assert _git("status", "--porcelain", cwd=checkout) == ""
+    assert not module_link.is_symlink() and not module_link.exists()
 
 
 def test_install_sh_refuses_root_and_says_why(tmp_path: Path) -> None:

@@ -117,8 +117,24 @@ class KTestProbe:
                            "asked": asked, "answer_wait_s": round(waited, 3),
                            "answered": kest.pending_id is None})
 
+    @staticmethod
+    def _memory_kib(pid):
+        """VmRSS and VmHWM (peak) of a process, KiB."""
+        out = {}
+        try:
+            with open("/proc/%s/status" % (pid,)) as f:
+                for line in f:
+                    if line.startswith(("VmRSS:", "VmHWM:")):
+                        out[line.split(":")[0]] = int(line.split()[1])
+        except OSError:
+            pass
+        return out
+
     def cmd_KTEST_END(self, gcmd):
         self.toolhead.wait_moves()
+        worker = self.kest.worker
+        memory = {"klippy": self._memory_kib("self"),
+                  "worker": self._memory_kib(worker.proc.pid) if worker else {}}
         self.end_print_time = self.toolhead.print_time
         oracle = self.printer.lookup_object("oracle_probe")
         with open(self.out_path, "w") as f:
@@ -127,6 +143,7 @@ class KTestProbe:
                        "n_runout_flushes": oracle.n_runout, "syncs": oracle.syncs,
                        "origin": oracle.origin, "errors": oracle.errors,
                        "max_callback_ms": self.kest.max_callback_ms,
+                       "memory_kib": memory,
                        "kestimator_error": self.kest.error}, f)
 
 
