@@ -19,6 +19,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shlex
 import sys
 import traceback
 from collections.abc import Sequence
@@ -55,7 +56,7 @@ from kestimator.config.resolve import (
 )
 from kestimator.durations import MAX_PRINT_S, format_duration
 from kestimator.errors import KestimatorError
-from kestimator.estimate import Estimate, estimate_lines, iter_lines
+from kestimator.estimate import Estimate, Event, estimate_lines, iter_lines
 from kestimator.files import (
     STDIO_NAME,
     STDOUT_SHOWN,
@@ -63,6 +64,9 @@ from kestimator.files import (
     spooled_stdin,
     write_bytes_atomically,
 )
+from kestimator.gcode import extended_params, parse_line
+from kestimator.klipper_modules import loaded_modules
+from kestimator.limits import Limits
 from kestimator.preflight import (
     EXIT_KLIPPER_STOPS,
     SUMMARY_HEAD,
@@ -105,6 +109,7 @@ ESTIMATE_EPILOG = """examples:
   kestimator estimate print.gcode --moonraker http://voron.local:7125 --layers
   kestimator estimate print.gcode --json > times.json
   seconds=$(kestimator estimate print.gcode -q)
+  kestimator estimate print.gcode --exclude part_2,part_3 --at 52011
 
 --json prints one object whose fields docs/CLI.md documents (schema 1); -q prints only
 Klipper's total in seconds. Exit status: 0 success, 1 the file or settings could not be
@@ -173,6 +178,12 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="also show the time of every layer (before the summary)")
     est.add_argument("-v", "--verbose", action="store_true",
                      help="name every command whose time is not counted, with its warnings")
+    est.add_argument("--exclude", action="append", default=[], metavar="NAME[,NAME...]",
+                     help="time the print with these objects cancelled (EXCLUDE_OBJECT NAME=, "
+                          "names as the file's EXCLUDE_OBJECT_DEFINE/START give them)")
+    est.add_argument("--at", type=int, default=None, metavar="LINE",
+                     help="cancel the --exclude objects right before this line of the file "
+                          "(default: before its first line)")
     _add_debug_option(est)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
@@ -387,12 +398,64 @@ def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Es
     check_gcode_file(args.file)
     resolved = _resolve(args, args.file)
     _check_time_options(args)
+    events = exclusion_events(args, resolved.limits)
     with _progress(args, label) as progress:
         # Named as the user named it (`<stdin>` for `-`, read from a temporary copy).
         est = estimate_lines(iter_lines(args.file, progress), resolved.limits, args.shown,
                              homing_time=args.homing_time, heat_time=args.heat_time,
-                             macros=args.macros)
+                             macros=args.macros, events=events)
     return resolved, est
+
+
+def exclusion_events(args: argparse.Namespace, limits: Limits) -> list[Event]:
+    """`--exclude NAME[,NAME...] --at LINE` as events: EXCLUDE_OBJECT NAME= for each name,
+    right before LINE (line 1 by default). Each name must label an object of the file
+    (Klipper upper-cases names, so case does not matter), and a printer whose config is
+    known must have [exclude_object] (without it Klipper ignores EXCLUDE_OBJECT)."""
+    names = [name.strip() for item in getattr(args, "exclude", []) for name in item.split(",")
+             if name.strip()]
+    at = getattr(args, "at", None)
+    if not names:
+        if at is not None:
+            raise KestimatorError("--at needs --exclude (the objects to cancel at that line)")
+        return []
+    at = 1 if at is None else at
+    if at < 1:
+        raise KestimatorError("--at takes a line number (1 is the file's first line)")
+    if limits.configured_sections and \
+            "exclude_object" not in loaded_modules(limits.configured_sections):
+        raise KestimatorError("the printer's config has no [exclude_object] section: Klipper "
+                              "would ignore EXCLUDE_OBJECT, so --exclude cannot be timed",
+                              args.shown)
+    known = labelled_objects(args.file)
+    unknown = [name for name in names if name.upper() not in known]
+    if unknown:
+        raise KestimatorError(
+            "no object named %s: the file labels %s" % (
+                ", ".join(unknown),
+                ", ".join(sorted(known)) if known else "no objects (no EXCLUDE_OBJECT_DEFINE "
+                "or EXCLUDE_OBJECT_START; Moonraker's preprocess_cancellation adds them)"),
+            args.shown)
+    args.excluded = {"names": [name.upper() for name in names], "line": at}
+    return [(at, "EXCLUDE_OBJECT NAME=%s" % shlex.quote(name)) for name in names]
+
+
+def labelled_objects(path: str) -> set[str]:
+    """Every object name (upper case, as Klipper keeps it) an EXCLUDE_OBJECT_DEFINE or
+    EXCLUDE_OBJECT_START line of the file gives."""
+    names: set[str] = set()
+    for raw in iter_lines(path):
+        if b"EXCLUDE_OBJECT_" not in raw[:40].upper():
+            continue
+        cmd = parse_line(raw.decode("utf-8", "replace").strip())
+        if cmd.name in ("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START"):
+            try:
+                name = extended_params(cmd.code).get("NAME", "").strip()
+            except ValueError:
+                continue
+            if name:
+                names.add(name.upper())
+    return names
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:
@@ -404,6 +467,8 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     slicer = slicer_of_file(args.file)
     doc = estimate_to_json(est, slicer, resolved.summary, warnings,
                            limits_guessed=resolved.guessed, source=args.file)
+    if getattr(args, "excluded", None) is not None:
+        doc["excluded"] = args.excluded
     if args.json:
         _write_json(doc)
     elif args.quiet:

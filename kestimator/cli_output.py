@@ -246,6 +246,10 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "layers": LayerEntries(est),
         "features": {name: round(t, 6) for name, t in est.features.items()},
         "objects": {name: round(t, 6) for name, t in est.objects.items()},
+        "object_remaining": [{"line": line, "t": round(t, 6),
+                              "remaining": {name: round(left, 6)
+                                            for name, left in remaining.items()}}
+                             for line, t, remaining in est.object_remaining],
         "slicer": {"name": slicer.name, "version": slicer.version, "estimate_s": slicer_s,
                    "first_layer_estimate_s": slicer.first_layer_estimate_s,
                    "difference_s": _rounded(difference),
@@ -479,6 +483,13 @@ def filament_text(doc: dict[str, Any]) -> str:
     return text
 
 
+def excluded_text(doc: dict[str, Any]) -> str:
+    """Which objects `--exclude` cancelled, and where."""
+    excluded = doc["excluded"]
+    return "%s, cancelled before line %d (EXCLUDE_OBJECT)" % (
+        ", ".join(excluded["names"]), excluded["line"])
+
+
 def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
     """(feature, seconds, percent of the total), longest first."""
     total = doc["total_s"]
@@ -513,6 +524,8 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
     lines.append("  Layers       : %d" % doc["layer_count"])
     lines.append("  Filament     : %s" % filament_text(doc))
     lines.append("  Limits from  : %s" % doc["limits_source"])
+    if doc.get("excluded"):
+        lines.append("  Excluded     : %s" % excluded_text(doc))
     rows = feature_rows(doc)
     if rows:
         lines.append("  Time per feature:")

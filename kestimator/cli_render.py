@@ -21,6 +21,7 @@ from kestimator import __version__
 from kestimator.cli_output import (
     approximate_text,
     difference_text,
+    excluded_text,
     feature_rows,
     filament_text,
     parts_rows,
@@ -194,6 +195,8 @@ def print_estimate_rich(doc: dict[str, Any], console: Any, layers: bool = False,
     grid.add_row("Layers", str(doc["layer_count"]))
     grid.add_row("Filament", Text(filament_text(doc).replace("cm3", "cm³")))
     grid.add_row("Limits from", Text(doc["limits_source"]))
+    if doc.get("excluded"):
+        grid.add_row("Excluded", Text(excluded_text(doc)))
     console.print(Panel(grid, title=Text(os.path.basename(doc["file"]), style="bold"),
                         title_align="left", subtitle="kestimator " + __version__,
                         subtitle_align="right", expand=False, border_style="blue"))

@@ -14,8 +14,8 @@ import io
 import math
 import os
 from array import array
-from collections.abc import Callable, Iterable, Iterator
-from itertools import chain
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from itertools import chain, islice
 from typing import Final
 
 from kestimator.durations import MAX_PRINT_S
@@ -125,6 +125,12 @@ class Estimate:
     # Lines of unknown commands left out of ignored_commands and commands: their names came
     # after MAX_COMMAND_NAMES others (memory stays bounded).
     ignored_unlisted: int = 0
+    # (line, t, object name -> seconds it still takes from there to the end) at each layer
+    # marker, with any exclusion applied (an excluded object's time drops to 0). Empty when
+    # no object is labelled; bounded by segments.MAX_REMAINING_LAYERS (markers thinned to
+    # every 2nd, 4th, ...) and MAX_REMAINING_OBJECTS (the first objects to print).
+    object_remaining: list[tuple[int, float, dict[str, float]]] = dataclasses.field(
+        default_factory=list)
 
     @property
     def parts(self) -> Parts:
@@ -153,6 +159,11 @@ def _is_layer_marker(comment_line: str) -> bool:
 MoveObserver = Callable[[list[Move], float], None]
 # Called with the number of bytes read so far (about once per PROGRESS_EVERY_BYTES).
 ProgressCallback = Callable[[int], None]
+# (line, command): the command runs right before the file's line `line` (1-based), as if
+# typed at the printer's console at that moment of the print (EXCLUDE_OBJECT NAME=...,
+# M220 S150). Events on one line run in list order; an event on the line after the last
+# runs at the end, events further on never run.
+Event = tuple[int, str]
 
 
 def iter_lines(path: str | os.PathLike[str],
@@ -280,9 +291,11 @@ class Timeline:
                  mark_prefixes: tuple[str, ...] = (),
                  observer: MoveObserver | None = None,
                  macros: MacroTimes | None = None,
-                 note: Callable[[bytes], object] | None = None) -> None:
+                 note: Callable[[bytes], object] | None = None,
+                 events: Sequence[Event] = ()) -> None:
         self.path = path
         self.observer = observer
+        self.events = EventRunner(self, events) if events else None
         self.toolhead = ToolHead(limits, on_moves=self._on_moves)
         self.warnings = Warnings(path)
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
@@ -343,10 +356,14 @@ class Timeline:
         filament = self.filament_mm
         next_sample_t = self._next_sample_t if self.sample else math.inf
         if self.first_extrusion_t is None:
-            self._find_first_extrusion(moves, start_t)
+            self.first_extrusion_t = first_extrusion(moves, start_t, filament)
         for move in moves:
             while changes and changes[0][0] <= move.tag:
-                segment = changes.popleft()[1]
+                sid = changes.popleft()[1]
+                if sid < 0:  # a layer marker: each object's time before this move
+                    split.snapshot(-1 - sid)
+                else:
+                    segment = sid
             dt = move.accel_t + move.cruise_t + move.decel_t
             # Not `+=`: mypyc boxes dt for that; this is the same addition, unboxed.
             segment_time[segment] = segment_time[segment] + dt
@@ -363,17 +380,6 @@ class Timeline:
         self.n_moves += len(moves)
         if self.observer is not None:
             self.observer(moves, start_t)
-
-    def _find_first_extrusion(self, moves: list[Move], start_t: float) -> None:
-        """Note when the net filament first exceeds print_stats' threshold."""
-        filament = self.filament_mm
-        t = start_t
-        for move in moves:
-            filament += move.axes_d_e
-            if filament >= FIRST_EXTRUSION_MM:
-                self.first_extrusion_t = t
-                return
-            t += move.accel_t + move.cruise_t + move.decel_t
 
     def _part(self, name: str, source: str) -> TimedPart:
         part = self.timed_parts.get((name, source))
@@ -489,7 +495,15 @@ class Timeline:
         self.feed_lines((raw,))
 
     def feed_lines(self, lines: Iterable[bytes]) -> None:
-        """Process every line of `lines`, in order."""
+        """Process every line of `lines`, in order (running the events due before each)."""
+        events = self.events
+        if events is not None and events.pending():
+            events.feed_lines(lines)
+        else:
+            self._feed_lines(lines)
+
+    def _feed_lines(self, lines: Iterable[bytes]) -> None:
+        """The per-line loop: process every line of `lines`, in order."""
         gcode_move = self.interp.gcode_move
         lineno = self.lineno
         try:
@@ -576,6 +590,7 @@ class Timeline:
 
     def _comment(self, text: str) -> None:
         if _is_layer_marker(text):
+            self.split.layer_marker(len(self.layers), self.lineno)
             self._record(self.layers, self.lineno)
             return
         if self.mark_prefixes and text.startswith(self.mark_prefixes):
@@ -592,22 +607,17 @@ class Timeline:
             self._add_time(body[len(ADD_TIME_MARKER):].split())
 
     def _add_time(self, words: list[str]) -> None:
-        try:
-            seconds = float(words[0])
-        except (IndexError, ValueError):
-            self.warn("ESTIMATOR_ADD_TIME needs a number of seconds", self.lineno)
+        parsed = parse_add_time(words)
+        if isinstance(parsed, str):
+            self.warn(parsed, self.lineno)
             return
-        if not 0.0 <= seconds < float("inf"):
-            self.warn("ESTIMATOR_ADD_TIME needs a finite, non-negative time", self.lineno)
-            return
-        label = " ".join(words[1:])[:MAX_LABEL_CHARS]
-        self.add_time(seconds, ADD_TIME_MARKER + (" " + label if label else ""),
-                      ADD_TIME_SOURCE)
+        self.add_time(parsed[0], parsed[1], ADD_TIME_SOURCE)
 
     def finish(self) -> Estimate:
         """Flush the planner and return the estimate."""
         total = self.toolhead.finish()
         self.split.rest_until(total)
+        self.split.flush_snapshots()
         total = self._correct_motion(total)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
@@ -648,6 +658,7 @@ class Timeline:
         if interp.ignored:
             commands[KIND_UNKNOWN] = dict(sorted(interp.ignored.items()))
         features, objects = self.split.totals()
+        object_remaining = self.split.remaining(list(self.layers))
         return Estimate(
             path=self.path, total_s=total, layers=self.layers, features=features,
             n_moves=self.n_moves, n_lines=self.lineno,
@@ -661,7 +672,88 @@ class Timeline:
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
-            objects=objects, commands=commands, preflight=self.preflight.findings())
+            objects=objects, commands=commands, preflight=self.preflight.findings(),
+            object_remaining=object_remaining)
+
+
+def first_extrusion(moves: list[Move], start_t: float, filament: float) -> float | None:
+    """When the net filament (`filament` before `moves`) first exceeds print_stats'
+    threshold during `moves`, if it does."""
+    t = start_t
+    for move in moves:
+        filament += move.axes_d_e
+        if filament >= FIRST_EXTRUSION_MM:
+            return t
+        t += move.accel_t + move.cruise_t + move.decel_t
+    return None
+
+
+def parse_add_time(words: list[str]) -> tuple[float, str] | str:
+    """`; ESTIMATOR_ADD_TIME <seconds> [label]`'s words: (seconds, part name), or what is
+    wrong with them."""
+    try:
+        seconds = float(words[0])
+    except (IndexError, ValueError):
+        return "ESTIMATOR_ADD_TIME needs a number of seconds"
+    if not 0.0 <= seconds < float("inf"):
+        return "ESTIMATOR_ADD_TIME needs a finite, non-negative time"
+    label = " ".join(words[1:])[:MAX_LABEL_CHARS]
+    return seconds, ADD_TIME_MARKER + (" " + label if label else "")
+
+
+class EventRunner:
+    """Runs a Timeline's events (`Event`) right before their lines."""
+
+    def __init__(self, timeline: Timeline, events: Sequence[Event]) -> None:
+        self.timeline = timeline
+        # Events not yet run, in line order (a stable sort keeps a line's list order).
+        self.events = sorted(events, key=lambda event: event[0])
+        self.next = 0
+
+    def pending(self) -> bool:
+        """Some events have not run yet."""
+        return self.next < len(self.events)
+
+    def feed_lines(self, lines: Iterable[bytes]) -> None:
+        """The timeline's feed_lines, stopping before each event's line to run it. The
+        lines between two events go through the per-line loop in one call: without events
+        that loop is untouched."""
+        timeline = self.timeline
+        events = self.events
+        rest = iter(lines)
+        while self.next < len(events):
+            line = events[self.next][0]
+            if line - 1 > timeline.lineno:
+                timeline._feed_lines(islice(rest, line - 1 - timeline.lineno))
+                if timeline.lineno < line - 1:
+                    return  # the lines ran out before the event's line
+            while self.next < len(events) and events[self.next][0] <= line:
+                self.run(line, events[self.next][1])
+                self.next += 1
+        timeline._feed_lines(rest)
+
+    def run(self, line: int, command: str) -> None:
+        """Run `command` right before line `line`, as typed at the console: Klipper answers
+        an error (a warning here) but the print goes on."""
+        timeline = self.timeline
+        text = command.strip()
+        cmd = parse_line(text)
+        if not cmd.name:
+            return
+        before = timeline.lineno
+        timeline.lineno = max(line, 1)
+        try:
+            if cmd.name in OBJECT_COMMANDS:
+                timeline.split.object_command(cmd, timeline.lineno)
+            timeline.interp.gcode_move.tag = timeline.lineno
+            try:
+                timeline.interp.execute(cmd)
+            except (CommandError, MoveError) as exc:
+                timeline.warn("Klipper answers '%s' (run before this line) with an error: %s"
+                              % (text, klipper_error_text(text, exc).split("\n")[0]),
+                              timeline.lineno, "event:" + text)
+        finally:
+            timeline.lineno = before
 
 
 # A print whose time passes MAX_PRINT_S (a year) is refused where it passed it: as moves
@@ -711,7 +803,8 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
                    mark_prefixes: tuple[str, ...] = (),
                    observer: MoveObserver | None = None,
                    macros: MacroTimes | None = None,
-                   note: Callable[[bytes], object] | None = None) -> Estimate:
+                   note: Callable[[bytes], object] | None = None,
+                   events: Sequence[Event] = ()) -> Estimate:
     """Estimate from an iterable of byte lines (split at LF).
 
     With `sample`, progress samples for M73 placement are kept; comment lines starting
@@ -719,11 +812,11 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
     every planned move (with its start time) as the planner releases them; `macros` times the
     macros the file runs (and may hold a learned time before the first extrusion); the
     numbers of the lines other than plain G0/G1 moves for which `note(line)` is not None
-    are in `Estimate.noted_lines`.
+    are in `Estimate.noted_lines`; each event's command (`Event`) runs right before its line.
     """
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
-                        macros=macros, note=note)
+                        macros=macros, note=note, events=events)
     try:
         timeline.feed_lines(lines)
         est = timeline.finish()
@@ -748,18 +841,22 @@ def estimate_file(path: str | os.PathLike[str], limits: Limits, homing_time: flo
                   mark_prefixes: tuple[str, ...] = (),
                   observer: MoveObserver | None = None,
                   progress: ProgressCallback | None = None,
-                  macros: MacroTimes | None = None) -> Estimate:
-    """Estimate a G-code file in one streaming pass (`progress` hears the bytes read)."""
+                  macros: MacroTimes | None = None,
+                  events: Sequence[Event] = ()) -> Estimate:
+    """Estimate a G-code file in one streaming pass (`progress` hears the bytes read);
+    each event's command runs right before its line (see `Event`)."""
     path_s = os.fspath(path)
     if os.path.isdir(path_s):
         raise KestimatorError("is a directory, not a G-code file", path_s)
     return estimate_lines(iter_lines(path_s, progress), limits, path_s, homing_time=homing_time,
                           heat_time=heat_time, sample=sample, mark_prefixes=mark_prefixes,
-                          observer=observer, macros=macros)
+                          observer=observer, macros=macros, events=events)
 
 
 def estimate_text(text: str, limits: Limits, homing_time: float = 0.0,
-                  heat_time: float = 0.0, macros: MacroTimes | None = None) -> Estimate:
+                  heat_time: float = 0.0, macros: MacroTimes | None = None,
+                  events: Sequence[Event] = ()) -> Estimate:
     """Estimate G-code given as a string (for tests and embedding)."""
     return estimate_lines(io.BytesIO(text.encode("utf-8")), limits, "<text>",
-                          homing_time=homing_time, heat_time=heat_time, macros=macros)
+                          homing_time=homing_time, heat_time=heat_time, macros=macros,
+                          events=events)

@@ -78,7 +78,8 @@ class GCodeMove:
         # What the file told us about itself.
         self.extrude_mode_set = False
         self.moved_e_before_mode = False
-        # bed_mesh / skew_correction (upstream's move_transform); None moves the toolhead.
+        # bed_mesh / skew_correction / exclude_object (upstream's move_transform); None
+        # moves the toolhead.
         self.move_transform: MoveTransform | None = None
 
     def set_move_transform(self, transform: MoveTransform,
@@ -90,7 +91,9 @@ class GCodeMove:
         old_transform = self.move_transform
         if old_transform is None:
             old_transform = ToolHeadTransform(self.toolhead)
-        self.move_transform = transform
+        # The toolhead given back (exclude_object's unregister) is no transform: moves go
+        # to it directly again, the fast way.
+        self.move_transform = None if isinstance(transform, ToolHeadTransform) else transform
         return old_transform
 
     def _handle_activate_extruder(self) -> None:

@@ -12,7 +12,8 @@ few commands whose upstream object holds nothing else are here, each naming its 
 kestimator/homing_override.py), SET_KINEMATIC_POSITION (force_move.py), M84/M18
 (stepper_enable.py), and, when no printer config is known, M109/M190 (heaters.py: the wait
 only, nothing to check). Bed mesh and skew correction are move transforms of GCodeMove
-(bed_mesh.py, skew_correction.py). Literal
+(bed_mesh.py, skew_correction.py), and so is exclude_object's after the first
+EXCLUDE_OBJECT (exclude_object.py). Literal
 [gcode_macro]s run their commands; macros with a template are counted (gcode_macro.py's
 templates are not rendered).
 
@@ -28,6 +29,7 @@ from typing import Final
 
 from kestimator.bed_mesh import BedMesh
 from kestimator.errors import CommandError, MoveError, ParamError
+from kestimator.exclude_object import ExcludeObject
 from kestimator.extruder import PrinterExtruders
 from kestimator.firmware_retraction import FirmwareRetraction
 from kestimator.gcode import Command, command_params, get_float, parse_line
@@ -169,8 +171,12 @@ class Interpreter:
             retraction = FirmwareRetraction(limits, gcode_move)
             for name in ("G10", "G11", "SET_RETRACTION"):
                 self.register_command(name, getattr(retraction, "cmd_" + name))
+        self.exclude_object: ExcludeObject | None = None
+        if self.modules is None or "exclude_object" in self.modules:
+            self._load_exclude_object(gcode_move)
         # Move transforms, in upstream's order: bed_mesh at config load, skew_correction at
-        # connect (forced in front of it).
+        # connect (forced in front of it); exclude_object's at the first exclusion (forced
+        # in front of both).
         machine = limits.machine
         self.bed_mesh: BedMesh | None = None
         if machine is not None and machine.has_section("bed_mesh"):
@@ -183,6 +189,26 @@ class Interpreter:
             for name in ("SKEW_PROFILE", "SET_SKEW", "GET_CURRENT_SKEW",
                          "CALC_MEASURED_SKEW"):
                 self.register_command(name, getattr(skew, "cmd_" + name))
+
+    def _load_exclude_object(self, gcode_move: GCodeMove) -> None:
+        """[exclude_object] (also when no printer config is known: a file that labels its
+        objects is printed with it). Its commands stay counted as before: module commands
+        with the config, unknown ones without (the printer may lack the module)."""
+        self.exclude_object = exclude = ExcludeObject(gcode_move)
+        modules = self.modules
+        for name in ("EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT",
+                     "EXCLUDE_OBJECT_DEFINE"):
+            if name in self.macros:
+                continue
+            handler: Handler = getattr(exclude, "cmd_" + name)
+
+            def counted(cmd: Command, handler: Handler = handler) -> None:
+                if modules is None:
+                    self._unknown(cmd.name)
+                else:
+                    self._count(KIND_MODULE, cmd.name)
+                handler(cmd)
+            self.register_command(name, counted)
 
     def _register_heater_commands(self, heaters: PrinterHeaters,
                                   modules: frozenset[str]) -> None:
@@ -253,23 +279,27 @@ class Interpreter:
             if name and not known and self._silent(name, cmd):
                 return
             if name and not known:
-                ignored = self.ignored
-                if name in ignored:
-                    ignored[name] += 1
-                elif len(ignored) < MAX_COMMAND_NAMES:
-                    ignored[name] = 1
-                else:
-                    self.ignored_unlisted += 1
-                if self.preflight is not None and self.modules is not None:
-                    self.preflight.unknown_command(name, self.gcode_move.tag)
-                if self.on_unknown is not None:
-                    self.on_unknown(name)
+                self._unknown(name)
             return
         try:
             handler(cmd)
         except (CommandError, MoveError):
             self.gcode_move.reset_last_position()
             raise
+
+    def _unknown(self, name: str) -> None:
+        """Count a command Klipper does not know (cmd_default's "Unknown command")."""
+        ignored = self.ignored
+        if name in ignored:
+            ignored[name] += 1
+        elif len(ignored) < MAX_COMMAND_NAMES:
+            ignored[name] = 1
+        else:
+            self.ignored_unlisted += 1
+        if self.preflight is not None and self.modules is not None:
+            self.preflight.unknown_command(name, self.gcode_move.tag)
+        if self.on_unknown is not None:
+            self.on_unknown(name)
 
     def _is_known(self, name: str, cmd: Command) -> bool:
         """Klipper knows this no-time command (on this printer, when its config is known)."""

@@ -27,6 +27,12 @@ _M486_LABEL_RE = re.compile(r"^\s*M486\b.*?\sA(\S.*)$", re.IGNORECASE)
 NO_FEATURE: Final = "(none)"
 # Object name for moves outside every labelled object (start, travel between objects, end).
 NO_OBJECT: Final = "(no object)"
+# Per-object time still to come at each layer marker (`Segments.remaining`): at most this
+# many layers are kept (when full, every other one is dropped and only every 2nd, 4th, ...
+# marker is kept from then on), each with the first this many objects (in the order they
+# first print): at most 2048 * 256 floats.
+MAX_REMAINING_LAYERS: Final = 2048
+MAX_REMAINING_OBJECTS: Final = 256
 # `; printing object NAME` / `; stop printing object NAME` (PrusaSlicer, SuperSlicer, Orca).
 OBJECT_COMMENT: Final = ";printing object"
 OBJECT_STOP_COMMENT: Final = ";stop printing object"
@@ -52,8 +58,12 @@ class Segments:
         self.segment_ids: dict[tuple[int, int], int] = {(0, 0): 0}
         self.segment_time: list[float] = [0.0]
         # Segment changes (line, segment id) waiting until the planner has flushed every
-        # move before them.
+        # move before them; a negative id -1-i is layer marker i's snapshot (`snapshot`).
         self.changes: deque[tuple[int, int]] = deque()
+        # Each kept layer marker's index and every object's time before it (by object id).
+        self.snapshot_layers: list[int] = []
+        self.snapshot_times: list[list[float]] = []
+        self._snapshot_stride = 1
         # The segment of the moves being timed, and of the last line read.
         self.segment = 0
         self.queued_segment = 0
@@ -100,11 +110,53 @@ class Segments:
         if toolhead.lookahead.is_empty():
             # Every move so far has been timed: rest until now belongs to the old segment.
             self.rest_until(toolhead.print_time)
+            self.flush_snapshots()
             self.changes.clear()
             self.segment = sid
         else:
             self.changes.append((lineno, sid))
         self.queued_segment = sid
+
+    def layer_marker(self, index: int, lineno: int) -> None:
+        """Layer marker number `index` is on line `lineno`: each object's time so far is
+        taken when the first move from that line on is timed (`snapshot`)."""
+        if index % self._snapshot_stride:
+            return
+        if self.toolhead.lookahead.is_empty():
+            self.rest_until(self.toolhead.print_time)
+            self.snapshot(index)
+        else:
+            self.changes.append((lineno, -1 - index))
+
+    def snapshot(self, index: int) -> None:
+        """Keep each object's time so far for layer marker `index`."""
+        if index % self._snapshot_stride:
+            return
+        if len(self.snapshot_layers) >= MAX_REMAINING_LAYERS:
+            del self.snapshot_layers[1::2]
+            del self.snapshot_times[1::2]
+            self._snapshot_stride *= 2
+            if index % self._snapshot_stride:
+                return
+        times = [0.0] * min(len(self.object_keys), MAX_REMAINING_OBJECTS)
+        n = len(times)
+        segment_time = self.segment_time
+        for sid, (_fid, oid) in enumerate(self.segments):
+            if oid < n:
+                times[oid] += segment_time[sid]
+        self.snapshot_layers.append(index)
+        self.snapshot_times.append(times)
+
+    def flush_snapshots(self) -> None:
+        """Take the snapshots still waiting for a move (the head is at rest)."""
+        changes = self.changes
+        if any(sid < 0 for _, sid in changes):
+            kept = [change for change in changes if change[1] >= 0]
+            for change in changes:
+                if change[1] < 0:
+                    self.snapshot(-1 - change[1])
+            changes.clear()
+            changes.extend(kept)
 
     def object_command(self, cmd: Command, lineno: int) -> None:
         """EXCLUDE_OBJECT_START/END or M486: the object the following moves belong to."""
@@ -153,6 +205,32 @@ class Segments:
     def scale(self, factor: float) -> None:
         """Every segment's time grows by `factor` (a learned motion correction)."""
         self.segment_time = [t * factor for t in self.segment_time]
+        self.snapshot_times = [[t * factor for t in times] for times in self.snapshot_times]
+
+    def remaining(self, layers: list[tuple[int, float]]) -> list[
+            tuple[int, float, dict[str, float]]]:
+        """(line, t, object name -> seconds from that layer marker to the end) for each kept
+        layer marker (`layers`: every marker's line and time), from the per-object snapshots
+        (time at rest before a layer's first move counts as before it). Empty when no
+        object is labelled."""
+        if len(self.object_keys) <= 1:
+            return []
+        totals = [0.0] * len(self.object_keys)
+        for sid, (_fid, oid) in enumerate(self.segments):
+            totals[oid] += self.segment_time[sid]
+        names = [self.object_names.get(key, key) for key in self.object_keys]
+        result: list[tuple[int, float, dict[str, float]]] = []
+        for index, before in zip(self.snapshot_layers, self.snapshot_times):
+            if index >= len(layers):
+                continue
+            remaining: dict[str, float] = {}
+            for oid in range(1, min(len(names), MAX_REMAINING_OBJECTS)):
+                done = before[oid] if oid < len(before) else 0.0
+                left = max(0.0, totals[oid] - done)
+                remaining[names[oid]] = remaining.get(names[oid], 0.0) + left
+            line, t = layers[index]
+            result.append((line, t, remaining))
+        return result
 
     def totals(self) -> tuple[dict[str, float], dict[str, float]]:
         """Seconds per feature and per object name (empty when no object is labelled)."""

@@ -30,7 +30,8 @@ ORCA = CORPUS / "gcode/orcaslicer/helixscreen_stand_orca2.3.1_klipper.gcode"
 ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "schema": (int,), "kestimator": (str,), "file": (str,), "total_s": (float, int),
     "first_layer_s": (float, type(None)), "layer_count": (int,), "layers": (list,),
-    "features": (dict,), "objects": (dict,), "slicer": (dict,), "filament": (dict,),
+    "features": (dict,), "objects": (dict,), "object_remaining": (list,), "slicer": (dict,),
+    "filament": (dict,),
     "limits_source": (str,),
     "n_moves": (int,), "n_lines": (int,), "ignored_commands": (dict,), "warnings": (list,),
     "ignored_commands_unlisted": (int,),
