@@ -83,3 +83,46 @@ def test_a_speed_change_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: 
     after = _after_change(result)
     assert len(after) >= 5
     assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
+# Files with several objects, labelled as Moonraker labels them (preprocess_cancellation;
+# tests/oracle_refs/exclude/runs.py), and the OrcaSlicer file that labels its one object.
+LABELLED = {
+    "orcaslicer": "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
+    "prusaslicer": "prusaslicer/cancelobj_ps2.4.0a1_arcwelder.gcode",
+    "superslicer": "superslicer/cancelobj_ss2.4_inverted_pyramid.gcode",
+    "slic3r": "slic3r/cancelobj_slic3r1.3.1dev.gcode",
+    "cura": "cura/cancelobj_cura4.10.0.gcode",
+    "ideamaker": "ideamaker/cancelobj_ideamaker4.2.0.gcode",
+}
+
+
+def _labelled(tmp_path: Path, slicer: str) -> tuple[Path, list[str]]:
+    sys.path.insert(0, str(Path(__file__).parent / "oracle_refs" / "exclude"))
+    import runs
+
+    source = CORPUS / LABELLED[slicer]
+    data = source.read_bytes() if b"EXCLUDE_OBJECT_DEFINE" in source.read_bytes() \
+        else runs.label(source)
+    path = tmp_path / source.name
+    path.write_bytes(data)
+    names = [line.split(b"NAME=")[1].split()[0].decode()
+             for line in data.split(b"\n") if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
+    return path, names
+
+
+@pytest.mark.parametrize("slicer", sorted(LABELLED))
+def test_an_object_excluded_mid_print_is_re_estimated(tmp_path: Path, slicer: str) -> None:
+    pytest.importorskip("preprocess_cancellation")
+    path, names = _labelled(tmp_path, slicer)
+    assert names
+    work = tmp_path / "print"
+    result = run_print.run_print(str(path), str(work),
+                                 users=[(0.45, "EXCLUDE_OBJECT NAME=%s" % names[-1])])
+    assert result["kestimator_error"] is None and result["errors"] == []
+    assert result["n_runout_flushes"] == 0
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    # The excluded object has nothing left; the others still have their time.
+    assert all(s["objects"].get(names[-1].upper(), 0.) == 0. for s in after)
