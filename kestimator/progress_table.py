@@ -565,16 +565,16 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
         block = read(block_bytes)
         if not block:
             break
-        count = block.count(b"\n")
+        last = line + block.count(b"\n")  # the line that holds the block's end
         pos = 0
-        while k < len(lines) and lines[k] <= line + count:
+        while k < len(lines) and lines[k] <= last:
             target = lines[k]
             while line < target:
                 pos = block.index(b"\n", pos) + 1
                 line += 1
             result[target] = base + pos
             k += 1
-        line += block.count(b"\n", pos)
+        line = last
         base += len(block)
     return result
 
