@@ -18,6 +18,12 @@ need them; pass 2 copies every line byte for byte except the ones kestimator own
   comments hold what Klipper's print_duration measures, which starts at the first
   extrusion, so that line is the only place that time is written.
 
+- last, after every other line, the progress table (`kestimator.progress_table`): its
+  points' offsets are those of this output, noted as pass 2 writes it (the table's lines
+  are stops of the block copy, like the noted lines). An old table is dropped, and the new
+  one takes its place when every point lies before it (what a post-processor appended after
+  it stays after it); a file without a final line ending gets one before the table.
+
 Inserted lines take the line ending of the line they stand next to. A second run drops
 its own lines and writes them again, so it is byte-identical. The output goes to a
 temporary file in the destination's directory, is fsynced, and replaces the destination
@@ -69,6 +75,15 @@ from kestimator.files import (
 )
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
+from kestimator.progress_table import (
+    CHUNK_PREFIX,
+    HEADER_PREFIX,
+    ProgressTable,
+    Selection,
+    is_chunk_line,
+    is_header_line,
+    select,
+)
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
 from kestimator.timedlines import TimedLines
@@ -119,7 +134,7 @@ def attention_pattern(time_comment_prefixes: tuple[bytes, ...]) -> bytes:
     slicer's time comments (rewritten). Every other comment is copied as it is, except a
     layer marker, which a quiet stretch ends before by its line number."""
     starts = [_M73, LAYER_INFO_COMMAND + b" ", re.escape(_MARKER_PREFIX_B),
-              re.escape(_PREP_PREFIX_B)]
+              re.escape(_PREP_PREFIX_B), re.escape(HEADER_PREFIX), re.escape(CHUNK_PREFIX)]
     starts += [re.escape(prefix) for prefix in time_comment_prefixes]
     return rb"[ \t\r\x0b\x0c]*(?:%s)" % b"|".join(starts)
 
@@ -283,12 +298,15 @@ class InjectPlan:
     tail_comment: str | None = None
     # Layers for SET_PRINT_STATS_INFO TOTAL_LAYER / CURRENT_LAYER lines; 0 writes none.
     layer_info_total: int = 0
+    table: Selection | None = None
+    """The progress table's points (kestimator.progress_table), by line: `copy_stream`
+    writes the table with their offsets in the output; None writes none."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
                       limits_source: str,
                       moonraker_comment: tuple[str, str] | None = None,
-                      layer_info: bool = False) -> InjectPlan:
+                      layer_info: bool = False, table: bool = False) -> InjectPlan:
         """Build the plan from a sampled estimate (estimate_file(..., sample=True)).
 
         The time comments get what print_duration will measure: the total less the time
@@ -309,7 +327,8 @@ class InjectPlan:
                    and moonraker_comment[0] == HEAD else None,
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == TAIL else None,
-                   layer_info_total=len(est.layers) if layer_info else 0)
+                   layer_info_total=len(est.layers) if layer_info else 0,
+                   table=select(est) if table else None)
 
 
 class Rewriter:
@@ -340,7 +359,18 @@ class Rewriter:
         self._quiet_scan: tuple[tuple[int, int] | None, int] = (None, 0)
         # The lines `_copy_quiet` stops before, in order: the layer markers and the lines
         # needing attention; and the index of the first one not yet passed.
-        self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines))
+        # The progress table (plan.table): the lines whose output offsets it needs (they
+        # are stops too), the offsets found so far, the output's length so far (counted by
+        # `copy_stream`), and the table once written.
+        self._table_lines = array("q", plan.table.wanted_lines() if plan.table else ())
+        self._table_next = 0
+        self._table_offsets: dict[int, int] = {}
+        self._out_pos = 0
+        self._ends_in_lf = False
+        self._old_table = False  # an old table's header was met: its base64 lines go
+        self.table: ProgressTable | None = None
+        self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines,
+                                             self._table_lines))
         self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
@@ -463,7 +493,10 @@ class Rewriter:
         an M73 is due, layer markers and the lines `attention_pattern` matches.
         `progress` hears the bytes read so far.
         """
-        process = self.process
+        if self.plan.table is not None:
+            write, process = self._table_tracking(write)
+        else:
+            process = self.process
         # The start of a line that continues in the next block (a list, so a line over
         # many blocks is joined once, not copied again at every block).
         carry: list[bytes] = []
@@ -555,6 +588,46 @@ class Rewriter:
         if carry:
             for piece in process(b"".join(carry)):
                 write(piece)
+        if self.plan.table is not None and self.table is None:
+            if self._out_pos and not self._ends_in_lf:
+                write(self.eol)  # the table's lines stand on their own
+            write(self._table_block(self.eol))
+
+    def _table_tracking(self, write: Callable[[bytes], object]
+                        ) -> tuple[Callable[[bytes], object], Callable[[bytes], list[bytes]]]:
+        """`write` counting the output's bytes, and `process` noting where the output of
+        each line the progress table needs starts: after every line before it, so at the
+        time that line is reached (an M73 put before it takes no time). A line kestimator
+        drops (an old M73) starts where the next line's output starts, so a second run
+        finds the same offsets."""
+        self._ends_in_lf = False
+
+        def counted(data: bytes) -> object:
+            if data:
+                self._out_pos += len(data)
+                self._ends_in_lf = data[-1:] == b"\n"
+            return write(data)
+
+        wanted = self._table_lines
+        offsets = self._table_offsets
+        process_line = self.process
+
+        def process(raw: bytes) -> list[bytes]:
+            lineno = self.lineno + 1
+            k = self._table_next
+            if k >= len(wanted) or wanted[k] != lineno:
+                return process_line(raw)
+            offsets[lineno] = self._out_pos  # before `_comment` may write the table here
+            self._table_next = k + 1
+            return process_line(raw)
+        return counted, process
+
+    def _table_block(self, eol: bytes) -> bytes:
+        """The progress table's lines, here: every byte written so far is before it."""
+        assert self.plan.table is not None
+        self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets.get,
+                                                  self._out_pos)
+        return self.table.encode(eol)
 
     def finish(self) -> list[bytes]:
         """The tail time comment (if the plan has one) with its line ending: it goes after
@@ -621,6 +694,18 @@ class Rewriter:
         if code.startswith(_PREP_PREFIX_B) or (
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
+        if code.startswith(HEADER_PREFIX) and is_header_line(code):
+            # An old progress table: dropped. The new one takes its place when every point
+            # lies before it (so what a post-processor appended after it stays after it,
+            # and a second run is byte-identical); else it goes at the end.
+            self._old_table = True
+            table = self.plan.table
+            if (table is not None and self.table is None and (
+                    not self._table_lines or self._table_lines[-1] <= self.lineno)):
+                return [self._table_block(eol or self.eol)]
+            return []
+        if self._old_table and code.startswith(CHUNK_PREFIX) and is_chunk_line(code):
+            return []
         if self.plan.layer_lines.index_of(self.lineno) >= 0:
             return self._layer_marker(raw, eol)
         if self._prefixes and code.startswith(self._prefixes_b):
@@ -644,6 +729,8 @@ class InjectResult:
     slicer: SlicerInfo
     slicer_estimate_s: float | None
     m73_written: int
+    table: ProgressTable | None = None
+    """The progress table written at the end of the output (None: none written)."""
 
 
 def check_gcode_file(path: str) -> os.stat_result:
@@ -676,12 +763,13 @@ PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
 def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
                path: str = "<input>", macros: MacroTimes | None = None,
-               layer_info: bool = True) -> PlanResult:
+               layer_info: bool = True, table: bool = False) -> PlanResult:
     """Pass 1 over byte lines: estimate with progress samples, build the rewrite plan.
 
     `head` and `tail` are the first and last MiB (the same bytes for small input); they
     tell the slicer and its own estimate. Hosts that hold G-code in memory (Cura's layer
-    chunks) call this; `plan_file` is the same for a file.
+    chunks) call this; `plan_file` is the same for a file. `table`: the plan holds the
+    progress table's points (`copy_stream` then writes the table at the end).
     """
     slicer = detect(head, tail)
     adapter = adapter_for(slicer.family)
@@ -699,17 +787,18 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                                        est.total_s - est.parts.before_first_extrusion_s),
         # Layer numbers only where the file sets none itself (its first and last MiB).
         layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
-        and _FOREIGN_LAYER_INFO_RE.search(tail) is None)
+        and _FOREIGN_LAYER_INFO_RE.search(tail) is None, table=table)
     return plan, est, slicer, slicer_s
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,
               heat_time: float = 0.0, progress: ProgressCallback | None = None,
-              macros: MacroTimes | None = None, layer_info: bool = True) -> PlanResult:
+              macros: MacroTimes | None = None, layer_info: bool = True,
+              table: bool = False) -> PlanResult:
     """Pass 1 over a file (streamed; only its first and last MiB are read twice)."""
     head, tail = read_file_ends(path)
     return plan_lines(iter_lines(path, progress), head, tail, limits, limits_source, homing_time,
-                      heat_time, path, macros, layer_info)
+                      heat_time, path, macros, layer_info, table)
 
 
 def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None = None,
@@ -718,14 +807,16 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
                 progress: ProgressCallback | None = None,
                 macros: MacroTimes | None = None,
                 layer_info: bool = True,
-                finish: Callable[[str], object] | None = None) -> InjectResult:
+                finish: Callable[[str], object] | None = None,
+                table: bool = True) -> InjectResult:
     """Rewrite `path` (or write `output`) with Klipper's times; atomic, never partial.
 
     `progress` hears the bytes read so far over both passes: the file is read twice, so
     the count ends at twice its size. `layer_info`: add SET_PRINT_STATS_INFO TOTAL_LAYER /
     CURRENT_LAYER lines where the file sets no layer numbers itself. `finish` is called with
     the temporary file's name once pass 2 has written it, before it is synced and replaced
-    (compat appends its line).
+    (compat appends its line). `table`: end the file with the progress table
+    (kestimator.progress_table), replacing an old one.
     """
     src = os.fspath(path)
     dest = os.fspath(output) if output is not None else src
@@ -737,11 +828,13 @@ def inject_file(path: str | os.PathLike[str], limits: Limits, output: str | None
     with exclusive(src) if in_place else contextlib.nullcontext():
         before = check_gcode_file(src)
         plan, est, slicer, slicer_s = plan_file(src, limits, limits_source, homing_time,
-                                                heat_time, progress, macros, layer_info)
+                                                heat_time, progress, macros, layer_info,
+                                                table)
         rewriter = Rewriter(plan)
         _write_output(src, target, rewriter, before, in_place, progress, finish)
     return InjectResult(path=src, output=dest, estimate=est, slicer=slicer,
-                        slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written)
+                        slicer_estimate_s=slicer_s, m73_written=rewriter.m73_written,
+                        table=rewriter.table)
 
 
 GONE = "the file was removed while it was being processed: nothing was written"

@@ -64,3 +64,17 @@ def load_cura_build_script() -> Any:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def without_progress_table(data: bytes) -> bytes:
+    """An injected file's bytes without the progress table that ends it (kestimator.
+    progress_table), for tests that compare what inject does to the file's own lines."""
+    import io
+
+    from kestimator.progress_table import TableError, read_table
+
+    try:
+        table = read_table(io.BytesIO(data))
+    except TableError:
+        return data
+    return data[:table.content_bytes]

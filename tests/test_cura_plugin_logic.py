@@ -21,7 +21,7 @@ from kestimator.errors import KestimatorError
 from kestimator.estimate import estimate_file
 from kestimator.rewrite import MARKER_PREFIX
 
-from .conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT, corpus_files
+from .conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT, corpus_files, without_progress_table
 from .cura_harness.curaengine import find_curaengine, slice_cube
 
 sys.path.insert(0, str(PROJECT / "plugins" / "cura"))
@@ -99,7 +99,8 @@ def _cli_inject(text: str, tmp_path: Path) -> bytes:
     source = tmp_path / "cli_in.gcode"
     source.write_bytes(text.encode("utf-8", "surrogateescape"))
     _cli("inject", "--no-profile", "--printer-cfg", str(CORPUS_CFG), "-q", str(source))
-    return source.read_bytes()
+    # The Cura plugin writes no progress table (Cura saves the file).
+    return without_progress_table(source.read_bytes())
 
 
 def _unowned(chunk: str) -> list[str]:

@@ -21,6 +21,7 @@ import pytest
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
+from kestimator.progress_table import is_chunk_line, is_header_line
 from kestimator.rewrite import MARKER_PREFIX, inject_file, is_layer_info_line, progress_pr
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files
@@ -47,7 +48,8 @@ def _params() -> list[object]:
 def _owned(line: bytes) -> bool:
     return (M73_RE.match(line) is not None or line.startswith(MARKER_PREFIX.encode())
             or TIME_COMMENT_RE.match(line) is not None
-            or is_layer_info_line(line.lstrip()))
+            or is_layer_info_line(line.lstrip()) or is_header_line(line)
+            or is_chunk_line(line))
 
 
 def _strip_owned(data: bytes) -> list[bytes]:
@@ -163,7 +165,7 @@ def test_line_endings_bytes_and_missing_final_newline_are_kept(tmp_path: Path,
             b"M73 Q50 S1\nG1 X20 ; mixed ending\n;LAYER_CHANGE\nG1 X30")
     work = tmp_path / "mixed.gcode"
     work.write_bytes(body)
-    inject_file(work, corpus_limits)
+    inject_file(work, corpus_limits, table=False)
     out = work.read_bytes()
     assert _strip_owned(out) == _strip_owned(body)
     assert not out.endswith(b"\n")
@@ -172,6 +174,14 @@ def test_line_endings_bytes_and_missing_final_newline_are_kept(tmp_path: Path,
     for line in out.splitlines(keepends=True):
         if line.startswith(b"M73 P"):
             assert line.endswith(b"\n")
+    # With the progress table (after everything else), the last line gets the line ending
+    # the table's lines stand on: the only byte added to the file's own lines.
+    work.write_bytes(body)
+    inject_file(work, corpus_limits)
+    with_table = work.read_bytes()
+    content, _, table = with_table.partition(b"; kestimator_table ")
+    assert content == out + b"\n"
+    assert with_table.endswith(b"\n") and not table.endswith(b"\r\n")
 
 
 def test_output_option_leaves_the_input_untouched(tmp_path: Path, corpus_limits,

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
+from kestimator.progress_table import HEADER_PREFIX, read_table_file
 from kestimator.rewrite import inject_file
 
 from .conftest import CORPUS, CORPUS_CFG
@@ -98,7 +99,10 @@ def test_added_time_lines_are_where_moonraker_looks_and_a_second_run_is_byte_ide
         data = once.read_bytes()
         lines = data.splitlines()
         if where == "tail":
-            assert lines[-1] == line and data.endswith(b"\n"), name
+            # The last line before the progress table, which ends the file.
+            content = data[:data.index(b"\n" + HEADER_PREFIX) + 1]
+            assert content.splitlines()[-1] == line and content.endswith(b"\n"), name
+            assert data.endswith(b"\n") and read_table_file(once).content_bytes == len(content)
         else:
             marker = next(i for i, text in enumerate(lines) if text.startswith(b"; kestimator "))
             assert lines[marker - 1] == line, name

@@ -49,7 +49,7 @@ def test_inject_adds_total_layer_before_the_first_layer_and_current_layer_at_eac
         tmp_path: Path, corpus_root: Path, source: Path) -> None:
     limits, _ = limits_from_printer_cfg(CORPUS_CFG)
     out = tmp_path / "out.gcode"
-    result = inject_file(source, limits, output=str(out))
+    result = inject_file(source, limits, output=str(out), table=False)
     data = out.read_bytes()
     layers = len(result.estimate.layers)
     found = [(kind, int(n)) for kind, n in LAYER_INFO_RE.findall(data)]
@@ -65,15 +65,15 @@ def test_inject_adds_total_layer_before_the_first_layer_and_current_layer_at_eac
     # Idempotent and byte-exact: a second run writes the same bytes; without the lines the
     # output is what --no-layer-info writes.
     again = tmp_path / "again.gcode"
-    inject_file(out, limits, output=str(again))
+    inject_file(out, limits, output=str(again), table=False)
     assert again.read_bytes() == data
     plain = tmp_path / "plain.gcode"
-    inject_file(source, limits, output=str(plain), layer_info=False)
+    inject_file(source, limits, output=str(plain), layer_info=False, table=False)
     assert LAYER_INFO_RE.sub(b"", data).replace(b"\n\n", b"\n") == plain.read_bytes() or \
         [line for line in lines if not LAYER_INFO_RE.match(line)] == \
         plain.read_bytes().splitlines()
     # The time is unchanged: SET_PRINT_STATS_INFO takes none.
-    assert inject_file(out, limits, output=str(again)).estimate.total_s == \
+    assert inject_file(out, limits, output=str(again), table=False).estimate.total_s == \
         result.estimate.total_s
 
 

@@ -1,0 +1,609 @@
+"""The progress table: Klipper's time at byte offsets of a G-code file, and its encoding.
+
+Owns the table the Klipper extras module (plugins/klipper/) reads to turn virtual_sdcard's
+`file_position` into the time left: sorted byte offsets of line starts and, for each, the
+time at which every move on the lines before it has finished; per labelled object, its
+time left at coarser points (the layer markers). Also owns which points are kept (`select`),
+the compact text block `kestimator inject` appends to the G-code file (`encode`), and the
+reader that finds that block from the file's end without reading the rest (`read_table`).
+
+Standard library only: the Klipper module and the worker (`kestimator.worker`) use it.
+
+Points. The candidates are the estimate's progress samples (the move on line L ends at t:
+the line after it starts at t, the latest such t when one line holds many moves) and its
+layer markers (exact times). Between two kept neighbours the time grows by at most
+`spacing_bound(remaining at the later one)` = max(0.4 s, 0.0015 x remaining), unless they
+were neighbouring candidates already; so linear interpolation by bytes between them is never
+further than that from the time at any line in between (time only grows). Layer markers are
+always kept. At most MAX_TIME_POINTS points: over that, the bound is doubled (and layer
+markers may be dropped) until they fit, deterministically. Object points are the layer
+markers of `Estimate.object_remaining` (when the estimate has it): at most MAX_OBJECT_POINTS
+(evenly spaced by index, first and last kept) for at most MAX_OBJECTS objects (the longest
+first, then by name).
+
+Encoding (version 1): a header line and base64 lines, at the end of the file::
+
+    ; kestimator_table v1 bytes=<content length> lines=<n> crc32=<8 hex digits>
+    ; kt <base64, at most CHUNK_CHARS characters>      (n lines)
+
+`bytes=` is the length of the file before the header: a table whose header is anywhere else
+is refused (the file was edited after it was written). The base64 text is zlib-compressed
+LEB128 varints (`_Writer`), its CRC-32 in the header. Only comment or blank lines, at most
+MAX_TRAILING_BYTES of them, may follow the table (a line a post-processor appends, such as
+kestimator-compat's ident line). A file edited after the table without changing its length
+cannot be told from the original by the table alone.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import dataclasses
+import math
+import os
+import re
+import zlib
+from bisect import bisect_right
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, BinaryIO, Protocol
+
+TABLE_VERSION = 1
+HEADER_PREFIX = b"; kestimator_table "
+CHUNK_PREFIX = b"; kt "
+CHUNK_CHARS = 200
+_HEADER_RE = re.compile(rb"; kestimator_table v(\d{1,6}) bytes=(\d{1,20}) lines=(\d{1,9})"
+                        rb" crc32=([0-9a-f]{8})\r?\n?\Z")
+_CHUNK_RE = re.compile(rb"; kt ([A-Za-z0-9+/=]{1,%d})\r?\n?\Z" % CHUNK_CHARS)
+# Which points are kept (see the module's docstring).
+MIN_SPACING_S = 0.4
+SPACING_FRACTION = 0.0015
+MAX_TIME_POINTS = 20000
+MAX_OBJECT_POINTS = 500
+MAX_OBJECTS = 200
+# Reading: what may follow the table, how much of the file's end is read at most, and how
+# big the decoded payload may be (a forged table cannot make the reader take all memory).
+MAX_TRAILING_BYTES = 4096
+TAIL_WINDOWS = (1 << 16, 1 << 20, 1 << 23)
+MAX_PAYLOAD_BYTES = 1 << 24
+MS = 1000.0
+
+
+class TableError(ValueError):
+    """The file holds no usable table; the message says why (one line)."""
+
+
+def is_header_line(code: bytes) -> bool:
+    """True for a table's header line (`code` left-stripped, with its line ending)."""
+    return _HEADER_RE.match(code) is not None
+
+
+def is_chunk_line(code: bytes) -> bool:
+    """True for one of a table's base64 lines (`code` left-stripped)."""
+    return _CHUNK_RE.match(code) is not None
+
+
+def spacing_bound(remaining_s: float) -> float:
+    """How far apart in time two neighbouring points may be, `remaining_s` before the end."""
+    return max(MIN_SPACING_S, SPACING_FRACTION * remaining_s)
+
+
+class _EstimateLike(Protocol):
+    """What `select` reads of a `kestimator.estimate.Estimate` (and, when it has it,
+    `object_remaining`)."""
+
+    @property
+    def total_s(self) -> float: ...
+    @property
+    def n_lines(self) -> int: ...
+    @property
+    def sample_lines(self) -> Iterable[int]: ...
+    @property
+    def sample_times(self) -> Iterable[float]: ...
+    @property
+    def layers(self) -> Iterable[tuple[int, float]]: ...
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """The points chosen from an estimate, by line (their byte offsets come later)."""
+
+    total_s: float
+    n_lines: int
+    lines: list[int]
+    times: list[float]
+    object_names: list[str]
+    object_lines: list[int]
+    object_remaining: list[list[float]]
+    """object_remaining[i][j]: object i's seconds left at object_lines[j]."""
+
+    def wanted_lines(self) -> list[int]:
+        """Every line whose byte offset the table needs, ascending, once each."""
+        return sorted(set(self.lines) | set(self.object_lines))
+
+
+def _object_entries(est: object) -> list[tuple[int, float, Mapping[str, float]]]:
+    """`Estimate.object_remaining` as (line, t, {name: seconds}); [] when the estimate has
+    none (tuples or {"line", "t", "remaining"} mappings are both read)."""
+    raw = getattr(est, "object_remaining", None)
+    if not raw:
+        return []
+    entries = []
+    for entry in raw:
+        if isinstance(entry, Mapping):
+            entries.append((int(entry["line"]), float(entry["t"]), entry["remaining"]))
+        else:
+            line, t, remaining = entry
+            entries.append((int(line), float(t), remaining))
+    return entries
+
+
+def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
+          forced: bool) -> list[int]:
+    """Indices kept: the first and last, the forced ones, and every one without which the
+    time between its kept neighbours would pass `factor` x spacing_bound."""
+    n = len(times)
+    if n <= 2:
+        return list(range(n))
+    kept = [0]
+    for i in range(1, n - 1):
+        if forced and keep[i]:
+            kept.append(i)
+            continue
+        after = times[i + 1]
+        if after - times[kept[-1]] > factor * spacing_bound(total_s - after):
+            kept.append(i)
+    kept.append(n - 1)
+    return kept
+
+
+def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
+           max_object_points: int = MAX_OBJECT_POINTS,
+           max_objects: int = MAX_OBJECTS) -> Selection:
+    """The table's points from an estimate made with progress samples (sample=True)."""
+    total_s = float(est.total_s)
+    by_line: dict[int, float] = {1: 0.0}
+    layer_lines = set()
+    for line, t in est.layers:
+        by_line[line] = max(t, by_line.get(line, 0.0))
+        layer_lines.add(line)
+    for line, t in zip(est.sample_lines, est.sample_times):
+        after = line + 1
+        by_line[after] = max(t, by_line.get(after, 0.0))
+    lines = sorted(line for line in by_line if line <= est.n_lines)
+    times = []
+    latest = 0.0
+    for line in lines:
+        latest = min(max(latest, by_line[line]), total_s)
+        times.append(latest)
+    keep = [line in layer_lines for line in lines]
+    factor = 1.0
+    forced = True
+    while True:
+        kept = _thin(times, keep, total_s, factor, forced)
+        if len(kept) <= max_points:
+            break
+        if forced:
+            forced = False  # first, layer markers may go; then the bound grows
+        else:
+            factor *= 2.0
+    if len(kept) > max_points:  # pragma: no cover - the bound grows until they fit
+        kept = kept[:max_points]
+    names, object_lines, remaining = _select_objects(est, max_object_points, max_objects)
+    return Selection(total_s=total_s, n_lines=est.n_lines,
+                     lines=[lines[i] for i in kept], times=[times[i] for i in kept],
+                     object_names=names, object_lines=object_lines,
+                     object_remaining=remaining)
+
+
+def _select_objects(est: object, max_points: int, max_objects: int
+                    ) -> tuple[list[str], list[int], list[list[float]]]:
+    entries = [e for e in _object_entries(est) if e[0] <= getattr(est, "n_lines", e[0])]
+    if not entries:
+        return [], [], []
+    if len(entries) > max_points:
+        n = len(entries)
+        picks = sorted({round(k * (n - 1) / (max_points - 1)) for k in range(max_points)})
+        entries = [entries[i] for i in picks]
+    first: dict[str, float] = {}
+    for _line, _t, remaining in entries:
+        for name, seconds in remaining.items():
+            first.setdefault(name, float(seconds))
+    names = sorted(first, key=lambda name: (-first[name], name))[:max_objects]
+    lines: list[int] = []
+    columns: list[list[float]] = [[] for _ in names]
+    for line, _t, remaining in entries:
+        if lines and line <= lines[-1]:
+            continue
+        lines.append(line)
+        for column, name in zip(columns, names):
+            value = float(remaining.get(name, 0.0))
+            column.append(value if math.isfinite(value) and value > 0.0 else 0.0)
+    return names, lines, columns
+
+
+@dataclasses.dataclass(frozen=True)
+class ProgressTable:
+    """Times at byte offsets of one file (see the module's docstring)."""
+
+    total_s: float
+    content_bytes: int
+    """The file's length before the table (the whole file's when it holds none)."""
+    offsets: list[int]
+    times: list[float]
+    object_names: list[str] = dataclasses.field(default_factory=list)
+    object_offsets: list[int] = dataclasses.field(default_factory=list)
+    object_remaining: list[list[float]] = dataclasses.field(default_factory=list)
+
+    @classmethod
+    def from_selection(cls, selection: Selection, offset_of: Callable[[int], int | None],
+                       content_bytes: int) -> ProgressTable:
+        """The table once each selected line's byte offset is known (`offset_of(line)`;
+        None for a line that is not in the file: it starts where the file ends)."""
+        def place(line: int) -> int:
+            offset = offset_of(line)
+            return content_bytes if offset is None else min(offset, content_bytes)
+
+        offsets: list[int] = []
+        times: list[float] = []
+        for line, t in zip(selection.lines, selection.times):
+            offset = 0 if line <= 1 else place(line)
+            if offsets and offset <= offsets[-1]:
+                times[-1] = max(times[-1], t)  # an empty line's end: the later time
+                continue
+            offsets.append(offset)
+            times.append(max(t, times[-1]) if times else t)
+        if not offsets or offsets[0] != 0:
+            offsets.insert(0, 0)
+            times.insert(0, 0.0)
+        if offsets[-1] < content_bytes:
+            offsets.append(content_bytes)
+            times.append(max(selection.total_s, times[-1]))
+        object_offsets: list[int] = []
+        keep_columns: list[int] = []
+        for j, line in enumerate(selection.object_lines):
+            offset = place(line)
+            if object_offsets and offset <= object_offsets[-1]:
+                continue
+            object_offsets.append(offset)
+            keep_columns.append(j)
+        remaining = [[column[j] for j in keep_columns] for column in selection.object_remaining]
+        return cls(total_s=selection.total_s, content_bytes=content_bytes, offsets=offsets,
+                   times=times, object_names=list(selection.object_names),
+                   object_offsets=object_offsets, object_remaining=remaining)
+
+    def time_at(self, offset: int) -> float:
+        """Klipper's time when the line starting at byte `offset` is reached: linear
+        interpolation by bytes between the neighbouring points."""
+        offsets = self.offsets
+        i = bisect_right(offsets, offset) - 1
+        if i < 0:
+            return 0.0
+        if i >= len(offsets) - 1:
+            return self.times[-1] if self.times else 0.0
+        a, b = offsets[i], offsets[i + 1]
+        ta, tb = self.times[i], self.times[i + 1]
+        return ta + (tb - ta) * (offset - a) / (b - a)
+
+    def remaining_at(self, offset: int) -> float:
+        """Seconds left at byte `offset`."""
+        return max(0.0, self.total_s - self.time_at(offset))
+
+    def objects_remaining_at(self, offset: int) -> dict[str, float]:
+        """Each object's seconds left at byte `offset`: its value at the last object point
+        at or before it, interpolated by bytes toward the next one (0 at the file's end)."""
+        if not self.object_names:
+            return {}
+        offsets = self.object_offsets + [self.content_bytes]
+        i = bisect_right(offsets, offset) - 1
+        result = {}
+        for name, column in zip(self.object_names, self.object_remaining):
+            values = column + [0.0]
+            if i < 0:
+                value = values[0]
+            elif i >= len(offsets) - 1:
+                value = 0.0
+            else:
+                a, b = offsets[i], offsets[i + 1]
+                value = values[i] + (values[i + 1] - values[i]) * (offset - a) / max(b - a, 1)
+            result[name] = max(0.0, value)
+        return result
+
+    def to_json(self) -> dict[str, Any]:
+        """The worker's answer fields."""
+        return {"total_s": self.total_s, "offsets": list(self.offsets),
+                "times": list(self.times), "object_names": list(self.object_names),
+                "object_offsets": list(self.object_offsets),
+                "object_remaining": [list(c) for c in self.object_remaining]}
+
+    # Encoding
+    def payload(self) -> bytes:
+        """The table as varints (before compression)."""
+        out = _Writer()
+        out.uint(TABLE_VERSION)
+        out.uint(self.content_bytes)
+        out.uint(_ms(self.total_s))
+        out.uint(len(self.offsets))
+        previous_offset = 0
+        previous_ms = 0
+        for offset, t in zip(self.offsets, self.times):
+            ms = max(_ms(t), previous_ms)
+            out.uint(offset - previous_offset)
+            out.uint(ms - previous_ms)
+            previous_offset, previous_ms = offset, ms
+        out.uint(len(self.object_names))
+        for name in self.object_names:
+            raw = name.encode("utf-8", "surrogateescape")
+            out.uint(len(raw))
+            out.raw(raw)
+        out.uint(len(self.object_offsets))
+        previous_offset = 0
+        for offset in self.object_offsets:
+            out.uint(offset - previous_offset)
+            previous_offset = offset
+        for column in self.object_remaining:
+            previous_ms = 0
+            for seconds in column:
+                ms = _ms(seconds)
+                out.sint(ms - previous_ms)
+                previous_ms = ms
+        return out.bytes()
+
+    def encode(self, eol: bytes = b"\n") -> bytes:
+        """The comment lines that hold the table (each ending in `eol`)."""
+        packed = base64.b64encode(zlib.compress(self.payload(), 9))
+        chunks = [packed[i:i + CHUNK_CHARS] for i in range(0, len(packed), CHUNK_CHARS)]
+        header = b"%sv%d bytes=%d lines=%d crc32=%08x" % (
+            HEADER_PREFIX, TABLE_VERSION, self.content_bytes, len(chunks),
+            zlib.crc32(packed) & 0xFFFFFFFF)
+        return b"".join([header + eol] + [CHUNK_PREFIX + chunk + eol for chunk in chunks])
+
+    @classmethod
+    def from_payload(cls, payload: bytes) -> ProgressTable:
+        """The table from `payload` (TableError if it is not one)."""
+        data = _Reader(payload)
+        try:
+            version = data.uint()
+            if version != TABLE_VERSION:
+                raise TableError("table version %d is not %d" % (version, TABLE_VERSION))
+            content_bytes = data.uint()
+            total_s = data.uint() / MS
+            count = data.count()
+            offsets: list[int] = []
+            times: list[float] = []
+            offset = ms = 0
+            for _ in range(count):
+                offset += data.uint()
+                ms += data.uint()
+                if offsets and offset <= offsets[-1]:
+                    raise TableError("the table's offsets do not grow")
+                offsets.append(offset)
+                times.append(ms / MS)
+            names = [data.raw(data.count()).decode("utf-8", "surrogateescape")
+                     for _ in range(data.count())]
+            object_offsets = []
+            offset = 0
+            for _ in range(data.count()):
+                offset += data.uint()
+                object_offsets.append(offset)
+            remaining = []
+            for _ in names:
+                column = []
+                ms = 0
+                for _ in object_offsets:
+                    ms += data.sint()
+                    column.append(ms / MS)
+                remaining.append(column)
+        except IndexError:
+            raise TableError("the table ends early") from None
+        if data.pos != len(payload):
+            raise TableError("the table has bytes after its end")
+        if not offsets or offsets[0] != 0 or offsets[-1] > content_bytes:
+            raise TableError("the table's offsets do not fit the file")
+        if any(b <= a for a, b in zip(object_offsets, object_offsets[1:])) or (
+                object_offsets and object_offsets[-1] > content_bytes):
+            raise TableError("the table's object offsets do not fit the file")
+        return cls(total_s=total_s, content_bytes=content_bytes, offsets=offsets,
+                   times=times, object_names=names, object_offsets=object_offsets,
+                   object_remaining=remaining)
+
+
+def _ms(seconds: float) -> int:
+    if not math.isfinite(seconds) or seconds <= 0.0:
+        return 0
+    return int(seconds * MS + 0.5)
+
+
+class _Writer:
+    """Unsigned LEB128 varints; signed ones zigzag-coded."""
+
+    def __init__(self) -> None:
+        self._out = bytearray()
+
+    def uint(self, value: int) -> None:
+        out = self._out
+        while value >= 0x80:
+            out.append((value & 0x7F) | 0x80)
+            value >>= 7
+        out.append(value)
+
+    def sint(self, value: int) -> None:
+        self.uint(value * 2 if value >= 0 else -value * 2 - 1)
+
+    def raw(self, data: bytes) -> None:
+        self._out += data
+
+    def bytes(self) -> bytes:
+        return bytes(self._out)
+
+
+class _Reader:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+        self.pos = 0
+
+    def uint(self) -> int:
+        value = shift = 0
+        data = self.data
+        while True:
+            byte = data[self.pos]
+            self.pos += 1
+            value |= (byte & 0x7F) << shift
+            if byte < 0x80:
+                return value
+            shift += 7
+            if shift > 70:
+                raise TableError("a number in the table is too long")
+
+    def sint(self) -> int:
+        value = self.uint()
+        return value >> 1 if not value & 1 else -((value + 1) >> 1)
+
+    def count(self) -> int:
+        """A count of things still to read: each takes at least a byte."""
+        value = self.uint()
+        if value > len(self.data) - self.pos:
+            raise TableError("the table ends early")
+        return value
+
+    def raw(self, size: int) -> bytes:
+        chunk = self.data[self.pos:self.pos + size]
+        if len(chunk) != size:
+            raise IndexError
+        self.pos += size
+        return chunk
+
+
+def decode_block(block: bytes, header_offset: int) -> ProgressTable:
+    """The table from its lines (`block` starts at its header, at byte `header_offset` of
+    the file; only comment or blank lines may follow its base64 lines)."""
+    lines = block.split(b"\n")
+    header = _HEADER_RE.match(lines[0])
+    if header is None:
+        other = re.match(rb"; kestimator_table v(\d+)", lines[0])
+        if other is not None and int(other.group(1)) != TABLE_VERSION:
+            raise TableError("table version %s is not %d"
+                             % (other.group(1).decode(), TABLE_VERSION))
+        raise TableError("the table's header line is damaged")
+    version, stated, count = (int(header.group(i)) for i in (1, 2, 3))
+    if version != TABLE_VERSION:
+        raise TableError("table version %d is not %d" % (version, TABLE_VERSION))
+    if stated != header_offset:
+        raise TableError("the file was changed after its table was written (%d bytes "
+                         "before the table, the table says %d)" % (header_offset, stated))
+    if len(lines) < count + 1:
+        raise TableError("the table ends early")
+    chunks = []
+    for line in lines[1:count + 1]:
+        match = _CHUNK_RE.match(line)
+        if match is None:
+            raise TableError("a line of the table is damaged")
+        chunks.append(match.group(1))
+    trailing = lines[count + 1:]
+    if sum(len(line) + 1 for line in trailing) > MAX_TRAILING_BYTES + 1 or any(
+            line.strip() and not line.lstrip().startswith(b";") for line in trailing):
+        raise TableError("the file goes on after its table")
+    packed = b"".join(chunks)
+    if zlib.crc32(packed) & 0xFFFFFFFF != int(header.group(4), 16):
+        raise TableError("the table's checksum does not match")
+    try:
+        compressed = base64.b64decode(packed, validate=True)
+        inflate = zlib.decompressobj()
+        payload = inflate.decompress(compressed, MAX_PAYLOAD_BYTES)
+    except (binascii.Error, zlib.error) as exc:
+        raise TableError("the table cannot be decoded (%s)" % exc) from None
+    if inflate.unconsumed_tail or not inflate.eof:
+        raise TableError("the table is too big or cut short")
+    table = ProgressTable.from_payload(payload)
+    if table.content_bytes != header_offset:
+        raise TableError("the table's length does not match its header")
+    return table
+
+
+def read_table(f: BinaryIO) -> ProgressTable:
+    """The table at the end of the open file `f` (binary, seekable), reading only its end:
+    at most the last TAIL_WINDOWS[-1] bytes, and only the last TAIL_WINDOWS[0] when the
+    file ends in no table. TableError says why there is none that can be used."""
+    size = f.seek(0, os.SEEK_END)
+    for window in TAIL_WINDOWS:
+        start = max(0, size - window)
+        f.seek(start)
+        data = f.read(size - start)
+        at = data.rfind(b"\n" + HEADER_PREFIX)
+        if at >= 0:
+            at += 1
+        elif start == 0 and data.startswith(HEADER_PREFIX):
+            at = 0
+        if at >= 0:
+            return decode_block(data[at:], start + at)
+        if start == 0 or (b"\n" + CHUNK_PREFIX) not in data[-(MAX_TRAILING_BYTES + 2048):]:
+            # No header and no table line near the end: no table, however far back one
+            # is looked for.
+            break
+    raise TableError("the file has no kestimator progress table")
+
+
+def read_table_file(path: str | os.PathLike[str]) -> ProgressTable:
+    """`read_table` of the file at `path` (OSError if it cannot be opened)."""
+    with open(path, "rb") as f:
+        return read_table(f)
+
+
+def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
+                 block_bytes: int = 1 << 20) -> dict[int, int]:
+    """Byte offset of the start of each of `lines` (1-based, ascending) in the stream `read`
+    gives; a line past the last one is left out. One pass, no line held."""
+    result: dict[int, int] = {}
+    if not lines:
+        return result
+    k = 0
+    while k < len(lines) and lines[k] <= 1:
+        result[lines[k]] = 0
+        k += 1
+    line = 1  # the line that holds position `base`
+    base = 0
+    while k < len(lines):
+        block = read(block_bytes)
+        if not block:
+            break
+        last = line + block.count(b"\n")  # the line that holds the block's end
+        pos = 0
+        while k < len(lines) and lines[k] <= last:
+            target = lines[k]
+            while line < target:
+                pos = block.index(b"\n", pos) + 1
+                line += 1
+            result[target] = base + pos
+            k += 1
+        line = last
+        base += len(block)
+    return result
+
+
+def lines_at_offsets(read: Callable[[int], bytes], offsets: Sequence[int],
+                     block_bytes: int = 1 << 20) -> list[int]:
+    """For each byte offset (any order), the 1-based number of the line that starts at it
+    or, inside a line, of the next line. One pass over what `read` gives."""
+    order = sorted(range(len(offsets)), key=lambda i: offsets[i])
+    result = [0] * len(offsets)
+    k = 0
+    base = 0
+    newlines = 0  # LFs before `base`
+    previous = b"\n"  # the byte before `base`
+    while k < len(order):
+        block = read(block_bytes)
+        if not block:
+            break
+        end = base + len(block)
+        while k < len(order) and offsets[order[k]] < end:
+            offset = max(0, offsets[order[k]])
+            local = offset - base
+            before = newlines + block.count(b"\n", 0, local)
+            at_start = (block[local - 1:local] if local else previous) == b"\n"
+            result[order[k]] = before + (1 if at_start else 2)
+            k += 1
+        newlines += block.count(b"\n")
+        previous = block[-1:]
+        base = end
+    for i in order[k:]:  # at or past the end: the line after the last
+        result[i] = newlines + (1 if previous == b"\n" else 2)
+    return result
