@@ -14,6 +14,7 @@ import io
 import math
 import os
 from array import array
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from itertools import chain, islice
 from typing import Final
@@ -61,6 +62,11 @@ MAX_LINE_BYTES: Final = 1 << 20
 # when full, every other sample is dropped and the spacing doubles.
 MAX_SAMPLES: Final = 65536
 FIRST_SAMPLE_SPACING_S: Final = 0.01
+# Once the samples' spacing has grown past TAIL_SPACING_S (a long print), the last
+# TAIL_SAMPLES moves at least that far apart are kept too (`Estimate.tail_lines`): the
+# progress table needs the end of a print finer than the doubled spacing (memory bounded).
+TAIL_SPACING_S: Final = 0.2
+TAIL_SAMPLES: Final = 4096
 # Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
 # kept, and the cache is emptied when full).
 MAX_CACHED_COMMANDS: Final = 4096
@@ -122,6 +128,10 @@ class Estimate:
     untimed_macros: dict[str, int] = dataclasses.field(default_factory=dict)
     # When the first move that extrudes starts (print_stats starts print_duration there).
     first_extrusion_t: float | None = None
+    # The print's end sampled finer than sample_lines/sample_times once a long print made
+    # their spacing pass TAIL_SPACING_S: the move on tail_lines[i] ends at tail_times[i].
+    tail_lines: array = dataclasses.field(default_factory=lambda: array("q"))
+    tail_times: array = dataclasses.field(default_factory=lambda: array("d"))
     # Lines of unknown commands left out of ignored_commands and commands: their names came
     # after MAX_COMMAND_NAMES others (memory stays bounded).
     ignored_unlisted: int = 0
@@ -283,6 +293,46 @@ class Warnings:
                 for w, n in zip(self.kept, self.repeats)]
 
 
+class ProgressSamples:
+    """Where the print is at times through it: the move on line lines[i] ends at times[i],
+    spaced at least `spacing` apart (at most MAX_SAMPLES kept: when full, every other one
+    goes and the spacing doubles), and, once that spacing has passed TAIL_SPACING_S, the
+    last TAIL_SAMPLES moves TAIL_SPACING_S apart (`tail`)."""
+
+    def __init__(self) -> None:
+        self.lines = array("q")
+        self.times = array("d")
+        self.spacing = FIRST_SAMPLE_SPACING_S
+        # The next time add() wants; the next regular sample's time.
+        self.next_t = 0.0
+        self.next_regular_t = 0.0
+        self.tail: deque[tuple[int, float]] = deque(maxlen=TAIL_SAMPLES)
+
+    def add(self, line: int, t: float) -> None:
+        """The move on `line` ends at `t` (at least next_t)."""
+        if t >= self.next_regular_t:
+            lines, times = self.lines, self.times
+            if len(lines) >= MAX_SAMPLES:
+                del lines[1::2]
+                del times[1::2]
+                self.spacing *= 2.0
+            lines.append(line)
+            times.append(t)
+            self.next_regular_t = t + self.spacing
+        if self.spacing > TAIL_SPACING_S:
+            self.tail.append((line, t))
+            self.next_t = min(self.next_regular_t, t + TAIL_SPACING_S)
+        else:
+            self.next_t = self.next_regular_t
+
+    def map_times(self, function: Callable[[float], float]) -> None:
+        """Every time t becomes function(t)."""
+        times = self.times
+        for i in range(len(times)):
+            times[i] = function(times[i])
+        self.tail = deque(((line, function(t)) for line, t in self.tail), maxlen=TAIL_SAMPLES)
+
+
 class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
@@ -318,10 +368,7 @@ class Timeline:
         self.note = note
         self.noted_lines = array("q")
         self.sample = sample
-        self.sample_lines = array("q")
-        self.sample_times = array("d")
-        self._sample_spacing = FIRST_SAMPLE_SPACING_S
-        self._next_sample_t = 0.0
+        self.samples = ProgressSamples()
         self.n_moves = 0
         self.filament_mm = 0.0
         self.lineno = 0
@@ -354,7 +401,8 @@ class Timeline:
         segment = split.segment
         t = start_t
         filament = self.filament_mm
-        next_sample_t = self._next_sample_t if self.sample else math.inf
+        samples = self.samples
+        next_sample_t = samples.next_t if self.sample else math.inf
         if self.first_extrusion_t is None:
             self.first_extrusion_t = first_extrusion(moves, start_t, filament)
         for move in moves:
@@ -370,8 +418,8 @@ class Timeline:
             t += dt
             filament += move.axes_d_e
             if t >= next_sample_t:
-                self._add_sample(move.tag, t)
-                next_sample_t = self._next_sample_t
+                samples.add(move.tag, t)
+                next_sample_t = samples.next_t
         if t > MAX_PRINT_S:
             raise _too_long_move(self.path, moves, start_t)
         split.segment = segment
@@ -435,9 +483,7 @@ class Timeline:
             return t if t <= first else first + (t - first) * factor
         self.layers.map_times(stretch)
         self.marks.map_times(stretch)
-        times = self.sample_times
-        for i in range(len(times)):
-            times[i] = stretch(times[i])
+        self.samples.map_times(stretch)
         grow = (total + extra) / total
         self.split.scale(grow)
         part = self._part(MOTION_CORRECTION_LABEL, ratio.source)
@@ -450,16 +496,6 @@ class Timeline:
         timed = self.macros.time_of(name)
         if timed is not None:
             self.add_time(timed.seconds, name, timed.source)
-
-    def _add_sample(self, line: int, t: float) -> None:
-        lines, times = self.sample_lines, self.sample_times
-        if len(lines) >= MAX_SAMPLES:
-            del lines[1::2]
-            del times[1::2]
-            self._sample_spacing *= 2.0
-        lines.append(line)
-        times.append(t)
-        self._next_sample_t = t + self._sample_spacing
 
     def _warn_here(self, message: str, key: str | None = None) -> None:
         self.warn(message, self.lineno, key)
@@ -665,7 +701,7 @@ class Timeline:
             ignored_commands=dict(sorted(interp.ignored.items())),
             ignored_unlisted=interp.ignored_unlisted,
             warnings=self.warnings.final(), warnings_dropped=self.warnings.dropped,
-            sample_lines=self.sample_lines, sample_times=self.sample_times,
+            sample_lines=self.samples.lines, sample_times=self.samples.times,
             marks=self.marks, noted_lines=self.noted_lines,
             first_command_line=self.first_command_line,
             last_move_line=self.toolhead.last_move_line, filament_mm=self.filament_mm,
@@ -673,7 +709,9 @@ class Timeline:
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
             objects=objects, commands=commands, preflight=self.preflight.findings(),
-            object_remaining=object_remaining)
+            object_remaining=object_remaining,
+            tail_lines=array("q", [line for line, _ in self.samples.tail]),
+            tail_times=array("d", [t for _, t in self.samples.tail]))
 
 
 def first_extrusion(moves: list[Move], start_t: float, filament: float) -> float | None:

@@ -43,8 +43,10 @@ import math
 import os
 import re
 import zlib
+from array import array
 from bisect import bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
+from itertools import chain
 from typing import Any, BinaryIO, Protocol
 
 TABLE_VERSION = 1
@@ -166,7 +168,8 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
     for line, t in est.layers:
         by_line[line] = max(t, by_line.get(line, 0.0))
         layer_lines.add(line)
-    for line, t in zip(est.sample_lines, est.sample_times):
+    tail = zip(getattr(est, "tail_lines", ()), getattr(est, "tail_times", ()))
+    for line, t in chain(zip(est.sample_lines, est.sample_times), tail):
         after = line + 1
         by_line[after] = max(t, by_line.get(after, 0.0))
     lines = sorted(line for line in by_line if line <= est.n_lines)
@@ -308,8 +311,21 @@ class ProgressTable:
             result[name] = max(0.0, value)
         return result
 
-    def to_json(self) -> dict[str, Any]:
-        """The worker's answer fields."""
+    def to_json(self, encoding: str | None = None) -> dict[str, Any]:
+        """The worker's answer fields: JSON lists, or with `encoding` "b64" each list as
+        the base64 of its machine array (offsets int64, times and remaining float64, in
+        this machine's byte order; object_remaining flattened object by object), which
+        the Klipper module decodes at C speed inside Klipper's reactor."""
+        if encoding == "b64":
+            flat = array("d")
+            for column in self.object_remaining:
+                flat.extend(column)
+            return {"total_s": self.total_s,
+                    "offsets_b64": _b64(array("q", self.offsets)),
+                    "times_b64": _b64(array("d", self.times)),
+                    "object_names": list(self.object_names),
+                    "object_offsets_b64": _b64(array("q", self.object_offsets)),
+                    "object_remaining_b64": _b64(flat)}
         return {"total_s": self.total_s, "offsets": list(self.offsets),
                 "times": list(self.times), "object_names": list(self.object_names),
                 "object_offsets": list(self.object_offsets),
@@ -405,6 +421,10 @@ class ProgressTable:
         return cls(total_s=total_s, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=names, object_offsets=object_offsets,
                    object_remaining=remaining)
+
+
+def _b64(values: array[Any]) -> str:
+    return base64.b64encode(values.tobytes()).decode("ascii")
 
 
 def _ms(seconds: float) -> int:

@@ -6,12 +6,14 @@ line on standard input and writes one JSON answer per line on standard output (f
 after each), in the order asked. A request::
 
     {"id": 1, "file": "/abs/x.gcode", "config": "/abs/printer.cfg" or null,
-     "events": [[byte_offset, "EXCLUDE_OBJECT NAME=A"], ...], "use_table": true}
+     "events": [[byte_offset, "EXCLUDE_OBJECT NAME=A"], ...], "use_table": true,
+     "encoding": "b64" (optional)}
 
 The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": ...,
 "offsets": [...], "times": [...], "object_names": [...], "object_offsets": [...],
 "object_remaining": [[...], ...], "warnings": [...], "elapsed_s": ...}``, or
-``{"id": 1, "ok": false, "error": "one line"}``.
+``{"id": 1, "ok": false, "error": "one line"}``. With ``"encoding": "b64"`` the lists come
+as base64 machine arrays instead (`ProgressTable.to_json`: ``offsets_b64``, ...).
 
 With `use_table`, no events and a valid table at the file's end (`kestimator inject` wrote
 it), the answer is that table, read from the file's end only. Otherwise the file is
@@ -110,7 +112,7 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
         table, more = estimate_table(path, request.get("config"), request["events"])
         warnings += more
     doc: dict[str, Any] = {"id": request.get("id"), "ok": True, "source": source}
-    doc.update(table.to_json())
+    doc.update(table.to_json(request.get("encoding")))
     doc["warnings"] = warnings
     doc["elapsed_s"] = round(time.monotonic() - started, 3)
     return doc
