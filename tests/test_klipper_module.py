@@ -32,7 +32,8 @@ def answer(request_id: int, total: float = 100., objects: bool = False,
         "offsets_b64": b64("q", [0, 500, 1000]),
         "times_b64": b64("d", [0., total / 2, total])}
     if objects:
-        doc.update({"object_names": ["A", "B"], "object_offsets_b64": b64("q", [0, 500]),
+        # names as the file wrote them; Klipper says them upper-cased
+        doc.update({"object_names": ["a", "B"], "object_offsets_b64": b64("q", [0, 500]),
                     "object_remaining_b64": b64("d", [60., 30., 40., 20.])})
     return doc
 
@@ -144,7 +145,7 @@ def test_excluding_an_object_drops_its_time_at_once_then_asks_for_the_exact_one(
     printer.reactor.advance(1.)
     status = kest.get_status(0.)
     assert status["remaining_s"] == pytest.approx(50. - 20.)
-    assert status["objects"] == {"A": 30., "B": 0.}
+    assert status["objects"] == {"a": 30., "B": 0.}
     assert status["excluded_objects"] == ["B"]
     printer.gcode.respond_info("Unexcluding object B")
     assert worker.requests[-1]["events"][-1] == [600, "EXCLUDE_OBJECT RESET=1 NAME=B"]

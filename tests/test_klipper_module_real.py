@@ -124,5 +124,13 @@ def test_an_object_excluded_mid_print_is_re_estimated(tmp_path: Path, slicer: st
     after = _after_change(result)
     assert len(after) >= 5
     assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
-    # The excluded object has nothing left; the others still have their time.
-    assert all(s["objects"].get(names[-1].upper(), 0.) == 0. for s in after)
+    # The excluded object has nothing left; the others still have their time (per-object
+    # times are taken at layer markers: the Slic3r 1.3 file has none).
+    for sample in after:
+        if slicer == "slic3r":
+            assert sample["objects"] == {}
+            continue
+        left = {name.upper(): t for name, t in sample["objects"].items()}
+        assert left[names[-1].upper()] == 0.
+        if len(names) > 1 and sample["truth_s"] > 10.:
+            assert sum(left.values()) > 0.

@@ -456,8 +456,10 @@ class Kestimator:
         if provisional is not None and provisional[0] == "speed":
             left *= provisional[1]
         elif provisional is not None and provisional[0] == "exclude":
-            objects = table.objects_at(position)
-            cut = sum([objects.get(name, 0.) for name in provisional[1]])
+            # Klipper upper-cases object names; the file may not.
+            gone = set(provisional[1])
+            cut = sum([left for name, left in table.objects_at(position).items()
+                       if name.upper() in gone])
             left = max(0., left - cut)
         return left
 
@@ -490,8 +492,8 @@ class Kestimator:
             if total > 0. else 1.,
             "source": "provisional" if self.provisional else table.source})
         objects = table.objects_at(self.vsd.file_position)
-        for name in self.excluded:
-            if name in objects:
+        for name in objects:
+            if state == "complete" or name.upper() in self.excluded:
                 objects[name] = 0.
         ranked = sorted(objects.items(), key=lambda kv: -kv[1])
         status["objects"] = dict(

@@ -109,7 +109,7 @@ def run_print(src: str, work: str, samples: int = 12,
                 "[display_status]\n\n[oracle_probe]\n\n[ktest_probe]\n\n"
                 "[kestimator]\npython: %s\n" % (os.path.abspath(base_cfg), sd, python))
     if inject:
-        subprocess.run([python, "-m", "kestimator", "inject", test_file, "--config", cfg],
+        subprocess.run([python, "-m", "kestimator", "inject", test_file, "--printer-cfg", cfg],
                        check=True, capture_output=True, cwd=work)
     _link(MODULE, klipper, "kestimator.py")
     _link(os.path.join(HERE, "ktest_probe.py"), klipper, "ktest_probe.py")
