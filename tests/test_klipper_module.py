@@ -265,3 +265,49 @@ def test_the_real_worker_answers_through_the_reactors_fd_callback(tmp_path: Any)
         assert kest.get_status(0.)["remaining_s"] == pytest.approx(kest.table.total_s, abs=1e-3)
     finally:
         kest._stop_worker()
+
+
+def test_without_kestimator_the_status_says_so_and_klipper_goes_on(tmp_path: Any) -> None:
+    """A Python that cannot run the worker (kestimator not there): the module says so in
+    its status and klippy.log, and stays out of the way."""
+    gcode = tmp_path / "x.gcode"
+    gcode.write_text("G1 X10 F600\n")
+    bare = tmp_path / "python"
+    bare.write_text("#!/bin/sh\nexit 1\n")
+    bare.chmod(0o755)
+    printer = stubs.Printer()
+    kest = MOD.load_config(stubs.Config(printer, {"python": str(bare)}))
+    printer.send_event("klippy:ready")
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.path, vsd.active = str(gcode), True
+    printer.objects["print_stats"].state = "printing"
+    printer.reactor.run_timers()
+    printer.reactor.pump_fds(lambda: kest.error is not None, timeout=30.)
+    assert kest.error == "the kestimator worker stopped (python: %s)" % bare
+    assert not kest.disabled and kest.worker is None
+    printer.gcode.run("M220", S="50")
+    assert printer.objects["gcode_move"].speed_factor == 0.5
+
+
+def test_a_speed_factor_set_before_the_print_is_in_its_estimate() -> None:
+    printer = stubs.Printer()
+    kest = MOD.load_config(stubs.Config(printer))
+    printer.send_event("klippy:ready")
+    kest.worker = worker = FakeWorker()
+    printer.gcode.run("M220", S="150")
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.path, vsd.active = "/sd/x.gcode", True
+    printer.reactor.run_timers()
+    assert worker.requests[-1]["events"] == [[0, "M220 S150"]]
+    assert worker.requests[-1]["use_table"] is False
+
+
+def test_a_late_answer_for_an_earlier_print_is_not_taken_for_this_ones() -> None:
+    kest, printer, worker = printing()
+    printer.send_event("virtual_sdcard:reset_file")
+    printer.objects["virtual_sdcard"].path = "/sd/y.gcode"
+    printer.reactor.advance(1.)
+    kest.on_answer(answer(1))                       # x.gcode's, arriving late
+    assert kest.table is None
+    kest.on_answer(answer(worker.requests[-1]["id"]))
+    assert kest.table is not None

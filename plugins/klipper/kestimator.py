@@ -102,6 +102,10 @@ class Table:
         self.object_remaining = [flat[i * n:(i + 1) * n]
                                  for i in range(len(self.object_names))]
         self.warnings = [str(w) for w in (answer.get("warnings") or [])][:20]
+        # What the table holds in memory (its arrays), bytes.
+        self.nbytes = sum(a.buffer_info()[1] * a.itemsize for a in
+                          [self.offsets, self.times, self.object_offsets]
+                          + self.object_remaining)
 
     def time_at(self, offset: int) -> float:
         """Table time at byte offset `offset`: that of the last point at or
@@ -303,7 +307,11 @@ class Kestimator:
         def wrapper(gcmd: Any) -> None:
             original(gcmd)
             guarded_after(gcmd)
-        self.gcode.register_command(name, wrapper)
+        try:
+            self.gcode.register_command(name, wrapper)
+        except Exception:
+            self.gcode.register_command(name, original)
+            raise
 
     def _stop_worker(self) -> None:
         worker, self.worker = self.worker, None
@@ -314,7 +322,9 @@ class Kestimator:
     def _reset_print(self, path: str | None) -> None:
         self.path = path
         self.table: Table | None = None
-        self.request_id = 0
+        # Request ids keep counting across prints: a late answer for an earlier print
+        # can never pass for this one's.
+        self.request_id = getattr(self, "request_id", 0)
         self.pending_id: int | None = None
         self.events: list[tuple[int, str]] = []
         # (print_time, file position) last planned
@@ -330,7 +340,8 @@ class Kestimator:
         return {"state": "idle", "remaining_s": None, "eta": None,
                 "progress": None, "total_s": None, "source": None,
                 "objects": {}, "excluded_objects": [], "file": None,
-                "error": self.error, "max_callback_ms": 0.}
+                "error": self.error, "max_callback_ms": 0., "table_bytes": 0,
+                "warnings": []}
 
     def _handle_reset_file(self) -> None:
         self._reset_print(None)
@@ -383,12 +394,14 @@ class Kestimator:
         self._request()
 
     def _after_M220(self, gcmd: Any) -> None:
-        if self.gcode_move is None or self.path is None or self._from_file():
+        if self.gcode_move is None:
             return
         factor = self.gcode_move.get_status(
             self.reactor.monotonic())["speed_factor"]
         old = self.speed_factor or 1.
         self.speed_factor = factor
+        if self.path is None or self._from_file():
+            return
         self.provisional = ("speed", old / factor if factor > 0. else 1.)
         self._add_event("M220 S%.10g" % (factor * 100.,))
 
@@ -478,6 +491,8 @@ class Kestimator:
         status["state"] = state if table is not None else "estimating"
         if table is None:
             return status
+        status["table_bytes"] = table.nbytes
+        status["warnings"] = list(table.warnings)
         remaining = self.remaining_at(print_time)
         if state == "complete":
             remaining = 0.
@@ -519,9 +534,18 @@ class Kestimator:
         """Once per interval: follow the print, refresh status and progress."""
         vsd = self.vsd
         path = vsd.file_path() if vsd is not None else None
+        if self.gcode_move is not None:
+            factor = self.gcode_move.get_status(eventtime)["speed_factor"]
+        else:
+            factor = 1.
         if path is not None and vsd.is_active() and path != self.path:
             self._reset_print(path)
+            if abs(factor - 1.) > 1e-9:
+                # A speed factor left from before the print applies to all of it.
+                self.events.append((0, "M220 S%.10g" % (factor * 100.,)))
             self._request()
+        if self.provisional is None:
+            self.speed_factor = factor
         if self.path is None:
             self.status = self._idle_status()
             return

@@ -143,6 +143,7 @@ class KTestProbe:
                        "n_runout_flushes": oracle.n_runout, "syncs": oracle.syncs,
                        "origin": oracle.origin, "errors": oracle.errors,
                        "max_callback_ms": self.kest.max_callback_ms,
+                       "table_bytes": self.kest.table.nbytes if self.kest.table else 0,
                        "memory_kib": memory,
                        "kestimator_error": self.kest.error}, f)
 
