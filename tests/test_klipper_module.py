@@ -311,3 +311,28 @@ def test_a_late_answer_for_an_earlier_print_is_not_taken_for_this_ones() -> None
     assert kest.table is None
     kest.on_answer(answer(worker.requests[-1]["id"]))
     assert kest.table is not None
+
+
+def test_the_checkout_runs_the_worker_where_kestimator_is_not_installed(
+        tmp_path: Any) -> None:
+    """Klipper's own Python (no kestimator installed) runs the worker from this checkout,
+    the module's file being a link into it."""
+    import subprocess
+
+    base = os.path.join(sys.base_prefix, "bin", "python3")
+    probe = subprocess.run([base, "-c", "import kestimator"], capture_output=True, cwd="/")
+    if probe.returncode == 0:
+        pytest.skip("the base Python has kestimator installed")
+    gcode = tmp_path / "x.gcode"
+    gcode.write_text("G28\nG1 X10 F600\n")
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": base}))
+    printer.send_event("klippy:ready")
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.path, vsd.active = str(gcode), True
+    try:
+        printer.reactor.run_timers()
+        printer.reactor.pump_fds(lambda: kest.table is not None or kest.error is not None)
+        assert kest.error is None and kest.table is not None
+    finally:
+        kest._stop_worker()

@@ -54,6 +54,10 @@ PROGRESS_HOLD = 5.0
 MAX_STATUS_OBJECTS = 64
 # Worker niceness: estimating must never compete with Klipper for the CPU.
 WORKER_NICE = 10
+# `python3 -m kestimator.worker`, with this checkout last on the path: an installed
+# kestimator (install.sh's compiled build) wins, the checkout's source is the fallback.
+WORKER_BOOT = ("import runpy, sys; sys.path.append(sys.argv.pop(1)); "
+               "runpy.run_module('kestimator.worker', run_name='__main__', alter_sys=True)")
 
 
 def _repo_root() -> str:
@@ -136,12 +140,9 @@ class Worker:
         self.on_answer = on_answer
         self.on_exit = on_exit
         env = dict(os.environ)
-        root = _repo_root()
-        path = env.get("PYTHONPATH")
-        env["PYTHONPATH"] = root + (os.pathsep + path if path else "")
         env["PYTHONDONTWRITEBYTECODE"] = "1"
         self.proc = subprocess.Popen(
-            [python, "-m", "kestimator.worker"], stdin=subprocess.PIPE,
+            [python, "-c", WORKER_BOOT, _repo_root()], stdin=subprocess.PIPE,
             stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
             close_fds=True, env=env, cwd="/")
         try:
