@@ -1,6 +1,6 @@
 """Object exclusion (issue 27) against real Klipper (84104bbbd): corpus files of six slicers
 labelled by preprocess_cancellation 0.2.1, with EXCLUDE_OBJECT commands in the file, as
-events, and through `estimate --exclude --at` (tests/oracle_refs/exclude, made by runs.py
+events, and through `estimate --exclude --at` (tests/exclude_refs, made by runs.py
 there). The bar: total and every layer within 0.01 s + 1e-6 t of Klipper (in practice the
 oracle's 1 µs rounding).
 """
@@ -18,7 +18,7 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file, estimate_text
 
 from .conftest import CORPUS
-from .oracle_refs.exclude import runs
+from .exclude_refs import runs
 
 REFS = json.loads(runs.REFS.read_text())
 CASES = REFS["cases"]
@@ -43,7 +43,7 @@ def _labelled(name: str, tmp_path: Path) -> tuple[bytes, list[tuple[int, str]]]:
     data = runs.label(runs.CORPUS_GCODE / case["gcode"])
     assert hashlib.sha256(data).hexdigest() == case["labelled_sha256"], (
         "preprocess_cancellation labels %s differently from the one the reference was "
-        "made with (%s): regenerate tests/oracle_refs/exclude/refs.json"
+        "made with (%s): regenerate tests/exclude_refs/refs.json"
         % (case["gcode"], REFS["label_tool"]))
     return data, [(int(line), command) for line, command in case["events"]]
 

@@ -27,7 +27,7 @@ import pytest
 from kestimator import __version__
 from kestimator.slicers import parse_prusa_duration
 
-from .conftest import CORPUS_CFG, IN_CI, PROJECT, corpus_files
+from .conftest import CORPUS_CFG, IN_CI, PROJECT, corpus_files, without_progress_table
 
 # M73's P is a whole percent and R whole minutes: any rounding (down, nearest, up) of
 # Klipper's value is within one unit of it.
@@ -149,8 +149,12 @@ def m73_lines_with_klipper_time(path: Path, printer_cfg: Path | None, env: Mappi
 
 
 def untouched_lines(data: bytes) -> list[bytes]:
-    """The lines inject must keep byte for byte."""
-    return [raw for raw in data.split(b"\n")
+    """The lines inject must keep byte for byte (the progress table it appends, and the
+    line ending it gives a last line before it, are its own)."""
+    lines = without_progress_table(data).split(b"\n")
+    if lines and lines[-1] == b"":
+        lines.pop()
+    return [raw for raw in lines
             if not M73_RE.match(raw.strip()) and not raw.lstrip().startswith(REWRITTEN_PREFIXES)]
 
 

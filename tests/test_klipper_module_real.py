@@ -86,7 +86,7 @@ def test_a_speed_change_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: 
 
 
 # Files with several objects, labelled as Moonraker labels them (preprocess_cancellation;
-# tests/oracle_refs/exclude/runs.py), and the OrcaSlicer file that labels its one object.
+# tests/exclude_refs/runs.py), and the OrcaSlicer file that labels its one object.
 LABELLED = {
     "orcaslicer": "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
     "prusaslicer": "prusaslicer/cancelobj_ps2.4.0a1_arcwelder.gcode",
@@ -98,7 +98,7 @@ LABELLED = {
 
 
 def _labelled(tmp_path: Path, slicer: str) -> tuple[Path, list[str]]:
-    sys.path.insert(0, str(Path(__file__).parent / "oracle_refs" / "exclude"))
+    sys.path.insert(0, str(Path(__file__).parent / "exclude_refs"))
     import runs
 
     source = CORPUS / LABELLED[slicer]

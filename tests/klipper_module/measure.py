@@ -16,7 +16,7 @@ from typing import Any
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(HERE.parent))
-sys.path.insert(0, str(HERE.parent / "oracle_refs" / "exclude"))
+sys.path.insert(0, str(HERE.parent / "exclude_refs"))
 import run_print  # noqa: E402
 import test_klipper_module_real as real  # noqa: E402
 

@@ -9,7 +9,7 @@ as a user typing them at that moment would run them. `printer.cfg` is the corpus
 `[exclude_object]` section.
 
 Regenerate with the oracle (mainline Klipper 84104bbbd):
-    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/oracle_refs/exclude/runs.py
+    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/exclude_refs/runs.py
 It writes `refs.json`: per case the labelled file's sha256 (a changed labelling tool shows
 up as a clear failure), the inserted commands with their concrete line numbers, and the
 oracle's `total_s`, `n_moves` and layer checkpoints (corpus reference format,
@@ -28,8 +28,8 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-CORPUS_GCODE = HERE.parents[2].parent / "shared" / "corpus" / "gcode"
-ORACLE = HERE.parents[2].parent / "shared" / "tools" / "oracle" / "oracle.py"
+CORPUS_GCODE = HERE.parents[1].parent / "shared" / "corpus" / "gcode"
+ORACLE = HERE.parents[1].parent / "shared" / "tools" / "oracle" / "oracle.py"
 CFG = HERE / "printer.cfg"
 REFS = HERE / "refs.json"
 ORACLE_KLIPPER = "mainline Klipper 84104bbbd (2026-08-07), klippy batch mode"
@@ -146,7 +146,7 @@ def original_line(line: int, events: list[tuple[int, str]]) -> int | None:
 
 def main() -> int:
     refs: dict[str, object] = {"klipper": ORACLE_KLIPPER, "label_tool": LABEL_TOOL,
-                               "cfg": "tests/oracle_refs/exclude/printer.cfg", "cases": {}}
+                               "cfg": "tests/exclude_refs/printer.cfg", "cases": {}}
     failed = 0
     with tempfile.TemporaryDirectory() as tmp:
         for name, (gcode, commands, cli) in CASES.items():
