@@ -160,8 +160,10 @@ def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
 
 def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
            max_object_points: int = MAX_OBJECT_POINTS,
-           max_objects: int = MAX_OBJECTS) -> Selection:
-    """The table's points from an estimate made with progress samples (sample=True)."""
+           max_objects: int = MAX_OBJECTS, precision: float = 1.0) -> Selection:
+    """The table's points from an estimate made with progress samples (sample=True), at
+    most `precision` x spacing_bound apart while they fit in `max_points` (a table that
+    never goes into a file, the worker's, can afford more points than a file's footer)."""
     total_s = float(est.total_s)
     by_line: dict[int, float] = {1: 0.0}
     layer_lines = set()
@@ -179,7 +181,7 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
         latest = min(max(latest, by_line[line]), total_s)
         times.append(latest)
     keep = [line in layer_lines for line in lines]
-    factor = 1.0
+    factor = precision
     forced = True
     while True:
         kept = _thin(times, keep, total_s, factor, forced)

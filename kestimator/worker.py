@@ -56,6 +56,11 @@ class RequestError(Exception):
     """A request that cannot be answered: its message is the answer's error."""
 
 
+# The worker's own tables stay in memory, never in a file: ten times finer than a file's
+# (points at most max(0.04 s, 0.015 % of the time left) apart, as the samples allow).
+WORKER_PRECISION = 0.1
+
+
 def _one_line(text: str) -> str:
     return " ".join(text.split())[:MAX_ERROR_CHARS] or "error"
 
@@ -144,7 +149,7 @@ def estimate_table(path: str, config: str | None,
                          heat_time=resolved.heat_time_s or 0.0, sample=True, macros=macros,
                          **extra)
     warnings += est.warnings
-    selection = select(est)
+    selection = select(est, precision=WORKER_PRECISION)
     size = os.path.getsize(path)
     with open(path, "rb") as f:
         offsets = line_offsets(f.read, selection.wanted_lines())

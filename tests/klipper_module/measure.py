@@ -26,7 +26,9 @@ BIG = "prusaslicer/ps25_bunny120_fast_fwretract_large.gcode"
 def row(name: str, result: dict[str, Any], after_change: bool) -> str:
     samples = result["samples"]
     if after_change:
-        samples = real._after_change(result)
+        user = result["users"][0]
+        change_t = next(s["print_time"] for s in samples if s["position"] >= user["position"])
+        samples = [s for s in samples if s["print_time"] >= change_t]
     worst = max(samples, key=lambda s: abs(s["error_s"]))
     user = result["users"][0] if result["users"] else None
     return "| %s | %d | %.3f s at %.0f s left | %s | %.2f s | %.2f ms | %.0f KiB | %.0f MiB |" % (
