@@ -654,6 +654,10 @@ class Timeline:
         total = self.toolhead.finish()
         self.split.rest_until(total)
         self.split.flush_snapshots()
+        last_line = self.toolhead.last_move_line
+        if self.sample and last_line is not None:
+            # The last move's end, sampled or not: where the file's moves end.
+            self.samples.tail.append((last_line, self.toolhead.last_move_end_t))
         total = self._correct_motion(total)
         interp = self.interp
         for name in interp.extruders.extra_steppers:
