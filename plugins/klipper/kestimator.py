@@ -346,6 +346,9 @@ class Kestimator:
 
     def _handle_reset_file(self) -> None:
         self._reset_print(None)
+        if self.timer is not None:
+            # A print is starting (SDCARD_PRINT_FILE): look at it as soon as it has.
+            self.reactor.update_timer(self.timer, self.reactor.NOW)
 
     def _request(self) -> None:
         """Ask the worker for the file's table with every event so far."""

@@ -47,6 +47,9 @@ class Reactor:
         self.timers.append(timer)
         return timer
 
+    def update_timer(self, timer: Timer, waketime: float) -> None:
+        timer.waketime = waketime
+
     def register_fd(self, fd: int, callback: Callable[[float], None]) -> int:
         self.fds[fd] = callback
         return fd
