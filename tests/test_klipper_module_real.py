@@ -134,3 +134,19 @@ def test_an_object_excluded_mid_print_is_re_estimated(tmp_path: Path, slicer: st
         assert left[names[-1].upper()] == 0.
         if len(names) > 1 and sample["truth_s"] > 10.:
             assert sum(left.values()) > 0.
+
+
+def test_the_guides_macro_shows_the_remaining_time_in_real_klipper(tmp_path: Path) -> None:
+    """plugins/klipper/README.md's macros, as written there, in Klipper's config: Klipper
+    loads them, and SHOW_REMAINING puts the module's remaining time in the display
+    message."""
+    guide = (Path(run_print.ROOT) / "plugins" / "klipper" / "README.md").read_text()
+    marker = "# Show the true remaining time"
+    block = marker + guide.split("```ini\n" + marker)[1].split("```")[0]
+    result = run_print.run_print(str(CORPUS / FILES["prusaslicer"]), str(tmp_path),
+                                 users=[(0.5, "SHOW_REMAINING")],
+                                 extra_cfg="[respond]\n\n" + block)
+    assert result["kestimator_error"] is None and result["errors"] == []
+    (user,) = result["users"]
+    left = int(user["remaining_s"])
+    assert user["message"] == "%dh%02dm left" % (left // 3600, (left % 3600) // 60)

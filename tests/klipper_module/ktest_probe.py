@@ -73,9 +73,9 @@ class KTestProbe:
         mq.do_kick_flush_timer = True
         return self.reactor.NEVER
 
-    def _wait(self, done):
+    def _wait(self, done, limit=MAX_WAIT_S):
         start = time.monotonic()
-        while not done() and time.monotonic() - start < MAX_WAIT_S:
+        while not done() and time.monotonic() - start < limit:
             self.reactor.pause(self.reactor.monotonic() + 0.005)
         return time.monotonic() - start
 
@@ -105,6 +105,8 @@ class KTestProbe:
     def cmd_KTEST_USER(self, gcmd):
         command = gcmd.get("CMD")
         kest = self.kest
+        # As on a printer, where it updates twice a second: the status is there by now.
+        self._wait(lambda: kest.status.get("remaining_s") is not None, limit=2.0)
         before = kest.request_id
         self.vsd.cmd_from_sd = False
         try:
@@ -113,9 +115,13 @@ class KTestProbe:
             self.vsd.cmd_from_sd = True
         asked = kest.request_id != before
         waited = self._wait(lambda: kest.pending_id is None)
+        display = self.printer.lookup_object("display_status", None)
         self.users.append({"command": command, "position": self.vsd.file_position,
                            "asked": asked, "answer_wait_s": round(waited, 3),
-                           "answered": kest.pending_id is None})
+                           "answered": kest.pending_id is None,
+                           "message": display.message if display is not None else None,
+                           "remaining_s": kest.get_status(
+                               self.reactor.monotonic())["remaining_s"]})
 
     @staticmethod
     def _memory_kib(pid):

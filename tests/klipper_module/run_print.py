@@ -91,7 +91,8 @@ def make_test_file(src: str, dst: str, samples: int,
 
 def run_print(src: str, work: str, samples: int = 12,
               users: list[tuple[float, str]] | None = None, inject: bool = False,
-              base_cfg: str = CORPUS_CFG, python: str | None = None) -> dict[str, Any]:
+              base_cfg: str = CORPUS_CFG, python: str | None = None,
+              extra_cfg: str = "") -> dict[str, Any]:
     """Print `src` in Klipper with the module; returns the probe's results, each sample
     with `truth_s` (Klipper's remaining time from there) and `error_s`."""
     paths = oracle_paths()
@@ -107,7 +108,8 @@ def run_print(src: str, work: str, samples: int = 12,
     with open(cfg, "w") as f:
         f.write("[include %s]\n\n[virtual_sdcard]\npath: %s\n\n[exclude_object]\n\n"
                 "[display_status]\n\n[oracle_probe]\n\n[ktest_probe]\n\n"
-                "[kestimator]\npython: %s\n" % (os.path.abspath(base_cfg), sd, python))
+                "[kestimator]\npython: %s\n\n%s" % (os.path.abspath(base_cfg), sd, python,
+                                                    extra_cfg))
     if inject:
         subprocess.run([python, "-m", "kestimator", "inject", test_file, "--printer-cfg", cfg],
                        check=True, capture_output=True, cwd=work)
