@@ -27,27 +27,24 @@ def test_ruff_finds_nothing() -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_package_type_checks_with_mypy() -> None:
+def _mypy_finds_nothing(target: str) -> None:
     if importlib.util.find_spec("mypy") is None:
         if IN_CI:
             pytest.fail("mypy is not installed (it is part of the test extras)")
         pytest.skip("mypy is not installed")
-    proc = subprocess.run([sys.executable, "-m", "mypy", "kestimator",
+    proc = subprocess.run([sys.executable, "-m", "mypy", target,
                            "--ignore-missing-imports", "--no-error-summary"],
                           cwd=PROJECT, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_package_type_checks_with_mypy() -> None:
+    _mypy_finds_nothing("kestimator")
 
 
 def test_klipper_module_type_checks_with_mypy() -> None:
     """plugins/klipper/kestimator.py (its own run: it has the package's name)."""
-    if importlib.util.find_spec("mypy") is None:
-        if IN_CI:
-            pytest.fail("mypy is not installed (it is part of the test extras)")
-        pytest.skip("mypy is not installed")
-    proc = subprocess.run([sys.executable, "-m", "mypy", "plugins/klipper/kestimator.py",
-                           "--ignore-missing-imports", "--no-error-summary"],
-                          cwd=PROJECT, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    _mypy_finds_nothing("plugins/klipper/kestimator.py")
 
 
 def test_core_imports_only_the_standard_library() -> None:

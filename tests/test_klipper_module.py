@@ -336,3 +336,17 @@ def test_the_checkout_runs_the_worker_where_kestimator_is_not_installed(
         assert kest.error is None and kest.table is not None
     finally:
         kest._stop_worker()
+
+
+def test_a_console_velocity_limit_is_estimated_again_as_typed() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    printer.objects["virtual_sdcard"].file_position = 300
+    printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="1000")
+    assert printer.accel == 1000.
+    assert worker.requests[-1]["events"] == [[300, "SET_VELOCITY_LIMIT ACCEL=1000"]]
+    printer.reactor.advance(1.)
+    assert kest.get_status(0.)["source"] == "provisional"
+    printer.objects["virtual_sdcard"].cmd_from_sd = True
+    printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="2000")   # the file's own: estimated
+    assert len(worker.requests) == 2

@@ -75,6 +75,16 @@ def _after_change(result: dict[str, Any]) -> list[dict[str, Any]]:
     return [s for s in result["samples"] if s["print_time"] >= change_t]
 
 
+@pytest.mark.parametrize("slicer", ["cura", "prusaslicer"])
+def test_a_velocity_limit_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: str) -> None:
+    """Mainsail's and Fluidd's limit sliders send SET_VELOCITY_LIMIT."""
+    result = _print(tmp_path, slicer, users=[
+        (0.4, "SET_VELOCITY_LIMIT ACCEL=700 SQUARE_CORNER_VELOCITY=2")])
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
 @pytest.mark.parametrize("slicer", sorted(FILES))
 @pytest.mark.parametrize("factor", [50, 150])
 def test_a_speed_change_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: str,

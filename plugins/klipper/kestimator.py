@@ -52,6 +52,10 @@ MAX_PENDING_ANCHORS = 64
 PROGRESS_HOLD = 5.0
 # Objects reported in the status at most (largest remaining first).
 MAX_STATUS_OBJECTS = 64
+# Commands that change the time of what follows (besides M220 and EXCLUDE_OBJECT): typed
+# during a print, each is an event the rest of the file is estimated again with.
+FOLLOWED_COMMANDS = ("SET_VELOCITY_LIMIT", "M204", "SET_PRESSURE_ADVANCE",
+                     "SET_INPUT_SHAPER", "SET_RETRACTION")
 # Worker niceness: estimating must never compete with Klipper for the CPU.
 WORKER_NICE = 10
 # `python3 -m kestimator.worker`, with this checkout last on the path: an installed
@@ -292,6 +296,8 @@ class Kestimator:
         if self.vsd is None:
             raise ValueError("needs [virtual_sdcard]")
         self._wrap("M220", self._after_M220)
+        for name in FOLLOWED_COMMANDS:
+            self._wrap(name, self._after_followed)
         if self.set_progress and self.display_status is not None:
             self._wrap("M73", self._after_M73)
         self.timer = self.reactor.register_timer(self._update_timer,
@@ -408,6 +414,16 @@ class Kestimator:
             return
         self.provisional = ("speed", old / factor if factor > 0. else 1.)
         self._add_event("M220 S%.10g" % (factor * 100.,))
+
+    def _after_followed(self, gcmd: Any) -> None:
+        """SET_VELOCITY_LIMIT and the like typed during the print: estimated again with
+        the command as typed; the time stands (provisional) until then."""
+        if self.path is None or self._from_file():
+            return
+        text = " ".join(str(gcmd.get_commandline()).split())[:200]
+        if text:
+            self.provisional = ("changed", None)
+            self._add_event(text)
 
     def _after_M73(self, gcmd: Any) -> None:
         self._set_display_progress(self.reactor.monotonic())

@@ -83,9 +83,13 @@ class Reactor:
 
 
 class GCodeCommand:
-    def __init__(self, params: dict[str, str]) -> None:
+    def __init__(self, params: dict[str, str], commandline: str = "") -> None:
         self.params = params
+        self.commandline = commandline
         self.responses: list[str] = []
+
+    def get_commandline(self) -> str:
+        return self.commandline
 
     def get_float(self, name: str, default: Any = None) -> Any:
         return float(self.params[name]) if name in self.params else default
@@ -115,7 +119,7 @@ class GCode:
             callback("// " + msg)
 
     def run(self, name: str, **params: str) -> GCodeCommand:
-        gcmd = GCodeCommand(params)
+        gcmd = GCodeCommand(params, " ".join([name] + ["%s=%s" % kv for kv in params.items()]))
         self.handlers[name](gcmd)
         return gcmd
 
@@ -220,6 +224,12 @@ class Printer:
                                         "print_stats": PrintStats()}
         self.objects["display_status"] = DisplayStatus(self.gcode)
         self.objects["gcode_move"] = GCodeMove(self.gcode)
+        self.accel = 3000.
+        self.gcode.register_command("SET_VELOCITY_LIMIT", self.cmd_SET_VELOCITY_LIMIT)
+
+    def cmd_SET_VELOCITY_LIMIT(self, gcmd: GCodeCommand) -> None:
+        """The toolhead's command (only ACCEL here)."""
+        self.accel = gcmd.get_float("ACCEL", self.accel)
 
     def get_reactor(self) -> Reactor:
         return self.reactor
