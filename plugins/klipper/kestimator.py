@@ -239,6 +239,7 @@ class Kestimator:
         self.disabled = False
         self.timer: Any = None
         self.max_callback_ms = 0.
+        self.asked_at = 0.
         # Wall clock = reactor time + this (for the ETA).
         self.wall_offset = time.time() - self.reactor.monotonic()
         # Clock in print_time: Klipper's estimate of where the head is now.
@@ -363,6 +364,7 @@ class Kestimator:
                                  self._guard(self._handle_worker_exit))
         self.request_id += 1
         self.pending_id = self.request_id
+        self.asked_at = self.reactor.monotonic()
         self.worker.send({
             "id": self.request_id, "file": self.path,
             "config": self.config_file or None,
@@ -382,6 +384,9 @@ class Kestimator:
         self.table = Table(answer)
         self.provisional = None
         self.error = None
+        logging.info("kestimator: %s for %s: %d points, %.1f s in all, after %.2f s",
+                     self.table.source, self.path, len(self.table.offsets),
+                     self.table.total_s, self.reactor.monotonic() - self.asked_at)
 
     def _handle_worker_exit(self) -> None:
         self.worker = None
@@ -559,6 +564,7 @@ class Kestimator:
         else:
             factor = 1.
         if path is not None and vsd.is_active() and path != self.path:
+            logging.info("kestimator: following the print of %s", path)
             self._reset_print(path)
             if abs(factor - 1.) > 1e-9:
                 # A speed factor left from before the print applies to all of it.
