@@ -350,3 +350,16 @@ def test_a_console_velocity_limit_is_estimated_again_as_typed() -> None:
     printer.objects["virtual_sdcard"].cmd_from_sd = True
     printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="2000")   # the file's own: estimated
     assert len(worker.requests) == 2
+
+
+def test_a_cancelled_print_has_no_remaining_time() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    printer.reactor.advance(1.)
+    assert kest.get_status(0.)["remaining_s"] is not None
+    printer.objects["print_stats"].state = "cancelled"
+    printer.objects["virtual_sdcard"].active = False
+    printer.reactor.advance(1.)
+    status = kest.get_status(0.)
+    assert status["state"] == "cancelled"
+    assert status["remaining_s"] is None and status["progress"] is None

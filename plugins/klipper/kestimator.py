@@ -514,7 +514,8 @@ class Kestimator:
         if self.print_stats is not None:
             state = self.print_stats.get_status(eventtime)["state"]
         status["state"] = state if table is not None else "estimating"
-        if table is None:
+        if table is None or state in ("cancelled", "error"):
+            # Nothing is left to print (print_stats says why).
             return status
         status["table_bytes"] = table.nbytes
         status["warnings"] = list(table.warnings)
