@@ -363,3 +363,9 @@ def test_a_cancelled_print_has_no_remaining_time() -> None:
     status = kest.get_status(0.)
     assert status["state"] == "cancelled"
     assert status["remaining_s"] is None and status["progress"] is None
+
+
+def test_the_python_option_may_start_with_a_tilde() -> None:
+    printer = stubs.Printer()
+    kest = MOD.load_config(stubs.Config(printer, {"python": "~/kestimator/.venv-host/bin/python"}))
+    assert kest.python == os.path.expanduser("~/kestimator/.venv-host/bin/python")

@@ -219,7 +219,8 @@ class Kestimator:
     def __init__(self, config: Any) -> None:
         self.printer = printer = config.get_printer()
         self.reactor = printer.get_reactor()
-        self.python = config.get("python", None) or default_python()
+        python = config.get("python", None)
+        self.python = os.path.expanduser(python) if python else default_python()
         self.use_table = config.getboolean("use_file_table", True)
         self.set_progress = config.getboolean("set_progress", True)
         self.interval = config.getfloat("update_interval", UPDATE_INTERVAL,
