@@ -90,8 +90,7 @@ def spacing_bound(remaining_s: float) -> float:
 
 
 class _EstimateLike(Protocol):
-    """What `select` reads of a `kestimator.estimate.Estimate` (and, when it has it,
-    `object_remaining`)."""
+    """What `select` reads of a `kestimator.estimate.Estimate`."""
 
     @property
     def total_s(self) -> float: ...
@@ -103,6 +102,12 @@ class _EstimateLike(Protocol):
     def sample_times(self) -> Iterable[float]: ...
     @property
     def layers(self) -> Iterable[tuple[int, float]]: ...
+    @property
+    def tail_lines(self) -> Iterable[int]: ...
+    @property
+    def tail_times(self) -> Iterable[float]: ...
+    @property
+    def object_remaining(self) -> Sequence[tuple[int, float, Mapping[str, float]]]: ...
 
 
 @dataclasses.dataclass(frozen=True)
@@ -121,22 +126,6 @@ class Selection:
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
         return sorted(set(self.lines) | set(self.object_lines))
-
-
-def _object_entries(est: object) -> list[tuple[int, float, Mapping[str, float]]]:
-    """`Estimate.object_remaining` as (line, t, {name: seconds}); [] when the estimate has
-    none (tuples or {"line", "t", "remaining"} mappings are both read)."""
-    raw = getattr(est, "object_remaining", None)
-    if not raw:
-        return []
-    entries = []
-    for entry in raw:
-        if isinstance(entry, Mapping):
-            entries.append((int(entry["line"]), float(entry["t"]), entry["remaining"]))
-        else:
-            line, t, remaining = entry
-            entries.append((int(line), float(t), remaining))
-    return entries
 
 
 def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
@@ -170,8 +159,8 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
     for line, t in est.layers:
         by_line[line] = max(t, by_line.get(line, 0.0))
         layer_lines.add(line)
-    tail = zip(getattr(est, "tail_lines", ()), getattr(est, "tail_times", ()))
-    for line, t in chain(zip(est.sample_lines, est.sample_times), tail):
+    for line, t in chain(zip(est.sample_lines, est.sample_times),
+                         zip(est.tail_lines, est.tail_times)):
         after = line + 1
         by_line[after] = max(t, by_line.get(after, 0.0))
     lines = sorted(line for line in by_line if line <= est.n_lines)
@@ -200,9 +189,9 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
                      object_remaining=remaining)
 
 
-def _select_objects(est: object, max_points: int, max_objects: int
+def _select_objects(est: _EstimateLike, max_points: int, max_objects: int
                     ) -> tuple[list[str], list[int], list[list[float]]]:
-    entries = [e for e in _object_entries(est) if e[0] <= getattr(est, "n_lines", e[0])]
+    entries = [e for e in est.object_remaining if e[0] <= est.n_lines]
     if not entries:
         return [], [], []
     if len(entries) > max_points:

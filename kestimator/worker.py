@@ -28,7 +28,6 @@ table's module are imported up front; the estimator loads on the first estimate.
 
 from __future__ import annotations
 
-import inspect
 import json
 import math
 import os
@@ -49,7 +48,6 @@ from kestimator.progress_table import (
 MAX_REQUEST_BYTES = 1 << 20
 MAX_EVENTS = 10000
 MAX_ERROR_CHARS = 500
-EVENTS_UNSUPPORTED = "events not supported"
 
 
 class RequestError(Exception):
@@ -132,14 +130,10 @@ def estimate_table(path: str, config: str | None,
     from kestimator.estimate import estimate_lines, iter_lines
     from kestimator.rewrite import check_gcode_file
 
-    extra: dict[str, Any] = {}
+    lines: list[int] = []
     if events:
-        if "events" not in inspect.signature(estimate_lines).parameters:
-            raise RequestError(EVENTS_UNSUPPORTED)
         with open(path, "rb") as f:
             lines = lines_at_offsets(f.read, [offset for offset, _ in events])
-        extra["events"] = sorted(zip(lines, (text for _, text in events)),
-                                 key=lambda event: event[0])
     check_gcode_file(path)
     resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config))
     macros = learn.macro_times_for(resolved, True)
@@ -147,7 +141,7 @@ def estimate_table(path: str, config: str | None,
     est = estimate_lines(iter_lines(path), resolved.limits, path,
                          homing_time=resolved.homing_time_s or 0.0,
                          heat_time=resolved.heat_time_s or 0.0, sample=True, macros=macros,
-                         **extra)
+                         events=list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
     selection = select(est, precision=WORKER_PRECISION)
     size = os.path.getsize(path)

@@ -160,6 +160,9 @@ def test_select_keeps_at_most_the_point_limit_deterministically() -> None:
         sample_lines = list(range(1, 200_000, 2))
         sample_times = [i * 1.0 for i in range(100_000)]
         layers = [(i * 100 + 2, i * 50.0) for i in range(2000)]
+        tail_lines: list[int] = []
+        tail_times: list[float] = []
+        object_remaining: list[tuple[int, float, dict[str, float]]] = []
 
     first = select(Fake(), max_points=5000)
     assert len(first.lines) <= 5000

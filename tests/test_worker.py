@@ -72,11 +72,9 @@ def test_worker_answers_from_the_table_and_by_estimating_and_survives_bad_reques
         with_events = _ask(proc, {"id": 5, "file": str(src), "config": str(CORPUS_CFG),
                                   "events": [[5000, "M220 S150"]]})
         assert with_events["id"] == 5
-        if not with_events["ok"]:  # the estimate does not take events yet
-            assert with_events["error"] == "events not supported"
-        else:
-            assert with_events["source"] == "estimate"
-            assert with_events["total_s"] < total
+        assert with_events["ok"]
+        assert with_events["source"] == "estimate"
+        assert with_events["total_s"] < total
     finally:
         assert proc.stdin is not None
         proc.stdin.close()
