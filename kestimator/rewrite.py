@@ -613,12 +613,11 @@ class Rewriter:
         process_line = self.process
 
         def process(raw: bytes) -> list[bytes]:
-            lineno = self.lineno + 1
             k = self._table_next
-            if k >= len(wanted) or wanted[k] != lineno:
-                return process_line(raw)
-            offsets[lineno] = self._out_pos  # before `_comment` may write the table here
-            self._table_next = k + 1
+            if k < len(wanted) and wanted[k] == self.lineno + 1:
+                # before `_comment` may write the table here
+                offsets[wanted[k]] = self._out_pos
+                self._table_next = k + 1
             return process_line(raw)
         return counted, process
 

@@ -241,6 +241,9 @@ class Kestimator:
         self.timer: Any = None
         self.max_callback_ms = 0.
         self.asked_at = 0.
+        # Request ids keep counting across prints: a late answer for an earlier print
+        # can never pass for this one's.
+        self.request_id = 0
         # Wall clock = reactor time + this (for the ETA).
         self.wall_offset = time.time() - self.reactor.monotonic()
         # Clock in print_time: Klipper's estimate of where the head is now.
@@ -331,9 +334,6 @@ class Kestimator:
     def _reset_print(self, path: str | None) -> None:
         self.path = path
         self.table: Table | None = None
-        # Request ids keep counting across prints: a late answer for an earlier print
-        # can never pass for this one's.
-        self.request_id = getattr(self, "request_id", 0)
         self.pending_id: int | None = None
         self.events: list[tuple[int, str]] = []
         # (print_time, file position) last planned
