@@ -305,6 +305,7 @@ class Kestimator:
             self._wrap(name, self._after_followed)
         if self.set_progress and self.display_status is not None:
             self._wrap("M73", self._after_M73)
+        self._hook_line_starts()
         self.timer = self.reactor.register_timer(self._update_timer,
                                                  self.reactor.NOW)
 
@@ -325,6 +326,35 @@ class Kestimator:
             self.gcode.register_command(name, original)
             raise
 
+    def _hook_line_starts(self) -> None:
+        """Anchor at the start of a line, where every earlier line's moves are queued.
+
+        On a printer virtual_sdcard spends its waiting time inside a line (a G1 pauses in
+        toolhead._check_pause with cmd_from_sd true), which is when the reactor runs our
+        timer; and an arc, a macro or a bed-mesh split may have queued only part of that
+        line's moves. So the timer only asks for an anchor, and it is taken just before
+        virtual_sdcard hands Klipper its next line (gcode.run_script, which it calls once a
+        line): a boolean test per line when none is wanted. A command typed at the console
+        (run_script with cmd_from_sd false) is also a line boundary: anchored before it
+        runs, so that a PAUSE's park move or a typed move never counts as the file's."""
+        gcode = self.gcode
+        original = gcode.run_script
+        vsd = self.vsd
+        anchor = self._guard(self._anchor_line_start)
+
+        def run_script(script: str) -> Any:
+            if self.want_anchor or not vsd.cmd_from_sd:
+                anchor()
+            return original(script)
+        gcode.run_script = run_script
+
+    def _anchor_line_start(self) -> None:
+        vsd = self.vsd
+        if self.path is None or not vsd.is_active() or vsd.file_path() != self.path:
+            return
+        self.want_anchor = False
+        self.anchor_here(vsd.file_position)
+
     def _stop_worker(self) -> None:
         worker, self.worker = self.worker, None
         if worker is not None:
@@ -339,6 +369,8 @@ class Kestimator:
         # (print_time, file position) last planned
         self.anchor: tuple[float, int] | None = None
         self.anchor_pending = 0
+        # The update timer asks; the next line start (or typed command) anchors.
+        self.want_anchor = False
         # ("speed", factor) or ("exclude", names) until the exact answer
         self.provisional: tuple[str, Any] | None = None
         self.excluded: list[str] = []
@@ -481,16 +513,28 @@ class Kestimator:
         last.timing_callbacks.append(self._guard(planned))
 
     def remaining_at(self, print_time: float) -> float | None:
-        """Seconds of printing left when the head is at `print_time`: the
-        table's time from the last anchor's position to the end, plus what
-        Klipper had queued past `print_time` at that anchor."""
+        """Seconds of printing left when the head is at `print_time`.
+
+        From the last anchor (position P, its moves ending at print_time A): the table's
+        time from P to the end, plus what was queued ahead of the head (A - now). Past A,
+        while the toolhead is still moving (the line in flight queues moves that no anchor
+        has seen yet: an arc, a macro), the head is that much further into the table, but
+        never past the end of the line being run; when the toolhead is idle (a heater wait,
+        a pause) nothing is taken off."""
         table = self.table
         anchor = self.anchor
         if table is None or anchor is None:
             return None
         anchor_pt, position = anchor
-        left = (max(0., table.total_s - table.time_at(position))
-                + max(0., anchor_pt - print_time))
+        left = max(0., table.total_s - table.time_at(position))
+        if anchor_pt >= print_time:
+            left += anchor_pt - print_time
+        else:
+            moving_until = self._moving_until()
+            if moving_until > anchor_pt:
+                floor = max(0., table.total_s - table.time_at(self._line_end()))
+                elapsed = min(print_time, moving_until) - anchor_pt
+                left = max(min(left, floor), left - elapsed)
         provisional = self.provisional
         if provisional is not None and provisional[0] == "speed":
             left *= provisional[1]
@@ -501,6 +545,23 @@ class Kestimator:
                        if name.upper() in gone])
             left = max(0., left - cut)
         return left
+
+    def _moving_until(self) -> float:
+        """The print_time up to which the toolhead is known to move: the end of the
+        planned moves, or for ever while moves wait in the look-ahead queue."""
+        toolhead = self.toolhead
+        queue = getattr(toolhead, "lookahead", None)
+        if queue is not None and queue.get_last() is not None:
+            return float("inf")
+        return float(toolhead.print_time)
+
+    def _line_end(self) -> int:
+        """File position after the line virtual_sdcard is running (its start between
+        lines): the head cannot be past it."""
+        vsd = self.vsd
+        if vsd.cmd_from_sd:
+            return int(getattr(vsd, "next_file_position", vsd.file_position))
+        return int(vsd.file_position)
 
     def status_at(self, print_time: float, eventtime: float) -> dict[str, Any]:
         """The status dict with the head at `print_time`."""
@@ -521,7 +582,7 @@ class Kestimator:
         status["table_bytes"] = table.nbytes
         status["warnings"] = list(table.warnings)
         remaining = self.remaining_at(print_time)
-        if state == "complete":
+        if state == "complete" and remaining is None:
             remaining = 0.
         if remaining is None:
             return status
@@ -568,19 +629,121 @@ class Kestimator:
         if path is not None and vsd.is_active() and path != self.path:
             logging.info("kestimator: following the print of %s", path)
             self._reset_print(path)
-            if abs(factor - 1.) > 1e-9:
-                # A speed factor left from before the print applies to all of it.
-                self.events.append((0, "M220 S%.10g" % (factor * 100.,)))
+            for text in self.state_before_print(eventtime):
+                # Set at the console before the print: it applies to all of it.
+                self.events.append((0, text))
             self._request()
         if self.provisional is None:
             self.speed_factor = factor
         if self.path is None:
             self.status = self._idle_status()
             return
-        if vsd.is_active() and not vsd.is_cmd_from_sd():
-            self.anchor_here(vsd.file_position)
+        if not vsd.is_active() and self.print_stats is not None and self.anchor is not None:
+            if (self.print_stats.get_status(eventtime)["state"] == "complete"
+                    and self.anchor[1] != vsd.file_position):
+                # The file is read to its end; its last moves may still run.
+                self.anchor_here(vsd.file_position)
+        if vsd.is_active():
+            if vsd.is_cmd_from_sd():
+                # Inside a line (a G1 waiting for the queue): anchor at the next line start.
+                self.want_anchor = True
+            else:
+                self.want_anchor = False
+                self.anchor_here(vsd.file_position)
         self.status = self.status_at(self.now_print_time(eventtime), eventtime)
         self._set_display_progress(eventtime)
+
+    def state_before_print(self, eventtime: float) -> list[str]:
+        """Commands that take the printer from its printer.cfg to the state it is in as a
+        print starts: what the user set at the console before it (Mainsail's and Fluidd's
+        limit and speed sliders, a Z offset, pressure advance, retraction, input shaper)
+        stays until a restart, and the print runs with it. Klipper's own status and
+        configfile's settings are compared; each difference is an event at the file's
+        start."""
+        lookup = self.printer.lookup_object
+        configfile = lookup("configfile", None)
+        settings: dict[str, Any] = {}
+        if configfile is not None:
+            settings = configfile.get_status(eventtime).get("settings", {})
+
+        def differ(live: Any, conf: Any) -> bool:
+            try:
+                return abs(float(live) - float(conf)) > 1e-9 * max(1., abs(float(conf)))
+            except (TypeError, ValueError):
+                return False
+
+        def words(pairs: list[tuple[str, Any]]) -> str:
+            return " ".join("%s=%.10g" % (word, float(value)) for word, value in pairs)
+        events = []
+        # toolhead: SET_VELOCITY_LIMIT / M204
+        th = self.toolhead.get_status(eventtime)
+        printer_cfg = settings.get("printer", {})
+        limits = [(word, th[key]) for key, word, default in (
+            ("max_velocity", "VELOCITY", None), ("max_accel", "ACCEL", None),
+            ("square_corner_velocity", "SQUARE_CORNER_VELOCITY", 5.),
+            ("minimum_cruise_ratio", "MINIMUM_CRUISE_RATIO", .5))
+            if key in th and differ(th[key], printer_cfg.get(key, default))]
+        if limits:
+            events.append("SET_VELOCITY_LIMIT " + words(limits))
+        # gcode_move: M220, M221, SET_GCODE_OFFSET
+        if self.gcode_move is not None:
+            gm = self.gcode_move.get_status(eventtime)
+            if differ(gm.get("speed_factor", 1.), 1.):
+                events.append("M220 S%.10g" % (gm["speed_factor"] * 100.,))
+            if differ(gm.get("extrude_factor", 1.), 1.):
+                events.append("M221 S%.10g" % (gm["extrude_factor"] * 100.,))
+            origin = list(gm.get("homing_origin", [0., 0., 0.]))[:3]
+            offsets = [(axis, v) for axis, v in zip("XYZ", origin) if differ(v, 0.)]
+            if offsets:
+                events.append("SET_GCODE_OFFSET " + words(offsets))
+        # extruders: SET_PRESSURE_ADVANCE
+        for name, obj in self.printer.lookup_objects():
+            if (not name.startswith("extruder") or not name[8:].isdigit() and name[8:]
+                    or not hasattr(obj, "get_status")):
+                continue
+            status = obj.get_status(eventtime)
+            conf = settings.get(name, {})
+            pa = [(word, status[key]) for key, word, option, default in (
+                ("pressure_advance", "ADVANCE", "pressure_advance", 0.),
+                ("smooth_time", "SMOOTH_TIME", "pressure_advance_smooth_time", .04))
+                if key in status and differ(status[key], conf.get(option, default))]
+            if pa:
+                events.append("SET_PRESSURE_ADVANCE EXTRUDER=%s %s" % (name, words(pa)))
+        # firmware_retraction: SET_RETRACTION
+        retraction = lookup("firmware_retraction", None)
+        if retraction is not None:
+            status = retraction.get_status(eventtime)
+            conf = settings.get("firmware_retraction", {})
+            defaults = {"retract_length": 0., "retract_speed": 20.,
+                        "unretract_extra_length": 0., "unretract_speed": 10.}
+            changed = [(key.upper(), status[key]) for key in sorted(defaults)
+                       if key in status
+                       and differ(status[key], conf.get(key, defaults[key]))]
+            if changed:
+                events.append("SET_RETRACTION " + words(changed))
+        # input_shaper: SET_INPUT_SHAPER
+        shaper = lookup("input_shaper", None)
+        if shaper is not None and hasattr(shaper, "get_shapers"):
+            conf = settings.get("input_shaper", {})
+            parts = []
+            for axis_shaper in shaper.get_shapers():
+                axis = str(axis_shaper.axis)
+                params = axis_shaper.params
+                live_type = str(params.shaper_type)
+                conf_type = str(conf.get("shaper_type_" + axis,
+                                         conf.get("shaper_type", "mzv"))).lower()
+                if (differ(params.shaper_freq, conf.get("shaper_freq_" + axis, 0.))
+                        or differ(params.damping_ratio,
+                                  conf.get("damping_ratio_" + axis, .1))
+                        or live_type != conf_type):
+                    parts.append("SHAPER_TYPE_%s=%s SHAPER_FREQ_%s=%.10g "
+                                  "DAMPING_RATIO_%s=%.10g" % (
+                                      axis.upper(), live_type, axis.upper(),
+                                      params.shaper_freq, axis.upper(),
+                                      params.damping_ratio))
+            if parts:
+                events.append("SET_INPUT_SHAPER " + " ".join(parts))
+        return events
 
     def get_status(self, eventtime: float) -> dict[str, Any]:
         status = dict(self.status)

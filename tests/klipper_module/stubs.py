@@ -118,6 +118,13 @@ class GCode:
         for callback in self.outputs:
             callback("// " + msg)
 
+    def run_script(self, script: str) -> None:
+        """Klipper's gcode.run_script: each line's command with its KEY=VALUE words."""
+        for line in script.split("\n"):
+            words = line.split()
+            if words and words[0].upper() in self.handlers:
+                self.run(words[0].upper(), **dict(w.split("=", 1) for w in words[1:]))
+
     def run(self, name: str, **params: str) -> GCodeCommand:
         gcmd = GCodeCommand(params, " ".join([name] + ["%s=%s" % kv for kv in params.items()]))
         self.handlers[name](gcmd)
@@ -157,6 +164,11 @@ class ToolHead:
         self.lookahead = LookAhead()
         self.print_time = 0.
         self.mcu = MCU()
+        self.limits = {"max_velocity": 300., "max_accel": 3000.,
+                       "square_corner_velocity": 5., "minimum_cruise_ratio": .5}
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        return dict(self.limits, print_time=self.print_time)
 
     def plan(self, end_print_time: float) -> None:
         """The look-ahead flushed: its moves end at `end_print_time`, as print_time."""
@@ -170,6 +182,7 @@ class VirtualSD:
         self.active = False
         self.cmd_from_sd = False
         self.file_position = 0
+        self.next_file_position = 0
 
     def file_path(self) -> str | None:
         return self.path
@@ -213,6 +226,17 @@ class GCodeMove:
         return {"speed_factor": self.speed_factor}
 
 
+class ConfigFile:
+    """Klipper's configfile: the settings printer.cfg gave (here the toolhead's limits as
+    they are when the stub starts)."""
+
+    def __init__(self, limits: dict[str, float]) -> None:
+        self.settings = {"printer": dict(limits)}
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        return {"settings": self.settings}
+
+
 class Printer:
     def __init__(self, config_file: str = "/tmp/printer.cfg") -> None:
         self.reactor = Reactor()
@@ -224,12 +248,14 @@ class Printer:
                                         "print_stats": PrintStats()}
         self.objects["display_status"] = DisplayStatus(self.gcode)
         self.objects["gcode_move"] = GCodeMove(self.gcode)
+        self.objects["configfile"] = ConfigFile(self.objects["toolhead"].limits)
         self.accel = 3000.
         self.gcode.register_command("SET_VELOCITY_LIMIT", self.cmd_SET_VELOCITY_LIMIT)
 
     def cmd_SET_VELOCITY_LIMIT(self, gcmd: GCodeCommand) -> None:
         """The toolhead's command (only ACCEL here)."""
         self.accel = gcmd.get_float("ACCEL", self.accel)
+        self.objects["toolhead"].limits["max_accel"] = self.accel
 
     def get_reactor(self) -> Reactor:
         return self.reactor
@@ -243,6 +269,9 @@ class Printer:
         if default == "<required>":
             raise KeyError(name)
         return default
+
+    def lookup_objects(self, module: str | None = None) -> list[tuple[str, Any]]:
+        return [(n, o) for n, o in self.objects.items() if module is None or n == module]
 
     def register_event_handler(self, event: str, callback: Callable[..., Any]) -> None:
         self.handlers.setdefault(event, []).append(callback)
