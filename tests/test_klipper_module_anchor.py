@@ -5,9 +5,9 @@ state the user set at the console before the print is part of the estimate. The 
 real Klipper printing at wall-clock speed: tests/test_klipper_module_realtime.py."""
 from __future__ import annotations
 
-import pytest
-
 from typing import Any
+
+import pytest
 
 from tests.klipper_module import stubs
 from tests.test_klipper_module import b64, printing

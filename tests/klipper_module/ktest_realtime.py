@@ -101,7 +101,7 @@ class KTestRealtime:
 
         def estimated_print_time(eventtime):
             return eventtime + offset
-        for name, mcu in self.printer.lookup_objects(module="mcu"):
+        for _name, mcu in self.printer.lookup_objects(module="mcu"):
             mcu.estimated_print_time = estimated_print_time
         self.toolhead = lookup("toolhead")
         self.toolhead.can_pause = True
