@@ -56,6 +56,23 @@ def require_program(name: str) -> str:
     return found
 
 
+def require_klipper() -> tuple[str, str]:
+    """(Klipper tree, its Python) of the oracle's Klipper 84104bbbd (ORACLE_KLIPPER /
+    ORACLE_PYTHON, or ~/oracle): skipped without it, but under CI it must be there
+    (.ci/run builds it with .ci/klipper-setup from ../shared/upstream)."""
+    import sys
+
+    sys.path.insert(0, str(PROJECT / "tests" / "klipper_module"))
+    import run_print
+
+    paths = run_print.oracle_paths()
+    if paths is None:
+        if IN_CI:
+            pytest.fail("the oracle's Klipper is not set up (.ci/klipper-setup builds it)")
+        pytest.skip("the oracle's Klipper is not set up here (.ci/klipper-setup)")
+    return paths
+
+
 def load_cura_build_script() -> Any:
     """plugins/cura/build.py, under a name no installed module has."""
     spec = importlib.util.spec_from_file_location(

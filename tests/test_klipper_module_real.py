@@ -1,8 +1,8 @@
 """The Klipper module in real Klipper: virtual-SD prints of corpus files from five slicers
 in the oracle's Klipper (batch mode, tests/klipper_module/run_print.py), the module's
 remaining time sampled at 12+ points and compared with the time Klipper then really took
-to the end. Runs where the oracle is set up (ORACLE_KLIPPER, ../shared/tools/oracle);
-skipped elsewhere: Klipper cannot be fetched on the CI machine. The module's logic also runs
+to the end. Runs where the oracle's Klipper is set up (.ci/klipper-setup builds it from
+../shared/upstream; CI always has it, elsewhere these skip without it). The module's logic also runs
 without Klipper in tests/test_klipper_module.py."""
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ import pytest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
 import run_print  # noqa: E402
+
+from tests.conftest import require_klipper  # noqa: E402
 
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 FILES = {
@@ -31,8 +33,11 @@ PLAIN_ABS, PLAIN_REL = 0.5, 0.002
 CHANGED_ABS, CHANGED_REL = 1.0, 0.01
 ANSWER_WITHIN_S = 2.0
 
-pytestmark = pytest.mark.skipif(run_print.oracle_paths() is None,
-                                reason="the oracle's Klipper is not set up here")
+
+
+@pytest.fixture(autouse=True)
+def _klipper() -> None:
+    require_klipper()
 
 
 def _print(tmp_path: Path, slicer: str, **kw: Any) -> dict[str, Any]:
