@@ -40,6 +40,8 @@ def answer(request_id: int, total: float = 100., objects: bool = False,
 
 class FakeWorker:
     """Records requests instead of starting a process."""
+    unsent = b""
+
     def __init__(self) -> None:
         self.requests: list[dict[str, Any]] = []
 
@@ -55,6 +57,7 @@ def printing(options: dict[str, str] | None = None) -> tuple[Any, stubs.Printer,
     printer = stubs.Printer()
     kest = MOD.load_config(stubs.Config(printer, options))
     printer.send_event("klippy:ready")
+    kest._stop_worker()            # the one started at klippy:ready
     worker = FakeWorker()
     kest.worker = worker
     vsd = printer.objects["virtual_sdcard"]
@@ -147,6 +150,7 @@ def test_excluding_an_object_drops_its_time_at_once_then_asks_for_the_exact_one(
     assert status["remaining_s"] == pytest.approx(50. - 20.)
     assert status["objects"] == {"a": 30., "B": 0.}
     assert status["excluded_objects"] == ["B"]
+    kest.on_answer(answer(2, objects=True))
     printer.gcode.respond_info("Unexcluding object B")
     assert worker.requests[-1]["events"][-1] == [600, "EXCLUDE_OBJECT RESET=1 NAME=B"]
 
@@ -177,10 +181,15 @@ def test_set_progress_off_leaves_display_status_alone() -> None:
 def test_an_error_disables_the_module_with_one_log_line_and_klipper_goes_on(
         caplog: pytest.LogCaptureFixture) -> None:
     kest, printer, worker = printing()
-    kest.on_answer({"id": 1, "ok": True, "total_s": 5.})   # a table without points
+    kest.on_answer(answer(1))
+
+    def broken(eventtime: float) -> dict[str, Any]:
+        raise KeyError("state")
+    printer.objects["print_stats"].get_status = broken     # an error in an update
+    printer.reactor.advance(1.)
     assert kest.disabled
     status = kest.get_status(0.)
-    assert "table without points" in status["error"]
+    assert status["error"] == "KeyError: 'state'"
     errors = [r for r in caplog.records if r.levelno >= logging.ERROR]
     assert len(errors) == 1 and "kestimator" in errors[0].getMessage()
     # Klipper's own M220 and M73 still run; the timer stopped.
@@ -210,12 +219,33 @@ def test_an_old_answer_is_dropped_for_the_newest_request() -> None:
 
 
 def test_events_are_bounded() -> None:
+    """Past MAX_EVENTS changes (at different file positions) the print is no longer
+    followed, and the status says so; the module goes on for the next print."""
     kest, printer, worker = printing()
+    vsd = printer.objects["virtual_sdcard"]
     for k in range(MOD.MAX_EVENTS):
+        vsd.file_position = k
         printer.gcode.run("M220", S=str(100 + k))
-    assert not kest.disabled
+    assert not kest.disabled and kest.failed is None
+    vsd.file_position += 1
     printer.gcode.run("M220", S="50")
-    assert kest.disabled and "changes in one print" in kest.get_status(0.)["error"]
+    printer.reactor.advance(1.)
+    status = kest.get_status(0.)
+    assert "changes in one print" in status["error"] and status["state"] == "error"
+    assert status["remaining_s"] is None and not kest.disabled
+    assert len(kest.events) == MOD.MAX_EVENTS
+
+
+def test_speed_changes_at_one_file_position_are_one_event() -> None:
+    """A macro loop of M220s runs between two lines: only the last factor counts."""
+    kest, printer, worker = printing()
+    printer.objects["virtual_sdcard"].file_position = 300
+    for k in range(2 * MOD.MAX_EVENTS):
+        printer.gcode.run("M220", S=str(50 + k))
+    printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="1000")
+    printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="1000")
+    assert kest.failed is None and kest.events == [
+        (300, "M220 S%d" % (50 + 2 * MOD.MAX_EVENTS - 1)), (300, "SET_VELOCITY_LIMIT ACCEL=1000")]
 
 
 def test_a_new_print_starts_over() -> None:
@@ -283,7 +313,7 @@ def test_without_kestimator_the_status_says_so_and_klipper_goes_on(tmp_path: Any
     printer.objects["print_stats"].state = "printing"
     printer.reactor.run_timers()
     printer.reactor.pump_fds(lambda: kest.error is not None, timeout=30.)
-    assert kest.error == "the kestimator worker stopped (python: %s)" % bare
+    assert kest.error.startswith("the kestimator worker stopped (python: %s): " % bare)
     assert not kest.disabled and kest.worker is None
     printer.gcode.run("M220", S="50")
     assert printer.objects["gcode_move"].speed_factor == 0.5
@@ -293,6 +323,7 @@ def test_a_speed_factor_set_before_the_print_is_in_its_estimate() -> None:
     printer = stubs.Printer()
     kest = MOD.load_config(stubs.Config(printer))
     printer.send_event("klippy:ready")
+    kest._stop_worker()
     kest.worker = worker = FakeWorker()
     printer.gcode.run("M220", S="150")
     vsd = printer.objects["virtual_sdcard"]
@@ -369,3 +400,352 @@ def test_the_python_option_may_start_with_a_tilde() -> None:
     printer = stubs.Printer()
     kest = MOD.load_config(stubs.Config(printer, {"python": "~/kestimator/.venv-host/bin/python"}))
     assert kest.python == os.path.expanduser("~/kestimator/.venv-host/bin/python")
+
+
+# Issue 33: nothing that arrives can reach Klipper's reactor, the status never lies,
+# and every callback stays short.
+
+FAKE_WORKER = os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module",
+                           "fake_worker.py")
+
+
+def fake_python(tmp_path: Any, mode: str) -> str:
+    """A `python` for the module's option that runs tests/klipper_module/fake_worker.py."""
+    path = tmp_path / ("python-" + mode)
+    path.write_text("#!/bin/sh\nexec '%s' '%s' %s\n" % (sys.executable, FAKE_WORKER, mode))
+    path.chmod(0o755)
+    return str(path)
+
+
+def start_print(printer: stubs.Printer, path: str = "/sd/x.gcode") -> None:
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.path, vsd.active = path, True
+    printer.objects["print_stats"].state = "printing"
+    printer.reactor.run_timers()
+
+
+def unknown(status: dict[str, Any]) -> bool:
+    """Nothing about the time is claimed."""
+    return (status["remaining_s"] is None and status["progress"] is None
+            and status["eta"] is None and status["total_s"] is None
+            and status["source"] is None and status["objects"] == {})
+
+
+def test_an_oversized_answer_never_reaches_the_reactor_and_is_not_accumulated(
+        tmp_path: Any) -> None:
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": fake_python(tmp_path, "huge")}))
+    printer.send_event("klippy:ready")
+    start_print(printer, str(tmp_path / "x.gcode"))
+    worker = kest.worker
+    longest = [0]
+
+    def until() -> bool:
+        if kest.worker is not None:
+            longest[0] = max(longest[0], len(kest.worker.buf))
+        return kest.error is not None
+    try:
+        printer.reactor.pump_fds(until)   # raises if the fd callback lets anything out
+        assert "too large" in kest.error
+        assert longest[0] <= MOD.MAX_ANSWER_BYTES
+        assert not kest.disabled and unknown(kest.get_status(0.))
+        # refused, not retried: the same request would get the same answer
+        assert kest.worker is worker
+    finally:
+        kest._stop_worker()
+
+
+def test_a_line_that_is_not_json_never_reaches_the_reactor(tmp_path: Any) -> None:
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": fake_python(tmp_path, "garbage")}))
+    printer.send_event("klippy:ready")
+    start_print(printer, str(tmp_path / "x.gcode"))
+    try:
+        printer.reactor.pump_fds(lambda: kest.error is not None)
+        assert "not JSON" in kest.error and "this is not JSON" in kest.error
+        assert not kest.disabled and unknown(kest.get_status(0.))
+    finally:
+        kest._stop_worker()
+
+
+def test_every_callback_the_module_registers_is_guarded() -> None:
+    """An exception inside any of them disables the module; none leaves it."""
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+
+    def boom(*args: Any) -> Any:
+        raise RuntimeError("boom")
+    printer.objects["print_stats"].get_status = boom
+    printer.reactor.advance(1.)                  # the update timer
+    assert kest.disabled and "boom" in kest.error
+    for callbacks in printer.handlers.values():
+        for callback in callbacks:
+            callback()                          # event handlers: nothing leaves them
+    printer.gcode.respond_info("Excluding object B")
+    printer.gcode.run("M220", S="50")
+    printer.gcode.run("KESTIMATOR_STATUS")
+
+
+def test_after_an_error_the_status_says_what_is_no_longer_known() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1, objects=True))
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.file_position = 600
+    printer.reactor.advance(1.)
+    display = printer.objects["display_status"]
+    assert kest.get_status(0.)["remaining_s"] is not None and display.progress is not None
+    printer.objects["toolhead"].mcu.estimated_print_time = None   # an error in an update
+    printer.reactor.advance(1.)
+    assert kest.disabled
+    status = kest.get_status(0.)
+    assert status["state"] == "error" and "TypeError" in status["error"]
+    assert unknown(status)
+    # display_status is no longer held at our last value (Klipper's own goes on)
+    assert display.progress is None
+    gcmd = printer.gcode.run("KESTIMATOR_STATUS")
+    assert any("TypeError" in line for line in gcmd.responses)
+
+
+def test_a_failed_re_estimate_clears_the_time_and_is_not_retried() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.file_position = 500
+    printer.reactor.advance(1.)
+    printer.gcode.run("M220", S="150")
+    printer.reactor.advance(1.)
+    assert kest.get_status(0.)["source"] == "provisional"
+    kest.on_answer({"id": 2, "ok": False, "error": "no such file: /sd/x.gcode"})
+    printer.reactor.advance(1.)
+    status = kest.get_status(0.)
+    assert status["state"] == "error" and "no such file" in status["error"]
+    assert unknown(status) and not kest.disabled
+    printer.gcode.run("M220", S="120")
+    printer.reactor.advance(30.)
+    assert len(worker.requests) == 2
+
+
+def test_a_worker_that_dies_is_restarted_with_a_back_off_a_bounded_number_of_times(
+        tmp_path: Any, caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": fake_python(tmp_path, "die")}))
+    printer.send_event("klippy:ready")
+    start_print(printer, str(tmp_path / "x.gcode"))
+    try:
+        starts = []
+        for _ in range(10):
+            pid = kest.worker.proc.pid if kest.worker is not None else None
+            if pid is not None and pid not in starts:
+                starts.append(pid)
+            printer.reactor.pump_fds(lambda: kest.worker is None, timeout=10.)
+            assert "killed while estimating" in kest.error
+            if "no more" in kest.error:
+                break
+            printer.reactor.advance(60.)
+        assert len(starts) == 1 + MOD.MAX_RESTARTS    # klippy:ready's and the restarts
+        assert unknown(kest.get_status(0.)) and kest.get_status(0.)["state"] == "error"
+        restarts = [r for r in caplog.records if "restarting the worker" in r.getMessage()]
+        assert len(restarts) == MOD.MAX_RESTARTS
+    finally:
+        kest._stop_worker()
+
+
+def test_the_worker_starts_at_ready_not_in_a_timer(monkeypatch: pytest.MonkeyPatch,
+                                                   tmp_path: Any) -> None:
+    gcode = tmp_path / "x.gcode"
+    gcode.write_text("G28\nG1 X10 F600\n")
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": sys.executable}))
+    printer.send_event("klippy:ready")
+    try:
+        assert kest.worker is not None
+        started = []
+        real_popen = MOD.subprocess.Popen
+        monkeypatch.setattr(MOD.subprocess, "Popen",
+                            lambda *a, **k: started.append(a) or real_popen(*a, **k))
+        start_print(printer, str(gcode))
+        printer.reactor.pump_fds(lambda: kest.table is not None or kest.error is not None)
+        assert kest.table is not None and started == []
+    finally:
+        kest._stop_worker()
+
+
+def test_a_worker_that_cannot_start_says_why(tmp_path: Any) -> None:
+    printer = stubs.Printer(config_file="")
+    kest = MOD.load_config(stubs.Config(printer, {"python": fake_python(tmp_path,
+                                                                        "stderr-exit")}))
+    printer.send_event("klippy:ready")
+    start_print(printer, str(tmp_path / "x.gcode"))
+    try:
+        printer.reactor.pump_fds(lambda: kest.worker is None and kest.error is not None)
+        assert "No module named 'kestimator'" in kest.error
+        assert "No module named 'kestimator'" in kest.get_status(0.)["error"]
+    finally:
+        kest._stop_worker()
+
+
+def test_a_worker_that_died_before_the_write_is_handled_not_raised(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Any) -> None:
+    """The race behind the flaky test: the worker has exited when the request is written
+    (BrokenPipeError). Here it always has."""
+    real_popen = MOD.subprocess.Popen
+
+    def exited(*a: Any, **k: Any) -> Any:
+        proc = real_popen(*a, **k)
+        proc.wait()
+        return proc
+    monkeypatch.setattr(MOD.subprocess, "Popen", exited)
+    bare = tmp_path / "python"
+    bare.write_text("#!/bin/sh\nexit 1\n")
+    bare.chmod(0o755)
+    printer = stubs.Printer()
+    kest = MOD.load_config(stubs.Config(printer, {"python": str(bare)}))
+    printer.send_event("klippy:ready")
+    start_print(printer, str(tmp_path / "x.gcode"))
+    try:
+        printer.reactor.pump_fds(lambda: kest.error is not None, timeout=10.)
+        assert not kest.disabled
+        assert kest.error.startswith("the kestimator worker stopped (python: %s)" % bare)
+    finally:
+        kest._stop_worker()
+
+
+def big_answer(request_id: int, **fields: Any) -> dict[str, Any]:
+    doc = answer(request_id, objects=True)
+    doc.update(fields)
+    return doc
+
+
+@pytest.mark.parametrize("case", [
+    "objects", "names", "points", "object_points", "long_name", "oversized_b64"])
+def test_answers_beyond_the_workers_own_limits_are_refused_in_a_short_callback(
+        case: str) -> None:
+    kest, printer, worker = printing()
+    n = {"objects": MOD.MAX_OBJECTS + 1, "names": 200000}.get(case)
+    if n is not None:
+        doc = big_answer(1, object_names=["o%d" % i for i in range(n)],
+                         object_offsets_b64=b64("q", [0]),
+                         object_remaining_b64=b64("d", [1.] * n))
+    elif case == "points":
+        m = MOD.MAX_TIME_POINTS + 1
+        doc = big_answer(1, offsets_b64=b64("q", list(range(m))),
+                         times_b64=b64("d", [i / m for i in range(m)]), total_s=1.)
+    elif case == "object_points":
+        m = MOD.MAX_OBJECT_POINTS + 1
+        doc = big_answer(1, object_offsets_b64=b64("q", list(range(m))),
+                         object_remaining_b64=b64("d", [0.] * (2 * m)))
+    elif case == "long_name":
+        doc = big_answer(1, object_names=["a", "B" * 2700000])
+    else:
+        doc = big_answer(1, times_b64="A" * (16 << 20))
+    printer.reactor.advance(1.)
+    kest.max_callback_ms = 0.
+    kest.on_answer(doc)
+    printer.reactor.advance(1.)
+    status = kest.get_status(0.)
+    assert not kest.disabled and kest.table is None
+    assert "refused" in status["error"] and unknown(status)
+    assert len(repr(status)) < 5000
+    assert kest.max_callback_ms < 50.
+
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize("fields", [
+    {"total_s": NAN}, {"total_s": INF}, {"total_s": -1.}, {"total_s": "100"},
+    {"times_b64": b64("d", [0., NAN, 100.])}, {"times_b64": b64("d", [0., INF, 100.])},
+    {"times_b64": b64("d", [-1., 50., 100.])}, {"times_b64": b64("d", [0., 60., 50.])},
+    {"offsets_b64": b64("q", [0, 600, 500])}, {"offsets_b64": b64("q", [-5, 500, 1000])},
+    {"object_remaining_b64": b64("d", [60., NAN, 40., 20.])},
+    {"object_remaining_b64": b64("d", [60., 30., 40., -1.])},
+    {"object_remaining_b64": b64("d", [160., 30., 40., 20.])},
+    {"object_offsets_b64": b64("q", [500, 0])},
+], ids=repr)
+def test_values_from_the_worker_are_checked_before_they_are_used(
+        fields: dict[str, Any]) -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(big_answer(1, **fields))
+    printer.reactor.advance(1.)
+    status = kest.get_status(0.)
+    assert not kest.disabled and kest.table is None
+    assert "refused" in status["error"] and unknown(status)
+
+
+class PipeWorker(FakeWorker):
+    """The worker's real input pipe: a request that does not fit raises as os.write does."""
+    def __init__(self) -> None:
+        super().__init__()
+        self.room = 64 << 10
+
+    def send(self, request: dict[str, Any]) -> None:
+        import json
+        size = len(json.dumps(request)) + 1
+        if size > self.room:
+            raise BlockingIOError(11, "Resource temporarily unavailable")
+        self.room -= size
+        super().send(request)
+
+
+def test_a_burst_of_console_speed_changes_asks_once_for_the_latest() -> None:
+    kest, printer, worker = printing()
+    kest.worker = worker = PipeWorker()
+    kest.in_flight = None
+    kest.pending_id = None
+    kest._request()                       # the print's first request, in flight
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.file_position = 500
+    for k in range(300):                  # a macro loop: no file line in between
+        printer.gcode.run("M220", S=str(100 + k))
+    assert not kest.disabled and kest.error is None
+    assert len(worker.requests) == 1      # nothing more while one is in flight
+    kest.on_answer(answer(worker.requests[0]["id"]))
+    assert len(worker.requests) == 2      # the superseded one is not used, one more asked
+    assert kest.table is None
+    assert worker.requests[-1]["events"] == [[500, "M220 S399"]]
+    kest.on_answer(answer(worker.requests[-1]["id"], total=40.))
+    assert kest.table.total_s == 40. and len(worker.requests) == 2
+
+
+def test_names_with_a_quote_or_a_space_are_excluded_and_re_estimated(tmp_path: Any) -> None:
+    """Klipper takes NAME="it's" and NAME='my part'; the event the worker runs through
+    kestimator's interpreter names them the same, and their time goes."""
+    import shlex
+    lines = ["G28", "G90", "M83"]
+    names = {"it's": '"it\'s"', "my part": "'my part'", "plain": "plain"}
+    for i, quoted in enumerate(names.values()):
+        lines.append("EXCLUDE_OBJECT_DEFINE NAME=%s CENTER=%d,%d" % (quoted, 40 * i, 40 * i))
+    for layer in range(3):
+        lines += [";LAYER_CHANGE", "G1 Z%.1f F600" % (0.2 + 0.2 * layer)]
+        for i, quoted in enumerate(names.values()):
+            lines.append("EXCLUDE_OBJECT_START NAME=%s" % quoted)
+            lines += ["G1 X%d Y%d E0.5 F1200" % (40 * i + (k % 2) * 20, 40 * i + 2 * k)
+                      for k in range(10)]
+            lines.append("EXCLUDE_OBJECT_END NAME=%s" % quoted)
+    gcode = tmp_path / "x.gcode"
+    gcode.write_text("\n".join(lines) + "\n")
+    first_layer = gcode.read_bytes().index(b";LAYER_CHANGE")
+    for name in ("it's", "my part"):
+        printer = stubs.Printer(config_file="")
+        kest = MOD.load_config(stubs.Config(printer, {"python": sys.executable}))
+        printer.send_event("klippy:ready")
+        try:
+            start_print(printer, str(gcode))
+            printer.reactor.pump_fds(lambda k=kest: k.table is not None or k.error is not None)
+            assert kest.error is None
+            before = kest.table
+            left = before.objects_at(first_layer)[name]
+            assert left > 1.
+            printer.objects["virtual_sdcard"].file_position = first_layer
+            printer.gcode.respond_info("Excluding object %s" % name.upper())
+            event = kest.events[-1][1]
+            assert shlex.split(event) == ["EXCLUDE_OBJECT", "NAME=%s" % name.upper()]
+            printer.reactor.pump_fds(
+                lambda k=kest, b=before: k.table is not b or k.error is not None)
+            assert kest.error is None and kest.table.source == "estimate"
+            # (the object's time left is what its moves take; travel to it stays)
+            assert (before.total_s - 1.05 * left < kest.table.total_s
+                    < before.total_s - 0.5 * left)
+        finally:
+            kest._stop_worker()

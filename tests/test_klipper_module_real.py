@@ -165,3 +165,23 @@ def test_the_guides_macro_shows_the_remaining_time_in_real_klipper(tmp_path: Pat
     (user,) = result["users"]
     left = int(user["remaining_s"])
     assert user["message"] == "%dh%02dm left" % (left // 3600, (left % 3600) // 60)
+
+
+@pytest.mark.parametrize("mode", ["garbage", "huge"])
+def test_a_worker_that_answers_garbage_cannot_stop_klipper(tmp_path: Path, mode: str) -> None:
+    """A worker that writes a line that is not JSON, or one over the answer limit: in
+    real Klipper the fd callback raised into the reactor ("Unhandled exception during
+    run", printer shutdown). Klipper finishes the print; the module says why it has no
+    time."""
+    fake = tmp_path / "python"
+    fake.write_text("#!/bin/sh\nexec '%s' '%s' %s\n" % (
+        sys.executable, os.path.join(run_print.HERE, "fake_worker.py"), mode))
+    fake.chmod(0o755)
+    result = run_print.run_print(str(CORPUS / FILES["prusaslicer"]), str(tmp_path / "print"),
+                                 samples=3, python=str(fake))
+    assert result["errors"] == []
+    assert len(result["samples"]) >= 3
+    error = result["kestimator_error"] or ""
+    assert ("not JSON" if mode == "garbage" else "too large") in error
+    log = (tmp_path / "print" / "klippy.log").read_text(errors="replace")
+    assert "Unhandled exception" not in log and "Transition to shutdown" not in log

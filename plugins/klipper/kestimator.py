@@ -20,7 +20,8 @@
 # It can never hurt a print: every entry point catches everything; an error
 # disables the module with one line in klippy.log and an `error` field in its
 # status, and Klipper goes on as without it. No callback does more than a
-# bisection or a C-speed decode; memory is bounded by the worker's table size.
+# bisection or a C-speed decode of a bounded answer; memory is bounded by the
+# worker's table size (answers past its limits are refused).
 #
 # Copyright (C) 2026 the kestimator authors
 # This file may be distributed under the terms of the GNU GPLv3 license
@@ -33,7 +34,9 @@ import base64
 import bisect
 import json
 import logging
+import math
 import os
+import shlex
 import subprocess
 import sys
 import time
@@ -41,11 +44,32 @@ from typing import Any, Callable
 
 # Seconds of reactor time between updates.
 UPDATE_INTERVAL = 0.5
-# The worker's answer is refused past this many bytes (memory stays bounded).
-MAX_ANSWER_BYTES = 16 << 20
+# What the worker's table writer keeps at most (kestimator/progress_table.py:
+# MAX_TIME_POINTS, MAX_OBJECT_POINTS, MAX_OBJECTS); an answer with more is refused.
+# (Copied, not imported: this module runs in Klipper's Python without kestimator.)
+MAX_TIME_POINTS = 20000
+MAX_OBJECT_POINTS = 500
+MAX_OBJECTS = 200
+# Object names longer than this are refused (Klipper sets no limit; slicers' are short).
+MAX_NAME_CHARS = 1024
+# The worker's answer is refused past this many bytes: the largest table the
+# limits above allow is about 1.5 MB of base64 plus the names.
+MAX_ANSWER_BYTES = 4 << 20
+# Bytes read from the worker's pipes per callback.
+READ_CHUNK = 1 << 16
+# The end of the worker's stderr kept, to say why it stopped.
+STDERR_TAIL_BYTES = 4096
+# A request is never longer (the worker's own MAX_REQUEST_BYTES is 1 MiB).
+MAX_REQUEST_BYTES = 1 << 20
 # Events (exclusions, speed changes) kept per print; past this the module
 # says it can no longer follow the print instead of growing.
 MAX_EVENTS = 256
+# A command typed during the print longer than this is not followed.
+MAX_EVENT_CHARS = 2 * MAX_NAME_CHARS
+# Worker restarts per print (after it stopped while an answer was awaited),
+# and the wait before each.
+MAX_RESTARTS = 3
+RESTART_DELAYS = (2., 10., 30.)
 # Anchors kept (print_time, table time) pending their move's planning.
 MAX_PENDING_ANCHORS = 64
 # display_status keeps an M73 progress this long; refreshed at every update.
@@ -81,35 +105,93 @@ def default_python() -> str:
     return sys.executable
 
 
-def _decode_array(kind: str, text: str) -> array.array[Any]:
+def _b64_chars(nbytes: int) -> int:
+    return 4 * ((nbytes + 2) // 3)
+
+
+def _decode_array(kind: str, text: Any, max_items: int,
+                  what: str) -> array.array[Any]:
+    """The machine array base64 `text` holds, refused past `max_items` items
+    before anything is decoded."""
     out = array.array(kind)
+    if not isinstance(text, str):
+        raise ValueError("%s is not base64 text" % (what,))
+    if len(text) > _b64_chars(max_items * out.itemsize):
+        raise ValueError("more than %d %s" % (max_items, what))
     if text:
-        out.frombytes(base64.b64decode(text))
+        out.frombytes(base64.b64decode(text, validate=True))
     return out
+
+
+def _check_values(values: array.array[Any], what: str, low: float,
+                  high: float | None = None, grow: bool = False) -> None:
+    """All of `values` finite, within [low, high] and, with `grow`, in
+    non-decreasing order (C-speed passes)."""
+    if not len(values):
+        return
+    items = values.tolist()
+    if not math.isfinite(sum(items)):
+        raise ValueError("%s are not finite" % (what,))
+    if grow:
+        # (sorting what is already sorted is one pass)
+        ordered = sorted(items)
+        if items != ordered:
+            raise ValueError("%s do not grow" % (what,))
+        least, most = ordered[0], ordered[-1]
+    else:
+        least, most = min(items), max(items)
+    if least < low or (high is not None and most > high):
+        raise ValueError("%s are out of range" % (what,))
 
 
 class Table:
     """One answer of the worker: byte offsets of line starts and the Klipper
-    time at which every move on earlier lines has finished."""
+    time at which every move on earlier lines has finished. Refused (ValueError)
+    when it is not one: past the worker's own limits, or values that cannot be
+    times."""
 
     def __init__(self, answer: dict[str, Any]) -> None:
-        self.source = str(answer.get("source", "estimate"))
-        self.total_s = float(answer["total_s"])
-        self.offsets = _decode_array("q", answer.get("offsets_b64", ""))
-        self.times = _decode_array("d", answer.get("times_b64", ""))
+        self.source = str(answer.get("source", "estimate"))[:20]
+        total = answer.get("total_s")
+        if (not isinstance(total, (int, float)) or isinstance(total, bool)
+                or not math.isfinite(total) or total < 0.):
+            raise ValueError("total_s is not a time")
+        self.total_s = float(total)
+        self.offsets = _decode_array("q", answer.get("offsets_b64", ""),
+                                     MAX_TIME_POINTS, "time points")
+        self.times = _decode_array("d", answer.get("times_b64", ""),
+                                   MAX_TIME_POINTS, "time points")
         if len(self.offsets) != len(self.times) or not len(self.offsets):
             raise ValueError("table without points")
+        _check_values(self.offsets, "offsets", 0, grow=True)
+        _check_values(self.times, "times", 0., grow=True)
         names = answer.get("object_names") or []
-        self.object_names = [str(n) for n in names]
+        if not isinstance(names, list) or len(names) > MAX_OBJECTS:
+            raise ValueError("more than %d objects" % (MAX_OBJECTS,))
+        for name in names:
+            if not isinstance(name, str) or len(name) > MAX_NAME_CHARS:
+                raise ValueError("an object name is not a string of at most %d "
+                                 "characters" % (MAX_NAME_CHARS,))
+        self.object_names = list(names)
+        # Klipper upper-cases object names; the file may not.
+        self.object_keys = [name.upper() for name in names]
         self.object_offsets = _decode_array(
-            "q", answer.get("object_offsets_b64", ""))
-        flat = _decode_array("d", answer.get("object_remaining_b64", ""))
+            "q", answer.get("object_offsets_b64", ""), MAX_OBJECT_POINTS,
+            "object points")
+        _check_values(self.object_offsets, "object offsets", 0, grow=True)
         n = len(self.object_offsets)
+        flat = _decode_array("d", answer.get("object_remaining_b64", ""),
+                             n * len(self.object_names), "object times")
         if len(flat) != n * len(self.object_names):
             raise ValueError("object table of the wrong size")
+        _check_values(flat, "object times", 0.,
+                      self.total_s * (1. + 1e-9) + 1e-6)
         self.object_remaining = [flat[i * n:(i + 1) * n]
                                  for i in range(len(self.object_names))]
-        self.warnings = [str(w) for w in (answer.get("warnings") or [])][:20]
+        warnings = answer.get("warnings") or []
+        if not isinstance(warnings, list):
+            warnings = []
+        self.warnings = [str(w)[:500] for w in warnings[:20]]
         # What the table holds in memory (its arrays), bytes.
         self.nbytes = sum(a.buffer_info()[1] * a.itemsize for a in
                           [self.offsets, self.times, self.object_offsets]
@@ -135,64 +217,138 @@ class Table:
 
 class Worker:
     """The estimating process: JSON lines in, JSON lines out, read through
-    the reactor without ever blocking it."""
+    the reactor without ever blocking it. Every callback it registers is
+    wrapped in `guard`; what it reads per callback is bounded."""
 
     def __init__(self, reactor: Any, python: str,
-                 on_answer: Callable[[dict[str, Any]], Any],
-                 on_exit: Callable[[], Any]) -> None:
+                 guard: Callable[[Callable[..., Any]], Callable[..., Any]],
+                 on_line: Callable[[bytes | None], Any],
+                 on_exit: Callable[[str], Any]) -> None:
         self.reactor = reactor
-        self.on_answer = on_answer
+        self.on_line = on_line
         self.on_exit = on_exit
         env = dict(os.environ)
         env["PYTHONDONTWRITEBYTECODE"] = "1"
         self.proc = subprocess.Popen(
             [python, "-c", WORKER_BOOT, _repo_root()], stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
             close_fds=True, env=env, cwd="/")
         try:
             os.setpriority(os.PRIO_PROCESS, self.proc.pid, WORKER_NICE)
         except (OSError, AttributeError):
             pass
-        assert self.proc.stdout is not None and self.proc.stdin is not None
+        assert (self.proc.stdout is not None and self.proc.stdin is not None
+                and self.proc.stderr is not None)
         self.out_fd = self.proc.stdout.fileno()
         self.in_fd = self.proc.stdin.fileno()
-        os.set_blocking(self.out_fd, False)
-        os.set_blocking(self.in_fd, False)
-        self.buf = b""
-        self.fd_handle = reactor.register_fd(self.out_fd, self._readable)
+        self.err_fd = self.proc.stderr.fileno()
+        for fd in (self.out_fd, self.in_fd, self.err_fd):
+            os.set_blocking(fd, False)
+        self.buf = bytearray()
+        # Past MAX_ANSWER_BYTES: the rest of that line is dropped as it comes.
+        self.skipping = False
+        self.err_tail = bytearray()
+        # A request not yet taken by the pipe (written as it empties).
+        self.unsent = b""
+        self.closed = False
+        self.fd_handle: Any = reactor.register_fd(self.out_fd,
+                                                  guard(self._readable))
+        self.err_handle: Any = reactor.register_fd(self.err_fd,
+                                                   guard(self._err_readable))
 
     def send(self, request: dict[str, Any]) -> None:
         data = (json.dumps(request, separators=(",", ":")) + "\n").encode()
-        written = os.write(self.in_fd, data)
-        if written != len(data):
-            raise OSError("the worker's input is full")
+        if len(data) > MAX_REQUEST_BYTES:
+            raise ValueError("a request over %d bytes" % (MAX_REQUEST_BYTES,))
+        self.unsent = data
+        self.flush()
+
+    def flush(self) -> bool:
+        """Write what the pipe takes of the request; True once all is sent.
+        OSError (BrokenPipeError: the worker stopped) for the caller."""
+        while self.unsent:
+            try:
+                written = os.write(self.in_fd, self.unsent[:READ_CHUNK])
+            except BlockingIOError:
+                return False
+            self.unsent = self.unsent[written:]
+        return True
 
     def _readable(self, eventtime: float) -> None:
+        if self.closed:
+            return
         try:
-            data = os.read(self.out_fd, 1 << 20)
+            data = os.read(self.out_fd, READ_CHUNK)
         except BlockingIOError:
             return
         except OSError:
             data = b""
         if not data:
+            self._read_err()
             self.close()
-            self.on_exit()
+            self.on_exit(self.cause())
             return
+        if self.skipping:
+            end = data.find(b"\n")
+            if end < 0:
+                return
+            self.skipping = False
+            data = data[end + 1:]
+        start = len(self.buf)
         self.buf += data
-        if len(self.buf) > MAX_ANSWER_BYTES:
-            self.close()
-            raise ValueError("the worker's answer is too large")
-        while b"\n" in self.buf:
-            line, self.buf = self.buf.split(b"\n", 1)
+        end = self.buf.find(b"\n", start)
+        while end >= 0 and not self.closed:
+            line = bytes(self.buf[:end])
+            del self.buf[:end + 1]
             if line.strip():
-                self.on_answer(json.loads(line.decode("utf-8", "replace")))
+                self.on_line(line)
+            end = self.buf.find(b"\n")
+        if len(self.buf) > MAX_ANSWER_BYTES:
+            self.buf = bytearray()
+            self.skipping = True
+            self.on_line(None)
+
+    def _err_readable(self, eventtime: float) -> None:
+        self._read_err(1)
+
+    def _read_err(self, reads: int = 16) -> None:
+        """Keep the last STDERR_TAIL_BYTES of what the worker said on stderr."""
+        for _ in range(reads):
+            try:
+                data = os.read(self.err_fd, READ_CHUNK)
+            except OSError:
+                return
+            if not data:
+                if self.err_handle is not None:
+                    self.reactor.unregister_fd(self.err_handle)
+                    self.err_handle = None
+                return
+            self.err_tail += data
+            del self.err_tail[:-STDERR_TAIL_BYTES]
+
+    def cause(self) -> str:
+        """Why it stopped, on one line: the last line it said on stderr."""
+        lines = [line.strip() for line in
+                 bytes(self.err_tail).decode("utf-8", "replace").split("\n")]
+        lines = [line for line in lines if line]
+        code = self.proc.poll()
+        status = "exit status %d" % (code,) if code is not None else "stopped"
+        if lines:
+            return "%s (%s)" % (lines[-1][:300], status)
+        return status
 
     def close(self) -> None:
-        if self.fd_handle is not None:
-            self.reactor.unregister_fd(self.fd_handle)
-            self.fd_handle = None
+        self.closed = True
+        for attr in ("fd_handle", "err_handle"):
+            handle = getattr(self, attr)
+            if handle is not None:
+                setattr(self, attr, None)
+                try:
+                    self.reactor.unregister_fd(handle)
+                except Exception:
+                    pass
         proc = self.proc
-        for stream in (proc.stdin, proc.stdout):
+        for stream in (proc.stdin, proc.stdout, proc.stderr):
             try:
                 if stream is not None:
                     stream.close()
@@ -236,9 +392,20 @@ class Kestimator:
         self.display_status: Any = None
         self.gcode_move: Any = None
         self.worker: Worker | None = None
+        # The id of the request the worker is working on (at most one is sent at a
+        # time: a change while it works is asked once it answers, with the latest
+        # events), and whether this print's state changed since that request.
+        self.in_flight: int | None = None
+        self.want_request = False
         self.error: str | None = None
         self.disabled = False
         self.timer: Any = None
+        # Restarts the worker after a back-off and writes a request the pipe
+        # could not take at once.
+        self.worker_timer = self.reactor.register_timer(self._worker_tick)
+        self.retry_at: float | None = None
+        # The progress last put in display_status (given back on an error).
+        self.progress_set: float | None = None
         self.max_callback_ms = 0.
         self.asked_at = 0.
         # Request ids keep counting across prints: a late answer for an earlier print
@@ -250,6 +417,7 @@ class Kestimator:
         self.now_print_time = self._est_print_time
         # The worker's answers arrive here (from the reactor's fd callback).
         self.on_answer = self._guard(self._handle_answer)
+        self.on_line = self._guard(self._handle_line)
         self._reset_print(None)
         printer.register_event_handler("klippy:ready", self._guard(
             self._handle_ready))
@@ -261,13 +429,17 @@ class Kestimator:
                                        self._guard(self._handle_reset_file))
         self.gcode.register_output_handler(self._guard(self._handle_output))
         self.gcode.register_command("KESTIMATOR_STATUS",
-                                    self._guard(self.cmd_KESTIMATOR_STATUS),
+                                    self._guard(self.cmd_KESTIMATOR_STATUS,
+                                                always=True),
                                     desc=self.cmd_KESTIMATOR_STATUS_help)
 
     # Never let anything out
-    def _guard(self, func: Callable[..., Any]) -> Callable[..., Any]:
+    def _guard(self, func: Callable[..., Any],
+               always: bool = False) -> Callable[..., Any]:
+        """`func` made harmless: an exception disables the module; once
+        disabled it no longer runs (unless `always`: the status command)."""
         def guarded(*args: Any, **kw: Any) -> Any:
-            if self.disabled:
+            if self.disabled and not always:
                 return None
             start = time.perf_counter()
             try:
@@ -282,13 +454,43 @@ class Kestimator:
         return guarded
 
     def _disable(self, exc: BaseException) -> None:
+        if self.disabled:
+            return
         self.disabled = True
         self.error = "%s: %s" % (type(exc).__name__, str(exc)[:200])
         logging.error("kestimator: disabled after an error: %s", self.error)
+        for step in (self._release_progress, self._stop_worker):
+            try:
+                step()
+            except Exception:
+                pass
         try:
-            self._stop_worker()
+            self.reactor.update_timer(self.worker_timer, self.reactor.NEVER)
         except Exception:
             pass
+
+    def _worker_tick(self, eventtime: float) -> float:
+        """The worker timer: restart a stopped worker when its back-off is
+        over, write what the pipe did not take."""
+        self._guard(self._worker_due)(eventtime)
+        if self.disabled:
+            return self.reactor.NEVER
+        if self.worker is not None and self.worker.unsent:
+            return eventtime + 0.05
+        if self.retry_at is not None:
+            return max(self.retry_at, eventtime + 0.05)
+        return self.reactor.NEVER
+
+    def _worker_due(self, eventtime: float) -> None:
+        worker = self.worker
+        if worker is not None and worker.unsent:
+            try:
+                worker.flush()
+            except OSError as e:
+                self._worker_failed("cannot write to it: %s" % (e,))
+        if self.retry_at is not None and eventtime >= self.retry_at:
+            self.retry_at = None
+            self._send_if_idle()
 
     # Set-up
     def _handle_ready(self) -> None:
@@ -308,6 +510,9 @@ class Kestimator:
         self._hook_line_starts()
         self.timer = self.reactor.register_timer(self._update_timer,
                                                  self.reactor.NOW)
+        # Start the worker now, outside a print (Popen takes milliseconds),
+        # and keep it.
+        self._start_worker()
 
     def _wrap(self, name: str, after: Callable[[Any], None]) -> None:
         """Run `after` once Klipper's own `name` has run (as gcode_macro's
@@ -357,14 +562,71 @@ class Kestimator:
 
     def _stop_worker(self) -> None:
         worker, self.worker = self.worker, None
+        self.in_flight = None
         if worker is not None:
             worker.close()
 
-    # One print
+    def _start_worker(self) -> Worker | None:
+        """The worker, started if it is not running (None if it cannot be:
+        the error says why)."""
+        if self.worker is not None:
+            return self.worker
+        if self.path is not None:
+            # It stopped since klippy:ready (or an earlier print).
+            if self.restarts >= MAX_RESTARTS:
+                self._fail("no more restarts of the worker for this print: %s"
+                           % (self.error,))
+                return None
+            self.restarts += 1
+            logging.info("kestimator: restarting the worker (restart %d of at "
+                         "most %d for this print)", self.restarts, MAX_RESTARTS)
+        try:
+            self.worker = Worker(self.reactor, self.python, self._guard,
+                                 self.on_line, self._guard(self._worker_exit))
+        except (OSError, ValueError, subprocess.SubprocessError) as e:
+            self._worker_failed("cannot start it: %s: %s" % (
+                type(e).__name__, str(e)[:200]))
+            return None
+        return self.worker
+
+    def _worker_exit(self, cause: str) -> None:
+        self._worker_failed(cause)
+
+    def _worker_failed(self, cause: str) -> None:
+        """The worker stopped (or cannot be used): say why; during a print
+        that waits for an answer, start it again after a back-off."""
+        worker, self.worker = self.worker, None
+        if worker is not None:
+            worker.close()
+        waiting = self.in_flight is not None or self.want_request
+        self.in_flight = None
+        self.error = "the kestimator worker stopped (python: %s): %s" % (
+            self.python, cause)
+        if self.path is None or self.failed is not None or not waiting:
+            logging.info("kestimator: %s", self.error)
+            return
+        if self.restarts >= MAX_RESTARTS:
+            self._fail("%s; no more restarts for this print" % (self.error,))
+            return
+        self.want_request = True
+        delay = RESTART_DELAYS[min(len(RESTART_DELAYS) - 1, self.restarts)]
+        self.error += "; restarting it in %.0f s" % (delay,)
+        logging.info("kestimator: %s", self.error)
+        self.retry_at = self.reactor.monotonic() + delay
+        self.reactor.update_timer(self.worker_timer, self.retry_at)
+
     def _reset_print(self, path: str | None) -> None:
         self.path = path
         self.table: Table | None = None
         self.pending_id: int | None = None
+        self.want_request = False
+        self.retry_at = None
+        # Why this print's time is no longer known (an error not retried).
+        self.failed: str | None = None
+        self.restarts = 0
+        # The speed factor the table was estimated with.
+        self.table_speed: float | None = None
+        self.asked_speed: float | None = None
         self.events: list[tuple[int, str]] = []
         # (print_time, file position) last planned
         self.anchor: tuple[float, int] | None = None
@@ -384,6 +646,26 @@ class Kestimator:
                 "error": self.error, "max_callback_ms": 0., "table_bytes": 0,
                 "warnings": []}
 
+    def _unknown_status(self, state: str) -> dict[str, Any]:
+        """The status when the time is not known (`error` says why)."""
+        status = self._idle_status()
+        status.update({"state": state, "file": getattr(self, "path", None),
+                       "excluded_objects": list(getattr(self, "excluded", [])),
+                       "max_callback_ms": round(self.max_callback_ms, 3)})
+        return status
+
+    def _fail(self, reason: str) -> None:
+        """This print's time is no longer known (not retried): say why."""
+        self.failed = self.error = reason
+        self.table = None
+        self.provisional = None
+        self.want_request = False
+        self.retry_at = None
+        logging.warning("kestimator: %s", reason)
+        self._release_progress()
+        self.status = self._unknown_status("error")
+
+    # One print
     def _handle_reset_file(self) -> None:
         self._reset_print(None)
         if self.timer is not None:
@@ -391,54 +673,112 @@ class Kestimator:
             self.reactor.update_timer(self.timer, self.reactor.NOW)
 
     def _request(self) -> None:
-        """Ask the worker for the file's table with every event so far."""
-        if self.worker is None:
-            self.worker = Worker(self.reactor, self.python, self.on_answer,
-                                 self._guard(self._handle_worker_exit))
+        """Ask the worker for the file's table with every event so far: now
+        if it is idle, else once it answers (only the latest state is asked)."""
+        if self.path is None or self.failed is not None:
+            return
+        self.want_request = True
+        self._send_if_idle()
+
+    def _send_if_idle(self) -> None:
+        if (not self.want_request or self.in_flight is not None
+                or self.path is None or self.failed is not None
+                or self.retry_at is not None):
+            return
+        worker = self._start_worker()
+        if worker is None:
+            return
+        self.want_request = False
         self.request_id += 1
-        self.pending_id = self.request_id
+        self.pending_id = self.in_flight = self.request_id
         self.asked_at = self.reactor.monotonic()
-        self.worker.send({
-            "id": self.request_id, "file": self.path,
-            "config": self.config_file or None,
-            "events": [[pos, text] for pos, text in self.events],
-            "use_table": self.use_table and not self.events,
-            "encoding": "b64"})
+        self.asked_speed = self.speed_factor
+        try:
+            worker.send({
+                "id": self.request_id, "file": self.path,
+                "config": self.config_file or None,
+                "events": [[pos, text] for pos, text in self.events],
+                "use_table": self.use_table and not self.events,
+                "encoding": "b64"})
+        except OSError as e:
+            # BrokenPipeError: it stopped before reading the request.
+            self._worker_failed("cannot write to it: %s" % (e,))
+            return
+        if worker.unsent:
+            self.reactor.update_timer(self.worker_timer,
+                                      self.reactor.monotonic() + 0.05)
+
+    def _handle_line(self, line: bytes | None) -> None:
+        """One line the worker wrote (None: one over MAX_ANSWER_BYTES)."""
+        if line is None:
+            request_id, self.in_flight = self.in_flight, None
+            if request_id is not None and request_id == self.pending_id:
+                self._fail("the worker's answer was refused: it is too large "
+                           "(over %d bytes)" % (MAX_ANSWER_BYTES,))
+            self._send_if_idle()
+            return
+        try:
+            answer = json.loads(line)
+        except ValueError:
+            answer = None
+        if not isinstance(answer, dict):
+            self._worker_failed("it wrote a line that is not JSON: %r" % (
+                line[:80].decode("utf-8", "replace"),))
+            return
+        self._handle_answer(answer)
 
     def _handle_answer(self, answer: dict[str, Any]) -> None:
-        if answer.get("id") != self.pending_id:
+        request_id = answer.get("id")
+        if request_id == self.in_flight:
+            self.in_flight = None
+        if (request_id != self.pending_id or request_id is None
+                or self.want_request or self.failed is not None):
+            # For an earlier print, or superseded: the latest state is asked.
+            self._send_if_idle()
             return
         self.pending_id = None
         if not answer.get("ok"):
-            self.error = "estimate failed: %s" % (
-                str(answer.get("error", "?"))[:200],)
-            logging.info("kestimator: %s", self.error)
+            # A file or config error: asking again would answer the same.
+            self._fail("estimate failed: %s" % (
+                str(answer.get("error", "?"))[:200],))
             return
-        self.table = Table(answer)
+        try:
+            table = Table(answer)
+        except (ValueError, TypeError) as e:
+            self._fail("the worker's answer was refused: %s" % (str(e)[:200],))
+            return
+        self.table = table
+        self.table_speed = self.asked_speed
         self.provisional = None
         self.error = None
         logging.info("kestimator: %s for %s: %d points, %.1f s in all, after %.2f s",
                      self.table.source, self.path, len(self.table.offsets),
                      self.table.total_s, self.reactor.monotonic() - self.asked_at)
 
-    def _handle_worker_exit(self) -> None:
-        self.worker = None
-        if self.pending_id is not None:
-            self.pending_id = None
-            self.error = "the kestimator worker stopped (python: %s)" % (
-                self.python,)
-            logging.info("kestimator: %s", self.error)
-
     # Events typed during the print
     def _from_file(self) -> bool:
         return self.vsd is not None and self.vsd.is_cmd_from_sd()
 
     def _add_event(self, text: str) -> None:
-        if self.path is None or self._from_file():
+        if self.path is None or self._from_file() or self.failed is not None:
             return
-        if len(self.events) >= MAX_EVENTS:
-            raise ValueError("more than %d changes in one print" % MAX_EVENTS)
-        self.events.append((self.vsd.file_position, text))
+        position = self.vsd.file_position
+        if len(text) > MAX_EVENT_CHARS:
+            self._fail("a command over %d characters typed during the print "
+                       "cannot be followed" % (MAX_EVENT_CHARS,))
+            return
+        last = self.events[-1] if self.events else None
+        if last is not None and last[0] == position and (
+                last[1] == text or (_is_m220(last[1]) and _is_m220(text))):
+            # No line of the file ran in between: the same setting twice is
+            # the setting once, and of two speed factors only the last counts.
+            self.events[-1] = (position, text)
+        elif len(self.events) >= MAX_EVENTS:
+            self._fail("more than %d changes in one print: it is no longer "
+                       "followed" % (MAX_EVENTS,))
+            return
+        else:
+            self.events.append((position, text))
         self._request()
 
     def _after_M220(self, gcmd: Any) -> None:
@@ -446,10 +786,12 @@ class Kestimator:
             return
         factor = self.gcode_move.get_status(
             self.reactor.monotonic())["speed_factor"]
-        old = self.speed_factor or 1.
         self.speed_factor = factor
-        if self.path is None or self._from_file():
+        if self.path is None or self._from_file() or self.failed is not None:
             return
+        # Scaled from the factor the table was estimated with (several
+        # changes may come before it is estimated again).
+        old = self.table_speed or 1.
         self.provisional = ("speed", old / factor if factor > 0. else 1.)
         self._add_event("M220 S%.10g" % (factor * 100.,))
 
@@ -458,8 +800,8 @@ class Kestimator:
         the command as typed; the time stands (provisional) until then."""
         if self.path is None or self._from_file():
             return
-        text = " ".join(str(gcmd.get_commandline()).split())[:200]
-        if text:
+        text = " ".join(str(gcmd.get_commandline()).split())
+        if text and self.failed is None:
             self.provisional = ("changed", None)
             self._add_event(text)
 
@@ -474,8 +816,8 @@ class Kestimator:
                                 ("Unexcluding object ",
                                  "EXCLUDE_OBJECT RESET=1 NAME=")):
             if text.startswith(prefix):
-                name = text[len(prefix):].strip().split("\n")[0]
-                if not name or " " in name or self._from_file():
+                name = text[len(prefix):].split("\n")[0].strip()
+                if not name or self._from_file() or self.failed is not None:
                     return
                 if command.startswith("EXCLUDE_OBJECT NAME"):
                     if name not in self.excluded:
@@ -483,7 +825,9 @@ class Kestimator:
                         self.provisional = ("exclude", list(self.excluded))
                 elif name in self.excluded:
                     self.excluded.remove(name)
-                self._add_event(command + name)
+                # Quoted as Klipper's gcode parser (shlex) reads NAME="it's"
+                # and NAME='my part'; kestimator's interpreter reads it alike.
+                self._add_event(command + shlex.quote(name))
                 return
 
     # Time
@@ -572,6 +916,8 @@ class Kestimator:
         status["excluded_objects"] = list(self.excluded)
         if self.path is None:
             return status
+        if self.failed is not None:
+            return self._unknown_status("error")
         state = "printing"
         if self.print_stats is not None:
             state = self.print_stats.get_status(eventtime)["state"]
@@ -595,8 +941,9 @@ class Kestimator:
             if total > 0. else 1.,
             "source": "provisional" if self.provisional else table.source})
         objects = table.objects_at(self.vsd.file_position)
-        for name in objects:
-            if state == "complete" or name.upper() in self.excluded:
+        excluded = set(self.excluded)
+        for name, key in zip(table.object_names, table.object_keys):
+            if name in objects and (state == "complete" or key in excluded):
                 objects[name] = 0.
         ranked = sorted(objects.items(), key=lambda kv: -kv[1])
         status["objects"] = dict(
@@ -609,8 +956,17 @@ class Kestimator:
         if (not self.set_progress or ds is None or progress is None
                 or self.status.get("state") != "printing"):
             return
-        ds.progress = progress
+        ds.progress = self.progress_set = progress
         ds.expire_progress = eventtime + PROGRESS_HOLD
+
+    def _release_progress(self) -> None:
+        """Leave display_status to Klipper's own (the file's M73, else the
+        file position) if the progress in it is still ours."""
+        ds, ours = self.display_status, self.progress_set
+        self.progress_set = None
+        if ds is not None and ours is not None and ds.progress == ours:
+            ds.progress = None
+            ds.expire_progress = 0.
 
     def _update_timer(self, eventtime: float) -> float:
         self._guard(self.update)(eventtime)
@@ -746,7 +1102,10 @@ class Kestimator:
         return events
 
     def get_status(self, eventtime: float) -> dict[str, Any]:
-        status = dict(self.status)
+        if self.disabled:
+            status = self._unknown_status("error")
+        else:
+            status = dict(self.status)
         status["error"] = self.error
         return status
 
@@ -763,6 +1122,10 @@ class Kestimator:
             "kestimator: %d s left of %d s (%.1f %%), source %s" % (
                 status["remaining_s"], status["total_s"],
                 status["progress"] * 100., status["source"]))
+
+
+def _is_m220(text: str) -> bool:
+    return text.startswith("M220 ")
 
 
 def load_config(config: Any) -> Kestimator:
