@@ -149,3 +149,17 @@ def _fake_worker(kest: object) -> object:
     worker = FakeWorker()
     kest.worker = worker  # type: ignore[attr-defined]
     return worker
+
+
+def test_the_status_is_of_the_eventtime_it_is_asked_for() -> None:
+    """webhooks asks every object with one eventtime per cycle; the module's last update
+    may be up to an interval older, and its time must not lag by that."""
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    toolhead = printer.objects["toolhead"]
+    kest.anchor = (50., 500)     # the moves before byte 500 end at print_time 50
+    toolhead.mcu.est = 40.
+    printer.reactor.advance(0.5)
+    assert kest.get_status(0.)["remaining_s"] == pytest.approx(60.)
+    toolhead.mcu.estimated_print_time = lambda eventtime: 40. + eventtime
+    assert kest.get_status(0.25)["remaining_s"] == pytest.approx(59.75)

@@ -932,14 +932,8 @@ class Kestimator:
             remaining = 0.
         if remaining is None:
             return status
-        total = table.total_s
-        status.update({
-            "remaining_s": round(remaining, 3),
-            "eta": round(self.wall_offset + eventtime + remaining, 3),
-            "total_s": round(total, 3),
-            "progress": round(min(1., max(0., 1. - remaining / total)), 6)
-            if total > 0. else 1.,
-            "source": "provisional" if self.provisional else table.source})
+        status.update(self._time_fields(remaining, eventtime))
+        status["source"] = "provisional" if self.provisional else table.source
         objects = table.objects_at(self.vsd.file_position)
         excluded = set(self.excluded)
         for name, key in zip(table.object_names, table.object_keys):
@@ -949,6 +943,15 @@ class Kestimator:
         status["objects"] = dict(
             (name, round(left, 3)) for name, left in ranked[:MAX_STATUS_OBJECTS])
         return status
+
+    def _time_fields(self, remaining: float, eventtime: float) -> dict[str, Any]:
+        """remaining_s, eta, total_s and progress with `remaining` seconds left."""
+        total = self.table.total_s if self.table is not None else 0.
+        return {"remaining_s": round(remaining, 3),
+                "eta": round(self.wall_offset + eventtime + remaining, 3),
+                "total_s": round(total, 3),
+                "progress": round(min(1., max(0., 1. - remaining / total)), 6)
+                if total > 0. else 1.}
 
     def _set_display_progress(self, eventtime: float) -> None:
         progress = self.status.get("progress")
@@ -1106,6 +1109,16 @@ class Kestimator:
             status = self._unknown_status("error")
         else:
             status = dict(self.status)
+            if status.get("remaining_s") is not None:
+                # The time as of this eventtime, not the last update's: webhooks asks
+                # every object with one eventtime per cycle (Moonraker's 250 ms), and
+                # print_stats' duration in the same cycle is of this moment.
+                try:
+                    remaining = self.remaining_at(self.now_print_time(eventtime))
+                    if remaining is not None:
+                        status.update(self._time_fields(remaining, eventtime))
+                except Exception:
+                    pass
         status["error"] = self.error
         return status
 
