@@ -156,8 +156,8 @@ def test_the_status_is_of_the_eventtime_it_is_asked_for() -> None:
     may be up to an interval older, and its time must not lag by that."""
     kest, printer, worker = printing()
     kest.on_answer(answer(1))
-    toolhead = printer.objects["toolhead"]
-    kest.anchor = (50., 500)     # the moves before byte 500 end at print_time 50
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position, toolhead.print_time = 500, 50.   # moves before byte 500 end at 50
     toolhead.mcu.est = 40.
     printer.reactor.advance(0.5)
     assert kest.get_status(0.)["remaining_s"] == pytest.approx(60.)
