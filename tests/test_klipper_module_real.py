@@ -185,3 +185,35 @@ def test_a_worker_that_answers_garbage_cannot_stop_klipper(tmp_path: Path, mode:
     assert ("not JSON" if mode == "garbage" else "too large") in error
     log = (tmp_path / "print" / "klippy.log").read_text(errors="replace")
     assert "Unhandled exception" not in log and "Transition to shutdown" not in log
+
+
+def test_a_worker_killed_mid_print_is_started_again_and_the_time_comes_back(
+        tmp_path: Path) -> None:
+    """The worker killed (the OOM killer on a small board), then a speed change typed:
+    Klipper prints on, and the module estimates again with a new worker."""
+    result = _print(tmp_path, "prusaslicer", users=[(0.3, "KTEST_KILL_WORKER"),
+                                                    (0.4, "M220 S150")])
+    kill, change = result["users"]
+    assert change["asked"] and change["answered"]
+    change_t = next(s["print_time"] for s in result["samples"]
+                    if s["position"] >= change["position"])
+    after = [s for s in result["samples"] if s["print_time"] >= change_t]
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert {s["source"] for s in after} == {"estimate"}
+
+
+def test_a_storm_of_speed_changes_leaves_one_exact_answer(tmp_path: Path) -> None:
+    """A macro loop types 300 M220s (a pipe holds about 72 requests): the module asks
+    for the latest state only, Klipper prints on, and the time after it is exact."""
+    storm = ("[gcode_macro STORM]\ngcode:\n  {% for i in range(300) %}\n"
+             "  M220 S{100 + (i % 60)}\n  {% endfor %}\n  M220 S150\n")
+    result = run_print.run_print(str(CORPUS / FILES["cura"]), str(tmp_path),
+                                 users=[(0.4, "STORM")], extra_cfg=storm)
+    assert result["kestimator_error"] is None and result["errors"] == []
+    (user,) = result["users"]
+    assert user["asked"] and user["answered"]
+    assert user["answer_wait_s"] < ANSWER_WITHIN_S
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []

@@ -38,7 +38,7 @@ class KTestProbe:
         self.start_wait_s = None
         self.end_print_time = None
         self.first_sample = True
-        for name in ("SAMPLE", "USER", "END"):
+        for name in ("SAMPLE", "USER", "END", "KILL_WORKER"):
             self.gcode.register_command("KTEST_" + name, getattr(self, "cmd_KTEST_" + name))
         self.printer.register_event_handler("klippy:connect", self._handle_connect)
         self.printer.register_event_handler("klippy:ready", self._handle_ready)
@@ -122,6 +122,13 @@ class KTestProbe:
                            "message": display.message if display is not None else None,
                            "remaining_s": kest.get_status(
                                self.reactor.monotonic())["remaining_s"]})
+
+    def cmd_KTEST_KILL_WORKER(self, gcmd):
+        """Kill kestimator's worker (SIGKILL), as the kernel's OOM killer would."""
+        worker = self.kest.worker
+        if worker is not None:
+            os.kill(worker.proc.pid, 9)
+            worker.proc.wait()
 
     @staticmethod
     def _memory_kib(pid):

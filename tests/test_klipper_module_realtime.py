@@ -1,0 +1,208 @@
+"""The Klipper module in real Klipper printing at wall-clock speed, as a printer prints
+(tests/klipper_module/run_realtime.py): the module's timers and anchoring left to
+themselves, its status read as Moonraker reads it (Klipper's objects/subscribe, every
+250 ms, one eventtime per cycle), commands typed as Moonraker's console types them. At
+every status cycle from 10 s of print_duration on, `remaining_s` is held against the time
+Klipper then really took: within 0.5 s + 0.2 % on a plain print, within 1 s + 1 % from 2 s
+after a change typed mid-print.
+
+Real-printer configs beyond the corpus's: pressure advance with input shaper, a delta; and
+state typed before the print. The prints run three at a time (they mostly wait on the wall
+clock); all of them take about 6 minutes.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
+import run_print  # noqa: E402
+import run_realtime  # noqa: E402
+
+from tests.conftest import require_klipper  # noqa: E402
+
+CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
+REFS = Path(__file__).parent / "oracle_refs"
+PLAIN_ABS, PLAIN_REL = 0.5, 0.002
+CHANGED_ABS, CHANGED_REL = 1.0, 0.01
+SETTLE_S = 2.0          # the bar after a change holds from this long after it
+FROM_DURATION_S = 10.0  # ... and from this long after the first extrusion
+HEAT_WAIT_S = 3.0
+
+
+def _labelled(src: Path, dest: Path) -> Path:
+    """`src` with its objects labelled as Moonraker labels them."""
+    sys.path.insert(0, str(Path(__file__).parent / "exclude_refs"))
+    import runs
+
+    dest.write_bytes(runs.label(src))
+    return dest
+
+
+def _with_heater_wait(src: Path, dest: Path, fraction: float) -> Path:
+    """`src` with an M109 (a heater wait with a target) before the move at `fraction` of
+    its lines."""
+    lines = src.read_bytes().split(b"\n")
+    at = int(len(lines) * fraction)
+    while not lines[at].startswith(b"G1 "):
+        at += 1
+    dest.write_bytes(b"\n".join(lines[:at] + [b"M109 S215"] + lines[at:]))
+    return dest
+
+
+def _case_plain_pa_shaper(work: Path) -> dict[str, Any]:
+    return run_realtime.run_realtime(
+        str(CORPUS / "prusaslicer" / "ps25_nut_accelA_small.gcode"), str(work),
+        base_cfg=str(REFS / "configs" / "pa_is.cfg"))
+
+
+def _case_delta_with_state_typed_before(work: Path) -> dict[str, Any]:
+    return run_realtime.run_realtime(
+        str(CORPUS / "orcaslicer" / "helixscreen_xyzcube_orca2.3.1_klipper.gcode"),
+        str(work), base_cfg=str(REFS / "delta" / "printer.cfg"),
+        before=["SET_VELOCITY_LIMIT ACCEL=2000 SQUARE_CORNER_VELOCITY=3", "M220 S140"])
+
+
+def _case_injected_table(work: Path) -> dict[str, Any]:
+    return run_realtime.run_realtime(
+        str(CORPUS / "orcaslicer" / "accelctl_orca1.5.0_klipper_m204.gcode"), str(work),
+        inject=True)
+
+
+def _case_changes_typed_mid_print(work: Path) -> dict[str, Any]:
+    """Arcs (ArcWelder), labelled objects; typed mid-print: an exclusion, a speed change,
+    a velocity limit, a pause; a heater wait in the file."""
+    work.mkdir(parents=True, exist_ok=True)
+    src = CORPUS / "prusaslicer" / "cancelobj_ps2.4.0a1_arcwelder.gcode"
+    labelled = _labelled(src, work / "labelled.gcode")
+    names = [line.split(b"NAME=")[1].split()[0].decode()
+             for line in labelled.read_bytes().split(b"\n")
+             if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
+    test_file = _with_heater_wait(labelled, work / "test_src.gcode", 0.8)
+    return run_realtime.run_realtime(
+        str(test_file), str(work / "print"), heat_wait=HEAT_WAIT_S, script=[
+            {"at": 0.15, "cmd": "EXCLUDE_OBJECT NAME=%s" % names[-1]},
+            {"at": 0.3, "cmd": "M220 S150"},
+            {"at": 0.5, "cmd": "SET_VELOCITY_LIMIT ACCEL=1500"},
+            {"at": 0.65, "cmd": "PAUSE"},
+            {"after": 4.0, "cmd": "RESUME"}])
+
+
+CASES = {
+    "plain_pa_shaper": _case_plain_pa_shaper,
+    "delta_state_typed_before": _case_delta_with_state_typed_before,
+    "injected_table": _case_injected_table,
+    "changes_typed_mid_print": _case_changes_typed_mid_print,
+}
+
+
+@pytest.fixture(scope="module")
+def prints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Every case's print, started at once (three at a time); each test waits for its own."""
+    require_klipper()
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=3)
+    futures = {name: pool.submit(case, tmp_path_factory.mktemp(name))
+               for name, case in CASES.items()}
+    pool.shutdown(wait=False)
+    return futures
+
+
+def _result(prints: dict[str, Any], name: str) -> dict[str, Any]:
+    result: dict[str, Any] = prints[name].result()
+    # Klipper finished the print as a printer would: no error, never starved of moves.
+    assert result["state"] == "complete", result["state"]
+    assert result["errors"] == []
+    assert result["stalls"] == 0
+    assert result["returncode"] == 0
+    log = Path(result["klippy_log"]).read_text(errors="replace")
+    assert "kestimator: disabled" not in log
+    return result
+
+
+def _kest(sample: dict[str, Any]) -> dict[str, Any]:
+    return dict(sample["status"].get("kestimator", {}))
+
+
+def _checked(samples: list[dict[str, Any]],
+             typed: list[dict[str, Any]]) -> list[tuple[dict[str, Any], float, float]]:
+    """The samples the bars apply to, each with its bar (absolute, relative): from 10 s of
+    print_duration, leaving out the 2 s after each typed command."""
+    out = []
+    for sample in samples:
+        stats = sample["status"].get("print_stats", {})
+        if stats.get("state") not in ("printing", "paused"):
+            continue
+        if stats.get("print_duration", 0.) < FROM_DURATION_S:
+            continue
+        eventtime = sample["eventtime"]
+        if any(t["eventtime"] <= eventtime < t["done_eventtime"] + SETTLE_S for t in typed):
+            continue
+        changed = any(t["done_eventtime"] <= eventtime for t in typed)
+        bar = (CHANGED_ABS, CHANGED_REL) if changed else (PLAIN_ABS, PLAIN_REL)
+        out.append((sample, bar[0], bar[1]))
+    return out
+
+
+def _off(result: dict[str, Any]) -> list[Any]:
+    checked = _checked(result["samples"], result["typed"])
+    assert len(checked) > 200
+    return [(round(s["print_time"], 2), s["remaining_s"], round(s["truth_s"], 3))
+            for s, absolute, relative in checked
+            if s["remaining_s"] is None
+            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_remaining_time_follows_klipper_at_every_status_cycle(prints: dict[str, Any],
+                                                              name: str) -> None:
+    result = _result(prints, name)
+    assert _off(result) == []
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_progress_and_display_status_follow_the_remaining_time(prints: dict[str, Any],
+                                                               name: str) -> None:
+    """display_status's progress (what M73 P sets, what Mainsail and Fluidd show with
+    their M73 setting) is the module's, and never goes backwards while printing."""
+    result = _result(prints, name)
+    last = 0.
+    for sample, _, _ in _checked(result["samples"], result["typed"]):
+        kest = _kest(sample)
+        display = sample["status"].get("display_status", {})
+        assert kest["progress"] is not None
+        assert display.get("progress") == pytest.approx(kest["progress"], abs=0.01)
+        if not result["typed"]:
+            assert kest["progress"] >= last - 1e-6
+            last = kest["progress"]
+
+
+def test_a_file_table_is_used_from_the_start(prints: dict[str, Any]) -> None:
+    result = _result(prints, "injected_table")
+    sources = {_kest(s).get("source") for s, _, _ in _checked(result["samples"], [])}
+    assert sources == {"table"}
+
+
+def test_state_typed_before_the_print_is_in_the_estimate(prints: dict[str, Any]) -> None:
+    result = _result(prints, "delta_state_typed_before")
+    sources = {_kest(s).get("source") for s, _, _ in _checked(result["samples"], [])}
+    assert sources == {"estimate"}
+
+
+def test_every_change_typed_mid_print_was_taken_and_answered(prints: dict[str, Any]) -> None:
+    result = _result(prints, "changes_typed_mid_print")
+    typed = result["typed"]
+    assert [t["cmd"].split()[0] for t in typed] == [
+        "EXCLUDE_OBJECT", "M220", "SET_VELOCITY_LIMIT", "PAUSE", "RESUME"]
+    assert all("error" not in t for t in typed)
+    # Klipper was paused and waited for heat: idle gaps of those lengths.
+    idle = [new - old for old, new in result["gaps"] if new - old > 1.]
+    assert len([g for g in idle if g > HEAT_WAIT_S - 0.5]) >= 2
+    # The end of the print: the module's own answer, not a provisional one.
+    last = [s for s, _, _ in _checked(result["samples"], typed)][-1]
+    assert _kest(last)["source"] == "estimate"
+    assert _kest(last)["excluded_objects"]
