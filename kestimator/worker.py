@@ -40,6 +40,10 @@ names escaped six characters a byte: 3.3 MiB at worst) and under 2 MiB with "b64
 would still pass MAX_ANSWER_BYTES (8 MiB, half the 16 MiB past which the Klipper module
 refuses an answer) is sent as ``ok: false`` instead. The worker's memory stays bounded
 likewise (the estimate's is bounded by its own design).
+
+Standard output is the channel and holds nothing else: the worker keeps it for its answers
+and points file descriptor 1 and `sys.stdout` at standard error, so that whatever library
+code prints goes there (and standard input is read only by the worker).
 """
 
 from __future__ import annotations
@@ -216,8 +220,10 @@ def handle(line: bytes) -> dict[str, Any]:
         return {"id": request_id, "ok": False, "error": _one_line(str(exc))}
     except MemoryError:
         return {"id": request_id, "ok": False, "error": "out of memory"}
-    except Exception as exc:  # noqa: BLE001 - every request gets an answer
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every request gets an answer
         text = str(exc) or type(exc).__name__
+        if isinstance(exc, SystemExit):  # library code called sys.exit: the worker lives on
+            text = "SystemExit(%s)" % text
         return {"id": request_id, "ok": False, "error": _one_line(text)}
 
 
@@ -261,10 +267,28 @@ def serve(inp: IO[bytes], out: IO[str]) -> int:
         out.flush()
 
 
+def take_channel() -> tuple[IO[bytes], IO[str]]:
+    """Standard input and output, kept for the JSON-lines channel alone: the channel gets
+    duplicates of file descriptors 0 and 1; then descriptor 1 and `sys.stdout` point at
+    standard error and descriptor 0 and `sys.stdin` at /dev/null, so that nothing library
+    code prints or reads touches the channel."""
+    sys.stdout.flush()
+    inp = os.fdopen(os.dup(0), "rb")
+    out = os.fdopen(os.dup(1), "w", encoding="utf-8", newline="\n")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    sys.stdin = open(os.devnull, encoding="utf-8")  # for the process's life
+    return inp, out
+
+
 def main() -> int:
     """The program: standard input and output as the JSON-lines channel."""
     try:
-        return serve(sys.stdin.buffer, sys.stdout)
+        inp, out = take_channel()
+        return serve(inp, out)
     except KeyboardInterrupt:
         return 0
     except BrokenPipeError:

@@ -1,7 +1,8 @@
 """`python3 -m kestimator.worker` over real pipes: JSON lines in, one answer line out per
 request, from the file's table or by estimating; a bad request is answered and the worker
 lives on; end of input ends it with status 0. Hostile files (issue 33): a forged table or a
-huge object name gets a bounded answer from a worker of bounded memory."""
+huge object name gets a bounded answer from a worker of bounded memory, and nothing but
+answers ever reaches its standard output."""
 
 from __future__ import annotations
 
@@ -193,3 +194,53 @@ def test_worker_answers_hostile_files_within_bounds_of_size_and_memory(
         assert proc.stdin is not None
         proc.stdin.close()
         assert proc.wait(timeout=60) == 0
+
+
+# The worker with library code that prints to standard output (and, asked for id 3, calls
+# sys.exit) before each answer.
+NOISY = """
+import os, sys
+import kestimator.worker as worker
+answer = worker.answer
+def noisy(request):
+    print("stray print from library code")
+    sys.stdout.flush()
+    os.write(1, b"stray write to descriptor 1\\n")
+    if request.get("id") == 3:
+        sys.exit(3)
+    return answer(request)
+worker.answer = noisy
+sys.exit(worker.main())
+"""
+
+
+def test_worker_writes_only_answers_on_stdout_and_survives_any_request(
+        corpus_root: Path, tmp_path: Path) -> None:
+    nut = str(corpus_root / NUT)
+    requests: list[bytes] = [
+        json.dumps({"id": 1, "file": nut, "config": str(CORPUS_CFG)}).encode(),
+        json.dumps({"id": 2, "file": str(tmp_path / "missing.gcode")}).encode(),
+        json.dumps({"id": 3, "file": nut}).encode(),
+        b"\xff\xfe not JSON",
+        b"[" * 100_000 + b"]" * 100_000,
+        json.dumps({"id": "x" * 100_000, "file": nut}).encode(),
+        json.dumps({"id": 10 ** 40, "file": nut}).encode(),
+        json.dumps({"id": 7, "file": 7}).encode(),
+        json.dumps({"id": 8, "file": "/dev/null"}).encode(),
+        json.dumps({"id": 9, "file": nut, "events": [[10 ** 30, "M220 S50"]]}).encode(),
+        b'{"id": NaN, "file": "x"}',
+        b"[]",
+    ]
+    proc = _start(tmp_path, "-c", NOISY)
+    out, err = proc.communicate(b"\n".join(requests) + b"\n", timeout=120)
+    assert proc.returncode == 0
+    answers = [json.loads(line) for line in out.splitlines()]  # every line an answer
+    assert len(answers) == len(requests)
+    assert [a["id"] for a in answers] == [1, 2, 3, None, None, None, None, 7, 8, 9, None,
+                                          None]
+    assert answers[0]["ok"] and answers[0]["source"] == "estimate"
+    assert answers[9]["ok"]  # an event past the end runs after the last line
+    assert all(not a["ok"] and "\n" not in a["error"] for i, a in enumerate(answers)
+               if i not in (0, 9))
+    assert "SystemExit(3)" in answers[2]["error"]
+    assert b"stray print from library code" in err and b"stray write to descriptor 1" in err
