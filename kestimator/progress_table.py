@@ -19,7 +19,10 @@ always kept. At most MAX_TIME_POINTS points: over that, the bound is doubled (an
 markers may be dropped) until they fit, deterministically. Object points are the layer
 markers of `Estimate.object_remaining` (when the estimate has it): at most MAX_OBJECT_POINTS
 (evenly spaced by index, first and last kept) for at most MAX_OBJECTS objects (the longest
-first, then by name).
+first, then by name). An object whose name is over MAX_NAME_BYTES bytes of UTF-8 is left out
+(not shortened: a shortened name would match no EXCLUDE_OBJECT NAME= and could merge with
+another); `Selection.objects_left_out` counts the objects left out for either limit, whose
+time still counts in the total.
 
 Encoding (version 1): a header line and base64 lines, at the end of the file::
 
@@ -32,6 +35,15 @@ LEB128 varints (`_Writer`), its CRC-32 in the header. Only comment or blank line
 MAX_TRAILING_BYTES of them, may follow the table (a line a post-processor appends, such as
 kestimator-compat's ident line). A file edited after the table without changing its length
 cannot be told from the original by the table alone.
+
+Reading trusts nothing: files are hostile. The reader refuses (TableError) any table the
+writer never writes, and refuses a count past the writer's limits before reading what it
+counts, so a table's memory and the worker's answer stay bounded whatever the file declares:
+at most MAX_TABLE_POINTS time points, MAX_OBJECTS object names of at most MAX_NAME_BYTES bytes
+each (all different), MAX_OBJECT_POINTS object points; offsets strictly increasing from 0 and
+within the file's length; times (whole milliseconds, at most MAX_MS) non-decreasing with the
+offset and never past the total; each object's time left between 0 and the total and never
+growing from one object point to the next.
 """
 
 from __future__ import annotations
@@ -62,11 +74,22 @@ SPACING_FRACTION = 0.0015
 MAX_TIME_POINTS = 20000
 MAX_OBJECT_POINTS = 500
 MAX_OBJECTS = 200
+# An object name's bytes (UTF-8) at most: Klipper's names come from EXCLUDE_OBJECT_DEFINE
+# NAME=... (slicers write tens of bytes); an object with a longer one is left out.
+MAX_NAME_BYTES = 256
+# Time points in a table at most: the selected ones, and the file's start and end that
+# `ProgressTable.from_selection` adds when no selected line is there.
+MAX_TABLE_POINTS = MAX_TIME_POINTS + 2
+# The largest time a table holds, in milliseconds (a larger one is written as this).
+MAX_MS = (1 << 63) - 1
 # Reading: what may follow the table, how much of the file's end is read at most, and how
 # big the decoded payload may be (a forged table cannot make the reader take all memory).
+# Within the limits above a payload is at most about 1.5 MB: 10-byte varints for 2 x
+# MAX_TABLE_POINTS time values and MAX_OBJECTS x (MAX_OBJECT_POINTS + 1) object values,
+# the names' bytes and their lengths.
 MAX_TRAILING_BYTES = 4096
 TAIL_WINDOWS = (1 << 16, 1 << 20, 1 << 23)
-MAX_PAYLOAD_BYTES = 1 << 24
+MAX_PAYLOAD_BYTES = 1 << 22
 MS = 1000.0
 
 
@@ -122,6 +145,8 @@ class Selection:
     object_lines: list[int]
     object_remaining: list[list[float]]
     """object_remaining[i][j]: object i's seconds left at object_lines[j]."""
+    objects_left_out: int = 0
+    """Objects of the estimate left out: past MAX_OBJECTS, or named in over MAX_NAME_BYTES."""
 
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
@@ -182,18 +207,29 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
             factor *= 2.0
     if len(kept) > max_points:  # pragma: no cover - the bound grows until they fit
         kept = kept[:max_points]
-    names, object_lines, remaining = _select_objects(est, max_object_points, max_objects)
+    names, object_lines, remaining, left_out = _select_objects(est, max_object_points,
+                                                               max_objects)
     return Selection(total_s=total_s, n_lines=est.n_lines,
                      lines=[lines[i] for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
-                     object_remaining=remaining)
+                     object_remaining=remaining, objects_left_out=left_out)
+
+
+def name_bytes(name: str) -> bytes | None:
+    """An object name as the table holds it (UTF-8, undecodable bytes as they were), or
+    None when it cannot be held: over MAX_NAME_BYTES bytes, or not encodable."""
+    try:
+        raw = name.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:
+        return None
+    return raw if len(raw) <= MAX_NAME_BYTES else None
 
 
 def _select_objects(est: _EstimateLike, max_points: int, max_objects: int
-                    ) -> tuple[list[str], list[int], list[list[float]]]:
+                    ) -> tuple[list[str], list[int], list[list[float]], int]:
     entries = [e for e in est.object_remaining if e[0] <= est.n_lines]
     if not entries:
-        return [], [], []
+        return [], [], [], 0
     if len(entries) > max_points:
         n = len(entries)
         picks = sorted({round(k * (n - 1) / (max_points - 1)) for k in range(max_points)})
@@ -202,7 +238,8 @@ def _select_objects(est: _EstimateLike, max_points: int, max_objects: int
     for _line, _t, remaining in entries:
         for name, seconds in remaining.items():
             first.setdefault(name, float(seconds))
-    names = sorted(first, key=lambda name: (-first[name], name))[:max_objects]
+    held = [name for name in first if name_bytes(name) is not None]
+    names = sorted(held, key=lambda name: (-first[name], name))[:max_objects]
     lines: list[int] = []
     columns: list[list[float]] = [[] for _ in names]
     for line, _t, remaining in entries:
@@ -212,7 +249,7 @@ def _select_objects(est: _EstimateLike, max_points: int, max_objects: int
         for column, name in zip(columns, names):
             value = float(remaining.get(name, 0.0))
             column.append(value if math.isfinite(value) and value > 0.0 else 0.0)
-    return names, lines, columns
+    return names, lines, columns, len(first) - len(names)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -366,50 +403,70 @@ class ProgressTable:
 
     @classmethod
     def from_payload(cls, payload: bytes) -> ProgressTable:
-        """The table from `payload` (TableError if it is not one)."""
+        """The table from `payload` (TableError if it is not one the writer could have
+        written: see the module's docstring). Each count is checked against its limit
+        before anything it counts is read."""
         data = _Reader(payload)
         try:
             version = data.uint()
             if version != TABLE_VERSION:
                 raise TableError("table version %d is not %d" % (version, TABLE_VERSION))
             content_bytes = data.uint()
-            total_s = data.uint() / MS
-            count = data.count()
+            total_ms = data.uint()
+            if total_ms > MAX_MS:
+                raise TableError("the table's total time is out of range")
             offsets: list[int] = []
             times: list[float] = []
             offset = ms = 0
-            for _ in range(count):
+            for _ in range(data.count(MAX_TABLE_POINTS, "time points")):
                 offset += data.uint()
                 ms += data.uint()
                 if offsets and offset <= offsets[-1]:
                     raise TableError("the table's offsets do not grow")
+                if offset > content_bytes:
+                    raise TableError("the table's offsets do not fit the file")
+                if ms > total_ms:
+                    raise TableError("a time in the table is past its total")
                 offsets.append(offset)
                 times.append(ms / MS)
-            names = [data.raw(data.count()).decode("utf-8", "surrogateescape")
-                     for _ in range(data.count())]
-            object_offsets = []
+            names: list[str] = []
+            for _ in range(data.count(MAX_OBJECTS, "objects")):
+                name = data.raw(data.count(MAX_NAME_BYTES, "bytes in an object name")
+                                ).decode("utf-8", "surrogateescape")
+                if name in names:
+                    raise TableError("the table names an object twice")
+                names.append(name)
+            object_offsets: list[int] = []
             offset = 0
-            for _ in range(data.count()):
+            for _ in range(data.count(MAX_OBJECT_POINTS, "object points")):
                 offset += data.uint()
+                if object_offsets and offset <= object_offsets[-1]:
+                    raise TableError("the table's object offsets do not grow")
+                if offset > content_bytes:
+                    raise TableError("the table's object offsets do not fit the file")
                 object_offsets.append(offset)
+            if names and not object_offsets:
+                raise TableError("the table names objects but has no object points")
             remaining = []
             for _ in names:
-                column = []
+                column: list[float] = []
                 ms = 0
                 for _ in object_offsets:
-                    ms += data.sint()
+                    left = ms + data.sint()
+                    if not 0 <= left <= total_ms:
+                        raise TableError("an object's time left in the table is out of range")
+                    if column and left > ms:
+                        raise TableError("an object's time left in the table grows")
+                    ms = left
                     column.append(ms / MS)
                 remaining.append(column)
         except IndexError:
             raise TableError("the table ends early") from None
         if data.pos != len(payload):
             raise TableError("the table has bytes after its end")
-        if not offsets or offsets[0] != 0 or offsets[-1] > content_bytes:
+        if not offsets or offsets[0] != 0:
             raise TableError("the table's offsets do not fit the file")
-        if any(b <= a for a, b in zip(object_offsets, object_offsets[1:])) or (
-                object_offsets and object_offsets[-1] > content_bytes):
-            raise TableError("the table's object offsets do not fit the file")
-        return cls(total_s=total_s, content_bytes=content_bytes, offsets=offsets,
+        return cls(total_s=total_ms / MS, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=names, object_offsets=object_offsets,
                    object_remaining=remaining)
 
@@ -421,7 +478,7 @@ def _b64(values: array[Any]) -> str:
 def _ms(seconds: float) -> int:
     if not math.isfinite(seconds) or seconds <= 0.0:
         return 0
-    return int(seconds * MS + 0.5)
+    return min(int(seconds * MS + 0.5), MAX_MS)
 
 
 class _Writer:
@@ -462,16 +519,19 @@ class _Reader:
             if byte < 0x80:
                 return value
             shift += 7
-            if shift > 70:
+            if shift > 63:  # the writer's numbers take at most 10 bytes (64 bits)
                 raise TableError("a number in the table is too long")
 
     def sint(self) -> int:
         value = self.uint()
         return value >> 1 if not value & 1 else -((value + 1) >> 1)
 
-    def count(self) -> int:
-        """A count of things still to read: each takes at least a byte."""
+    def count(self, limit: int, what: str) -> int:
+        """A count of things still to read, at most `limit` (the writer's own limit);
+        each takes at least a byte."""
         value = self.uint()
+        if value > limit:
+            raise TableError("the table has %d %s, over the limit of %d" % (value, what, limit))
         if value > len(self.data) - self.pos:
             raise TableError("the table ends early")
         return value

@@ -21,9 +21,29 @@ estimated as ``kestimator estimate FILE --printer-cfg CONFIG`` would (the profil
 slicer's settings and the learned times resolved the same way, the printer.cfg winning),
 each event run before the line that starts at (or after) its byte offset, and the table
 built from that estimate with the file's own byte offsets. Every request gets an answer
-(no error ends the process); end of input ends it with status 0. The answer's size is
-bounded by the table's (kestimator.progress_table). Only the standard library and the
-table's module are imported up front; the estimator loads on the first estimate.
+(no error ends the process); end of input ends it with status 0. Only the standard library
+and the table's module are imported up front; the estimator loads on the first estimate.
+
+Files are hostile, and the Klipper module reads every answer inside Klipper's process, so
+every answer is bounded whatever the file holds. A table read from a file is refused past
+the writer's own limits (kestimator.progress_table: MAX_TABLE_POINTS time points,
+MAX_OBJECTS objects named in at most MAX_NAME_BYTES bytes, MAX_OBJECT_POINTS object points)
+before anything proportional to what it declares is allocated, and refused when a value is
+one the writer never writes (a negative or growing time left, a time past the total, ...):
+the file is then estimated, with a warning. An estimate's table keeps the same limits:
+objects past MAX_OBJECTS, or whose name is over MAX_NAME_BYTES, are left out of it (their
+time still counts in the total), with a warning. At most MAX_WARNINGS warnings of at most
+MAX_ERROR_CHARS characters each are sent (the last says how many more); an `id` is an
+integer, null or a string of at most MAX_ID_CHARS characters. Within these limits an answer
+is under 4 MiB as JSON lists (20,002 points and 100,000 object values as JSON numbers, 200
+names escaped six characters a byte: 3.3 MiB at worst) and under 2 MiB with "b64"; one that
+would still pass MAX_ANSWER_BYTES (8 MiB, half the 16 MiB past which the Klipper module
+refuses an answer) is sent as ``ok: false`` instead. The worker's memory stays bounded
+likewise (the estimate's is bounded by its own design).
+
+Standard output is the channel and holds nothing else: the worker keeps it for its answers
+and points file descriptor 1 and `sys.stdout` at standard error, so that whatever library
+code prints goes there (and standard input is read only by the worker).
 """
 
 from __future__ import annotations
@@ -36,6 +56,8 @@ import time
 from typing import IO, Any
 
 from kestimator.progress_table import (
+    MAX_NAME_BYTES,
+    MAX_OBJECTS,
     ProgressTable,
     TableError,
     line_offsets,
@@ -48,10 +70,20 @@ from kestimator.progress_table import (
 MAX_REQUEST_BYTES = 1 << 20
 MAX_EVENTS = 10000
 MAX_ERROR_CHARS = 500
+MAX_ID_CHARS = 100
+# Warnings sent at most (the Klipper module keeps 20); past them one line says how many more.
+MAX_WARNINGS = 20
+# No answer line is longer (see the module's docstring).
+MAX_ANSWER_BYTES = 8 << 20
 
 
 class RequestError(Exception):
-    """A request that cannot be answered: its message is the answer's error."""
+    """A request that cannot be answered: its message is the answer's error, `request_id`
+    the request's id once it is known to be a valid one."""
+
+    def __init__(self, message: str, request_id: int | str | None = None) -> None:
+        super().__init__(message)
+        self.request_id = request_id
 
 
 # The worker's own tables stay in memory, never in a file: ten times finer than a file's
@@ -73,6 +105,19 @@ def parse_request(line: bytes) -> dict[str, Any]:
         raise RequestError("invalid JSON: %s" % exc) from None
     if not isinstance(request, dict):
         raise RequestError("a request is a JSON object")
+    request_id = request.get("id")
+    if not (request_id is None or (isinstance(request_id, int) and abs(request_id) < 1 << 63)
+            or (isinstance(request_id, str) and len(request_id) <= MAX_ID_CHARS)):
+        raise RequestError("'id' must be an integer, null or a string of at most %d "
+                           "characters" % MAX_ID_CHARS)
+    try:
+        return _checked(request)
+    except RequestError as exc:
+        exc.request_id = request_id
+        raise
+
+
+def _checked(request: dict[str, Any]) -> dict[str, Any]:
     path = request.get("file")
     if not isinstance(path, str) or not path:
         raise RequestError("'file' must be the G-code file's path")
@@ -116,9 +161,17 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
         warnings += more
     doc: dict[str, Any] = {"id": request.get("id"), "ok": True, "source": source}
     doc.update(table.to_json(request.get("encoding")))
-    doc["warnings"] = warnings
+    doc["warnings"] = _bounded_warnings(warnings)
     doc["elapsed_s"] = round(time.monotonic() - started, 3)
     return doc
+
+
+def _bounded_warnings(warnings: list[str]) -> list[str]:
+    """At most MAX_WARNINGS lines of at most MAX_ERROR_CHARS: the first, and how many more."""
+    if len(warnings) <= MAX_WARNINGS:
+        return [str(w)[:MAX_ERROR_CHARS] for w in warnings]
+    kept = [str(w)[:MAX_ERROR_CHARS] for w in warnings[:MAX_WARNINGS - 1]]
+    return kept + ["and %d more warnings" % (len(warnings) - len(kept))]
 
 
 def estimate_table(path: str, config: str | None,
@@ -144,6 +197,10 @@ def estimate_table(path: str, config: str | None,
                          events=list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
     selection = select(est, precision=WORKER_PRECISION)
+    if selection.objects_left_out:
+        warnings.append("%d objects left out of the table (over %d objects, or a name over "
+                        "%d bytes): their time counts in the total only"
+                        % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
     with open(path, "rb") as f:
         offsets = line_offsets(f.read, selection.wanted_lines())
@@ -158,24 +215,36 @@ def handle(line: bytes) -> dict[str, Any]:
         request_id = request.get("id")
         return answer(request)
     except RequestError as exc:
+        if exc.request_id is not None:
+            request_id = exc.request_id
         return {"id": request_id, "ok": False, "error": _one_line(str(exc))}
     except MemoryError:
         return {"id": request_id, "ok": False, "error": "out of memory"}
-    except Exception as exc:  # noqa: BLE001 - every request gets an answer
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - every request gets an answer
         text = str(exc) or type(exc).__name__
+        if isinstance(exc, SystemExit):  # library code called sys.exit: the worker lives on
+            text = "SystemExit(%s)" % text
         return {"id": request_id, "ok": False, "error": _one_line(text)}
 
 
 def _dumps(doc: dict[str, Any]) -> str:
+    """`doc` as one JSON line (no newline) of at most MAX_ANSWER_BYTES, or an error
+    answer in its place."""
+    request_id = doc.get("id") if _plain(doc.get("id")) else None
     try:
-        return json.dumps(doc, allow_nan=False, separators=(",", ":"))
-    except (TypeError, ValueError) as exc:
-        return json.dumps({"id": doc.get("id") if _plain(doc.get("id")) else None,
-                           "ok": False, "error": _one_line("cannot encode: %s" % exc)})
+        text = json.dumps(doc, allow_nan=False, separators=(",", ":"))
+    except (TypeError, ValueError, RecursionError) as exc:
+        return json.dumps({"id": request_id, "ok": False,
+                           "error": _one_line("cannot encode: %s" % exc)})
+    if len(text) > MAX_ANSWER_BYTES:  # ASCII (json.dumps escapes the rest): chars = bytes
+        return json.dumps({"id": request_id, "ok": False,
+                           "error": "the answer is over %d bytes" % MAX_ANSWER_BYTES})
+    return text
 
 
 def _plain(value: object) -> bool:
-    return value is None or isinstance(value, (str, int)) or (
+    return value is None or (isinstance(value, str) and len(value) <= MAX_ID_CHARS) or (
+        isinstance(value, int) and abs(value) < 1 << 63) or (
         isinstance(value, float) and math.isfinite(value))
 
 
@@ -198,10 +267,28 @@ def serve(inp: IO[bytes], out: IO[str]) -> int:
         out.flush()
 
 
+def take_channel() -> tuple[IO[bytes], IO[str]]:
+    """Standard input and output, kept for the JSON-lines channel alone: the channel gets
+    duplicates of file descriptors 0 and 1; then descriptor 1 and `sys.stdout` point at
+    standard error and descriptor 0 and `sys.stdin` at /dev/null, so that nothing library
+    code prints or reads touches the channel."""
+    sys.stdout.flush()
+    inp = os.fdopen(os.dup(0), "rb")
+    out = os.fdopen(os.dup(1), "w", encoding="utf-8", newline="\n")
+    os.dup2(2, 1)
+    sys.stdout = sys.stderr
+    null = os.open(os.devnull, os.O_RDONLY)
+    os.dup2(null, 0)
+    os.close(null)
+    sys.stdin = open(os.devnull, encoding="utf-8")  # for the process's life
+    return inp, out
+
+
 def main() -> int:
     """The program: standard input and output as the JSON-lines channel."""
     try:
-        return serve(sys.stdin.buffer, sys.stdout)
+        inp, out = take_channel()
+        return serve(inp, out)
     except KeyboardInterrupt:
         return 0
     except BrokenPipeError:

@@ -7,7 +7,9 @@ from __future__ import annotations
 import io
 import os
 import shutil
+import tracemalloc
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -15,6 +17,12 @@ from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
 from kestimator.progress_table import (
     HEADER_PREFIX,
+    MAX_NAME_BYTES,
+    MAX_OBJECT_POINTS,
+    MAX_OBJECTS,
+    MAX_PAYLOAD_BYTES,
+    MAX_TABLE_POINTS,
+    MAX_TIME_POINTS,
     TAIL_WINDOWS,
     ProgressTable,
     Selection,
@@ -30,6 +38,7 @@ from kestimator.progress_table import (
 from kestimator.rewrite import inject_file
 
 from .conftest import CORPUS_CFG
+from .table_forgery import forge_payload, forged_block, huge_table_payload
 
 FILES = ["prusaslicer/ps25_nut_accelA_small.gcode",
          "prusaslicer/cancelobj_ps2.4.0a1_arcwelder.gcode",
@@ -49,7 +58,7 @@ def _table() -> ProgressTable:
                          times=[0.0, 0.0, 0.25, 600.125, 1234.0, 1234.567],
                          object_names=["cube", "näme with spaces; and = signs\t", ""],
                          object_offsets=[100, 5000, 9_000_000],
-                         object_remaining=[[500.0, 400.5, 0.0], [10.0, 20.0, 0.001],
+                         object_remaining=[[500.0, 400.5, 0.0], [20.0, 10.0, 0.001],
                                            [0.0, 0.0, 0.0]])
 
 
@@ -94,6 +103,135 @@ def test_a_damaged_or_moved_table_is_refused(damage: str) -> None:
         decode_block(block, offset)
 
 
+# A small table as the writer writes it (issue 33): 1000 bytes, 100 s, two objects.
+VALID: dict[str, Any] = {"content_bytes": 1000, "total_ms": 100_000,
+         "points": [(0, 0), (500, 40_000), (1000, 100_000)],
+         "names": [b"A", b"B"], "object_offsets": [100, 600],
+         "remaining_ms": [[60_000, 20_000], [30_000, 0]]}
+
+
+def test_the_forged_payload_is_the_writers_own_for_a_table_it_writes() -> None:
+    table = ProgressTable(total_s=100.0, content_bytes=1000, offsets=[0, 500, 1000],
+                          times=[0.0, 40.0, 100.0], object_names=["A", "B"],
+                          object_offsets=[100, 600],
+                          object_remaining=[[60.0, 20.0], [30.0, 0.0]])
+    assert forge_payload(**VALID) == table.payload()
+    assert decode_block(forged_block(table.payload(), 1000), 1000) == table
+
+
+# Each a value the writer never writes (the negative time left once raised the Klipper
+# module's time left from 100 s to 1,000,100 s when that object was excluded).
+NEVER_WRITTEN: dict[str, dict[str, Any]] = {
+    "negative object time left": {"remaining_ms": [[-1_000_000_000, 0], [30_000, 0]]},
+    "object time left past the total": {"remaining_ms": [[200_000, 0], [30_000, 0]]},
+    "object time left that grows": {"remaining_ms": [[20_000, 60_000], [30_000, 0]]},
+    "time past the total": {"points": [(0, 0), (500, 40_000), (1000, 150_000)]},
+    "offset past the file": {"points": [(0, 0), (500, 40_000), (2000, 100_000)]},
+    "first offset not 0": {"points": [(10, 0), (500, 40_000), (1000, 100_000)]},
+    "object offset past the file": {"object_offsets": [100, 2000]},
+    "object named twice": {"names": [b"A", b"A"]},
+    "objects without object points": {"names": [b"A"], "object_offsets": [],
+                                      "remaining_ms": [[]]},
+}
+
+
+@pytest.mark.parametrize("damage", sorted(NEVER_WRITTEN))
+def test_a_table_with_a_value_the_writer_never_writes_is_refused(damage: str) -> None:
+    fields = dict(VALID, **NEVER_WRITTEN[damage])
+    with pytest.raises(TableError):
+        ProgressTable.from_payload(forge_payload(**fields))
+    with pytest.raises(TableError):
+        decode_block(forged_block(forge_payload(**fields), 1000), 1000)
+
+
+def test_a_number_longer_than_64_bits_is_refused() -> None:
+    with pytest.raises(TableError, match="too long"):
+        ProgressTable.from_payload(b"\x01" + b"\xff" * 10 + b"\x01")
+
+
+def _over(what: str) -> dict[str, Any]:
+    """VALID's fields with one count a step past the writer's limit."""
+    if what == "time points":
+        n = MAX_TABLE_POINTS + 1
+        return dict(VALID, content_bytes=n, total_ms=n, points=[(i, i) for i in range(n)],
+                    object_offsets=[1, 2])
+    if what == "objects":
+        return dict(VALID, names=[b"O%d" % i for i in range(MAX_OBJECTS + 1)],
+                    remaining_ms=[[2, 1]] * (MAX_OBJECTS + 1))
+    if what == "object points":
+        n = MAX_OBJECT_POINTS + 1
+        return dict(VALID, names=[b"A"], object_offsets=list(range(1, n + 1)),
+                    remaining_ms=[[0] * n])
+    return dict(VALID, names=[b"A", b"\xc3\xa9" * (MAX_NAME_BYTES // 2) + b"x"])
+
+
+@pytest.mark.parametrize("what", ["time points", "objects", "object points",
+                                  "bytes in an object name"])
+def test_a_table_past_the_writers_limits_is_refused(what: str) -> None:
+    with pytest.raises(TableError, match="over the limit"):
+        ProgressTable.from_payload(forge_payload(**_over(what)))
+
+
+def test_a_table_at_the_writers_limits_is_read() -> None:
+    n = MAX_TABLE_POINTS
+    names = ["%04d" % i + "é" * ((MAX_NAME_BYTES - 4) // 2) for i in range(MAX_OBJECTS)]
+    assert max(len(name.encode()) for name in names) == MAX_NAME_BYTES
+    table = ProgressTable(
+        total_s=float(n * 1000), content_bytes=n * 100_000,
+        offsets=[i * 100_000 for i in range(n)], times=[float(i * 997 % 1000 + i * 1000)
+                                                      / 1000 for i in range(n)],
+        object_names=names, object_offsets=[i * 7777 for i in range(1, MAX_OBJECT_POINTS + 1)],
+        object_remaining=[[(MAX_OBJECT_POINTS - j) * 13_001 / 1000 for j in
+                           range(MAX_OBJECT_POINTS)] for _ in names])
+    assert len(table.payload()) <= MAX_PAYLOAD_BYTES
+    assert decode_block(table.encode(), table.content_bytes) == table
+
+
+def test_a_table_declaring_millions_of_values_is_refused_before_they_are_read() -> None:
+    payload = huge_table_payload(10_000, objects=1000, points=1000)
+    tracemalloc.start()
+    try:
+        with pytest.raises(TableError, match="over the limit"):
+            ProgressTable.from_payload(payload)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 256 << 10, peak  # the declared million values would take over 30 MB
+    # Its lines: the payload is past what any table within the limits decodes to.
+    with pytest.raises(TableError):
+        decode_block(forged_block(huge_table_payload(10_000), 10_000), 10_000)
+
+
+def test_select_leaves_out_objects_past_the_limits_and_counts_them() -> None:
+    class Fake:
+        total_s = 1000.0
+        n_lines = 10
+        sample_lines = [2, 5]
+        sample_times = [100.0, 900.0]
+        layers = [(3, 200.0)]
+        tail_lines: list[int] = []
+        tail_times: list[float] = []
+        object_remaining = [(3, 200.0, {
+            "A" * MAX_NAME_BYTES: 10.0,          # at the limit: kept
+            "B" * (MAX_NAME_BYTES + 1): 500.0,   # over it: left out, not shortened
+            "é" * (MAX_NAME_BYTES // 2 + 1): 400.0,  # over it in UTF-8 bytes
+            "\udcff" * MAX_NAME_BYTES: 300.0,    # undecodable bytes count as bytes
+            "\ud800": 200.0,                      # cannot be written at all
+        })]
+
+    selection = select(Fake())
+    assert selection.object_names == ["\udcff" * MAX_NAME_BYTES, "A" * MAX_NAME_BYTES]
+    assert selection.objects_left_out == 3
+
+    class Many(Fake):
+        object_remaining = [(3, 200.0, {"O%03d" % i: float(i) for i in range(MAX_OBJECTS + 5)})]
+
+    selection = select(Many())
+    assert len(selection.object_names) == MAX_OBJECTS
+    assert selection.objects_left_out == 5
+    assert "O000" not in selection.object_names  # the shortest go
+
+
 def test_comment_lines_after_the_table_are_allowed() -> None:
     table = _table()
     block = table.encode() + b"; Processed by klipper_estimator 0.1.0\n\n"
@@ -126,7 +264,7 @@ def test_the_reader_reads_only_the_end_of_the_file() -> None:
 
 
 def test_a_table_bigger_than_the_first_window_is_found() -> None:
-    n = 30_000
+    n = MAX_TIME_POINTS  # and the point at offset 0: within MAX_TABLE_POINTS
     state = 12345
     offsets, times = [0], [0.0]
     for _ in range(n):  # irregular steps, so that the table does not compress away

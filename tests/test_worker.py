@@ -1,9 +1,12 @@
 """`python3 -m kestimator.worker` over real pipes: JSON lines in, one answer line out per
 request, from the file's table or by estimating; a bad request is answered and the worker
-lives on; end of input ends it with status 0."""
+lives on; end of input ends it with status 0. Hostile files (issue 33): a forged table or a
+huge object name gets a bounded answer from a worker of bounded memory, and nothing but
+answers ever reaches its standard output."""
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import shutil
@@ -14,11 +17,38 @@ from typing import Any
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
+from kestimator.progress_table import (
+    MAX_NAME_BYTES,
+    MAX_OBJECT_POINTS,
+    MAX_OBJECTS,
+    MAX_TABLE_POINTS,
+)
 from kestimator.rewrite import inject_file
+from kestimator.worker import MAX_ANSWER_BYTES
 
 from .conftest import CORPUS_CFG, PROJECT
+from .table_forgery import forge_payload, forged_block, huge_table_payload
 
 NUT = "gcode/prusaslicer/ps25_nut_accelA_small.gcode"
+# The worker's peak RSS on hostile files (it takes about 40 MiB estimating the nut; the
+# forged table once took 1.1 GB).
+PEAK_LIMIT_MIB = 300
+
+
+def _start(tmp_path: Path, *args: str) -> subprocess.Popen[bytes]:
+    """The worker (or `python3 -c args[1]` ...) with a private home."""
+    env = dict(os.environ, PYTHONPATH=str(PROJECT), HOME=str(tmp_path),
+               XDG_CONFIG_HOME=str(tmp_path / "config"), XDG_CACHE_HOME=str(tmp_path / "cache"))
+    return subprocess.Popen([sys.executable, *(args or ("-m", "kestimator.worker"))], env=env,
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+
+
+def _peak_mib(pid: int) -> int:
+    """The process's peak resident memory (VmHWM), MiB."""
+    with open("/proc/%d/status" % pid) as status:
+        kib = [int(line.split()[1]) for line in status if line.startswith("VmHWM:")]
+    return kib[0] // 1024
 
 
 def _ask(proc: subprocess.Popen[bytes], request: object) -> dict[str, Any]:
@@ -81,3 +111,136 @@ def test_worker_answers_from_the_table_and_by_estimating_and_survives_bad_reques
         assert proc.wait(timeout=60) == 0
         assert proc.stderr is not None
         assert proc.stderr.read() == b""
+
+
+def _ask_bounded(proc: subprocess.Popen[bytes], request: dict[str, Any]) -> dict[str, Any]:
+    """The answer, read no further than MAX_ANSWER_BYTES (a longer one fails the test)."""
+    assert proc.stdin is not None and proc.stdout is not None
+    proc.stdin.write(json.dumps(request).encode() + b"\n")
+    proc.stdin.flush()
+    line = proc.stdout.readline(MAX_ANSWER_BYTES + 1)
+    assert line.endswith(b"\n") and len(line) <= MAX_ANSWER_BYTES, len(line)
+    return json.loads(line)  # type: ignore[no-any-return]
+
+
+def _hostile_files(nut: bytes, tmp_path: Path) -> dict[str, Path]:
+    size = len(nut)
+    negative = forge_payload(size, 100_000, [(0, 0), (size, 100_000)], names=[b"A"],
+                             object_offsets=[1000], remaining_ms=[[-1_000_000_000]])
+    contents = {
+        # 4000 objects x 4000 points: 16 KB compressed, 16 M values declared.
+        "huge_table": nut + forged_block(huge_table_payload(size), size),
+        # Past the object limit but within the payload limit: reaches the count check.
+        "many_objects": nut + forged_block(huge_table_payload(size, 4000, 1000), size),
+        # An object's time left of -1,000,000 s.
+        "negative_time": nut + forged_block(negative, size),
+    }
+    name = b"\xff" * 700_000  # six characters a byte once escaped in JSON
+    lines = [b"G28", b"G90", b"M83", b"M486 T1", b"M486 S0 A" + name]
+    for _ in range(3):
+        lines += [b";LAYER_CHANGE", b"M486 S0", b"G1 X10 Y10 F3000",
+                  b"G1 X60 Y10 E2 F1800", b"G1 X60 Y60 E2", b"M486 S-1"]
+    contents["huge_name"] = b"\n".join(lines) + b"\n"
+    paths = {}
+    for key, data in contents.items():
+        paths[key] = tmp_path / (key + ".gcode")
+        paths[key].write_bytes(data)
+    return paths
+
+
+def _check_bounded(doc: dict[str, Any]) -> None:
+    """A valid table within the writer's limits, or ok: false with a one-line error."""
+    if not doc["ok"]:
+        assert isinstance(doc["error"], str) and "\n" not in doc["error"]
+        return
+    names = doc["object_names"]
+    assert len(names) <= MAX_OBJECTS
+    assert all(len(name.encode("utf-8", "surrogateescape")) <= MAX_NAME_BYTES
+               for name in names)
+    if "offsets_b64" in doc:
+        offsets = len(base64.b64decode(doc["offsets_b64"])) // 8
+        points = len(base64.b64decode(doc["object_offsets_b64"])) // 8
+        values = len(base64.b64decode(doc["object_remaining_b64"])) // 8
+    else:
+        offsets, points = len(doc["offsets"]), len(doc["object_offsets"])
+        values = sum(len(column) for column in doc["object_remaining"])
+    assert 0 < offsets <= MAX_TABLE_POINTS
+    assert points <= MAX_OBJECT_POINTS and values == points * len(names)
+
+
+def test_worker_answers_hostile_files_within_bounds_of_size_and_memory(
+        corpus_root: Path, tmp_path: Path) -> None:
+    paths = _hostile_files((corpus_root / NUT).read_bytes(), tmp_path)
+    proc = _start(tmp_path)
+    try:
+        for i, key in enumerate(["huge_table", "many_objects", "negative_time"]):
+            doc = _ask_bounded(proc, {"id": i, "file": str(paths[key]),
+                                      "config": str(CORPUS_CFG), "encoding": "b64"})
+            _check_bounded(doc)
+            # The forged table is refused: the file is estimated, with a warning.
+            assert doc["ok"] and doc["source"] == "estimate", (key, doc)
+            assert any(w.startswith("no usable progress table") for w in doc["warnings"])
+            assert 200.0 < doc["total_s"] < 250.0, (key, doc)
+            assert doc["object_names"] == ["M3_hex_nut.stl id:0 copy 0"], (key, doc)
+        for encoding in ("b64", None):
+            doc = _ask_bounded(proc, {"id": 9, "file": str(paths["huge_name"]),
+                                      "config": str(CORPUS_CFG), "encoding": encoding})
+            _check_bounded(doc)
+            assert doc["ok"] and doc["object_names"] == []
+            assert any("1 objects left out" in w for w in doc["warnings"]), doc["warnings"]
+        peak = _peak_mib(proc.pid)
+        assert peak < PEAK_LIMIT_MIB, peak
+    finally:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        assert proc.wait(timeout=60) == 0
+
+
+# The worker with library code that prints to standard output (and, asked for id 3, calls
+# sys.exit) before each answer.
+NOISY = """
+import os, sys
+import kestimator.worker as worker
+answer = worker.answer
+def noisy(request):
+    print("stray print from library code")
+    sys.stdout.flush()
+    os.write(1, b"stray write to descriptor 1\\n")
+    if request.get("id") == 3:
+        sys.exit(3)
+    return answer(request)
+worker.answer = noisy
+sys.exit(worker.main())
+"""
+
+
+def test_worker_writes_only_answers_on_stdout_and_survives_any_request(
+        corpus_root: Path, tmp_path: Path) -> None:
+    nut = str(corpus_root / NUT)
+    requests: list[bytes] = [
+        json.dumps({"id": 1, "file": nut, "config": str(CORPUS_CFG)}).encode(),
+        json.dumps({"id": 2, "file": str(tmp_path / "missing.gcode")}).encode(),
+        json.dumps({"id": 3, "file": nut}).encode(),
+        b"\xff\xfe not JSON",
+        b"[" * 100_000 + b"]" * 100_000,
+        json.dumps({"id": "x" * 100_000, "file": nut}).encode(),
+        json.dumps({"id": 10 ** 40, "file": nut}).encode(),
+        json.dumps({"id": 7, "file": 7}).encode(),
+        json.dumps({"id": 8, "file": "/dev/null"}).encode(),
+        json.dumps({"id": 9, "file": nut, "events": [[10 ** 30, "M220 S50"]]}).encode(),
+        b'{"id": NaN, "file": "x"}',
+        b"[]",
+    ]
+    proc = _start(tmp_path, "-c", NOISY)
+    out, err = proc.communicate(b"\n".join(requests) + b"\n", timeout=120)
+    assert proc.returncode == 0
+    answers = [json.loads(line) for line in out.splitlines()]  # every line an answer
+    assert len(answers) == len(requests)
+    assert [a["id"] for a in answers] == [1, 2, 3, None, None, None, None, 7, 8, 9, None,
+                                          None]
+    assert answers[0]["ok"] and answers[0]["source"] == "estimate"
+    assert answers[9]["ok"]  # an event past the end runs after the last line
+    assert all(not a["ok"] and "\n" not in a["error"] for i, a in enumerate(answers)
+               if i not in (0, 9))
+    assert "SystemExit(3)" in answers[2]["error"]
+    assert b"stray print from library code" in err and b"stray write to descriptor 1" in err
