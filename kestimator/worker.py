@@ -37,7 +37,7 @@ MAX_ERROR_CHARS characters each are sent (the last says how many more); an `id` 
 integer, null or a string of at most MAX_ID_CHARS characters. Within these limits an answer
 is under 4 MiB as JSON lists (20,002 points and 100,000 object values as JSON numbers, 200
 names escaped six characters a byte: 3.3 MiB at worst) and under 2 MiB with "b64"; one that
-would still pass MAX_ANSWER_BYTES (8 MiB, half the 16 MiB past which the Klipper module
+would still pass MAX_ANSWER_BYTES (3.5 MiB, under the 4 MiB past which the Klipper module
 refuses an answer) is sent as ``ok: false`` instead. The worker's memory stays bounded
 likewise (the estimate's is bounded by its own design).
 
@@ -74,7 +74,7 @@ MAX_ID_CHARS = 100
 # Warnings sent at most (the Klipper module keeps 20); past them one line says how many more.
 MAX_WARNINGS = 20
 # No answer line is longer (see the module's docstring).
-MAX_ANSWER_BYTES = 8 << 20
+MAX_ANSWER_BYTES = 7 << 19
 
 
 class RequestError(Exception):

@@ -749,3 +749,14 @@ def test_names_with_a_quote_or_a_space_are_excluded_and_re_estimated(tmp_path: A
                     < before.total_s - 0.5 * left)
         finally:
             kest._stop_worker()
+
+
+def test_the_modules_limits_are_the_table_writers() -> None:
+    """The module refuses what the worker's writer never writes, and nothing it writes."""
+    from kestimator import progress_table, worker
+
+    assert MOD.MAX_TIME_POINTS == progress_table.MAX_TABLE_POINTS
+    assert MOD.MAX_OBJECT_POINTS == progress_table.MAX_OBJECT_POINTS
+    assert MOD.MAX_OBJECTS == progress_table.MAX_OBJECTS
+    assert MOD.MAX_NAME_CHARS >= progress_table.MAX_NAME_BYTES
+    assert worker.MAX_ANSWER_BYTES < MOD.MAX_ANSWER_BYTES

@@ -45,15 +45,16 @@ from typing import Any, Callable
 # Seconds of reactor time between updates.
 UPDATE_INTERVAL = 0.5
 # What the worker's table writer keeps at most (kestimator/progress_table.py:
-# MAX_TIME_POINTS, MAX_OBJECT_POINTS, MAX_OBJECTS); an answer with more is refused.
-# (Copied, not imported: this module runs in Klipper's Python without kestimator.)
-MAX_TIME_POINTS = 20000
+# MAX_TABLE_POINTS, MAX_OBJECT_POINTS, MAX_OBJECTS, MAX_NAME_BYTES); an answer with
+# more is refused. (Copied, not imported: this module runs in Klipper's Python without
+# kestimator; tests/test_klipper_module.py holds the two to each other.)
+MAX_TIME_POINTS = 20002
 MAX_OBJECT_POINTS = 500
 MAX_OBJECTS = 200
-# Object names longer than this are refused (Klipper sets no limit; slicers' are short).
-MAX_NAME_CHARS = 1024
+MAX_NAME_CHARS = 256
 # The worker's answer is refused past this many bytes: the largest table the
-# limits above allow is about 1.5 MB of base64 plus the names.
+# limits above allow is under 2 MiB with base64 (kestimator/worker.py answers
+# at most its own MAX_ANSWER_BYTES, 3.5 MiB).
 MAX_ANSWER_BYTES = 4 << 20
 # Bytes read from the worker's pipes per callback.
 READ_CHUNK = 1 << 16
