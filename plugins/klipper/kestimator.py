@@ -10,12 +10,19 @@
 # file, or estimated by kestimator). The table and every re-estimate (after an
 # EXCLUDE_OBJECT or an M220 typed during the print) come from a separate
 # process, `python3 -m kestimator.worker`, whose answers the reactor polls.
-# Klipper's own print_time ties the table to the clock: at each update the
-# module notes the print_time at which the moves queued so far end (a timing
-# callback on the last queued move, as toolhead.register_lookahead_callback
-# does, without flushing anything), so
-#   remaining = (total - table_time(position)) + max(0, anchor_print_time - now)
-# holds through pauses, heater waits and speed changes.
+# Klipper's own print_time ties the table to the clock: at a line start (the
+# update timer asks; virtual_sdcard's next line, or a command typed at the
+# console, takes it: on a printer the timer runs while a line waits inside
+# toolhead._check_pause, when an arc or a macro may be half queued) the module
+# notes the print_time at which the moves queued so far end (a timing callback
+# on the last queued move, as toolhead.register_lookahead_callback does,
+# without flushing anything), so
+#   remaining = (total - table_time(position)) + (anchor_print_time - now)
+# holds through pauses, heater waits and speed changes (past the anchor, only
+# while the toolhead still moves, and never past the line being run). The
+# status is computed at the eventtime Klipper asks it for. What the user set
+# at the console before the print (limits, M220/M221, offsets, pressure
+# advance, retraction, input shaper) is part of the estimate.
 #
 # It can never hurt a print: every entry point catches everything; an error
 # disables the module with one line in klippy.log and an `error` field in its
