@@ -155,18 +155,27 @@ def test_excluding_an_object_drops_its_time_at_once_then_asks_for_the_exact_one(
     assert worker.requests[-1]["events"][-1] == [600, "EXCLUDE_OBJECT RESET=1 NAME=B"]
 
 
-def test_the_progress_M73_sets_follows_klipper_time_even_after_the_files_M73() -> None:
+def test_display_status_progress_makes_duration_over_progress_the_remaining_time() -> None:
+    """Mainsail's "file" estimate is D / progress - D with D the print duration: with
+    progress D / (D + R) in the same status cycle, that is R, the module's time."""
     kest, printer, worker = printing()
     kest.on_answer(answer(1))
     vsd = printer.objects["virtual_sdcard"]
-    vsd.file_position = 900
+    vsd.file_position = 500                   # 50 s left by the table
     printer.objects["toolhead"].print_time = printer.objects["toolhead"].mcu.est = 5.
+    printer.objects["print_stats"].print_duration = 30.
     printer.reactor.advance(1.)
     display = printer.objects["display_status"]
-    assert display.progress == pytest.approx(0.5)
+    progress = display.get_status(0.)["progress"]
+    assert progress == pytest.approx(30. / 80.)
+    assert 30. / progress - 30. == pytest.approx(kest.get_status(0.)["remaining_s"])
     vsd.cmd_from_sd = True
     printer.gcode.run("M73", P="12")      # the file's own, sliced before any change
-    assert display.progress == pytest.approx(0.5)
+    assert display.get_status(0.)["progress"] == pytest.approx(30. / 80.)
+    # Paused: the duration stands still, and so does the progress (no expiry).
+    printer.objects["print_stats"].state = "paused"
+    printer.reactor.advance(30.)
+    assert display.get_status(0.)["progress"] == pytest.approx(30. / 80.)
 
 
 def test_set_progress_off_leaves_display_status_alone() -> None:
@@ -175,7 +184,9 @@ def test_set_progress_off_leaves_display_status_alone() -> None:
     printer.objects["virtual_sdcard"].file_position = 900
     printer.reactor.advance(1.)
     printer.gcode.run("M73", P="12")
-    assert printer.objects["display_status"].progress == pytest.approx(0.12)
+    display = printer.objects["display_status"]
+    assert display.get_status(0.)["progress"] == pytest.approx(0.12)
+    assert "get_status" not in vars(display)
 
 
 def test_an_error_disables_the_module_with_one_log_line_and_klipper_goes_on(
@@ -493,15 +504,17 @@ def test_after_an_error_the_status_says_what_is_no_longer_known() -> None:
     vsd.file_position = 600
     printer.reactor.advance(1.)
     display = printer.objects["display_status"]
-    assert kest.get_status(0.)["remaining_s"] is not None and display.progress is not None
+    printer.gcode.run("M73", P="12")
+    assert kest.get_status(0.)["remaining_s"] is not None
+    assert display.get_status(0.)["progress"] != pytest.approx(0.12)
     printer.objects["toolhead"].mcu.estimated_print_time = None   # an error in an update
     printer.reactor.advance(1.)
     assert kest.disabled
     status = kest.get_status(0.)
     assert status["state"] == "error" and "TypeError" in status["error"]
     assert unknown(status)
-    # display_status is no longer held at our last value (Klipper's own goes on)
-    assert display.progress is None
+    # display_status says Klipper's own again
+    assert display.get_status(0.)["progress"] == pytest.approx(0.12)
     gcmd = printer.gcode.run("KESTIMATOR_STATUS")
     assert any("TypeError" in line for line in gcmd.responses)
 

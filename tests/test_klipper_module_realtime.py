@@ -165,20 +165,23 @@ def test_remaining_time_follows_klipper_at_every_status_cycle(prints: dict[str, 
 
 
 @pytest.mark.parametrize("name", sorted(CASES))
-def test_progress_and_display_status_follow_the_remaining_time(prints: dict[str, Any],
-                                                               name: str) -> None:
-    """display_status's progress (what M73 P sets, what Mainsail and Fluidd show with
-    their M73 setting) is the module's, and never goes backwards while printing."""
+def test_display_status_gives_the_front_ends_klippers_remaining_time(prints: dict[str, Any],
+                                                                      name: str) -> None:
+    """display_status's progress is D / (D + R) in the very status cycle that carries D
+    (print_stats' print_duration): the front ends' own D / progress - D is Klipper's
+    remaining time (the full front-end code: tests/test_frontends.py)."""
     result = _result(prints, name)
-    last = 0.
-    for sample, _, _ in _checked(result["samples"], result["typed"]):
-        kest = _kest(sample)
-        display = sample["status"].get("display_status", {})
-        assert kest["progress"] is not None
-        assert display.get("progress") == pytest.approx(kest["progress"], abs=0.01)
-        if not result["typed"]:
-            assert kest["progress"] >= last - 1e-6
-            last = kest["progress"]
+    off = []
+    for sample, absolute, relative in _checked(result["samples"], result["typed"]):
+        duration = sample["status"]["print_stats"]["print_duration"]
+        progress = sample["status"]["display_status"]["progress"]
+        remaining = _kest(sample)["remaining_s"]
+        assert progress == pytest.approx(duration / (duration + remaining), abs=1e-5)
+        shown = duration / progress - duration
+        if abs(shown - sample["truth_s"]) > absolute + relative * sample["truth_s"]:
+            off.append((round(sample["print_time"], 2), round(shown, 3),
+                        round(sample["truth_s"], 3)))
+    assert off == []
 
 
 def test_a_file_table_is_used_from_the_start(prints: dict[str, Any]) -> None:

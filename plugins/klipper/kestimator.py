@@ -3,7 +3,8 @@
 # A Klipper extras module (link it into klippy/extras/ and add a [kestimator]
 # section). During a virtual-SD print it publishes `printer.kestimator`:
 #   remaining_s, eta, progress, total_s, source, objects, state, error, ...
-# and keeps display_status's progress (what M73 P sets) true by Klipper time.
+# and answers for display_status with progress D / (D + R) (print duration,
+# remaining time), so the front ends' own D / progress - D is Klipper's time.
 #
 # How: a table maps byte offsets of the file to the time Klipper's planner
 # needs to reach them (read from the table `kestimator inject` wrote into the
@@ -80,8 +81,6 @@ MAX_RESTARTS = 3
 RESTART_DELAYS = (2., 10., 30.)
 # Anchors kept (print_time, table time) pending their move's planning.
 MAX_PENDING_ANCHORS = 64
-# display_status keeps an M73 progress this long; refreshed at every update.
-PROGRESS_HOLD = 5.0
 # Objects reported in the status at most (largest remaining first).
 MAX_STATUS_OBJECTS = 64
 # Commands that change the time of what follows (besides M220 and EXCLUDE_OBJECT): typed
@@ -412,8 +411,6 @@ class Kestimator:
         # could not take at once.
         self.worker_timer = self.reactor.register_timer(self._worker_tick)
         self.retry_at: float | None = None
-        # The progress last put in display_status (given back on an error).
-        self.progress_set: float | None = None
         self.max_callback_ms = 0.
         self.asked_at = 0.
         # Request ids keep counting across prints: a late answer for an earlier print
@@ -467,11 +464,10 @@ class Kestimator:
         self.disabled = True
         self.error = "%s: %s" % (type(exc).__name__, str(exc)[:200])
         logging.error("kestimator: disabled after an error: %s", self.error)
-        for step in (self._release_progress, self._stop_worker):
-            try:
-                step()
-            except Exception:
-                pass
+        try:
+            self._stop_worker()
+        except Exception:
+            pass
         try:
             self.reactor.update_timer(self.worker_timer, self.reactor.NEVER)
         except Exception:
@@ -514,7 +510,7 @@ class Kestimator:
         for name in FOLLOWED_COMMANDS:
             self._wrap(name, self._after_followed)
         if self.set_progress and self.display_status is not None:
-            self._wrap("M73", self._after_M73)
+            self._answer_display_status()
         self._hook_line_starts()
         self.timer = self.reactor.register_timer(self._update_timer,
                                                  self.reactor.NOW)
@@ -670,7 +666,6 @@ class Kestimator:
         self.want_request = False
         self.retry_at = None
         logging.warning("kestimator: %s", reason)
-        self._release_progress()
         self.status = self._unknown_status("error")
 
     # One print
@@ -812,9 +807,6 @@ class Kestimator:
         if text and self.failed is None:
             self.provisional = ("changed", None)
             self._add_event(text)
-
-    def _after_M73(self, gcmd: Any) -> None:
-        self._set_display_progress(self.reactor.monotonic())
 
     def _handle_output(self, msg: str) -> None:
         if self.path is None or not msg.startswith("// "):
@@ -961,23 +953,52 @@ class Kestimator:
                 "progress": round(min(1., max(0., 1. - remaining / total)), 6)
                 if total > 0. else 1.}
 
-    def _set_display_progress(self, eventtime: float) -> None:
-        progress = self.status.get("progress")
-        ds = self.display_status
-        if (not self.set_progress or ds is None or progress is None
-                or self.status.get("state") != "printing"):
-            return
-        ds.progress = self.progress_set = progress
-        ds.expire_progress = eventtime + PROGRESS_HOLD
+    def _answer_display_status(self) -> None:
+        """display_status answers with progress D / (D + R) while a print is followed.
 
-    def _release_progress(self) -> None:
-        """Leave display_status to Klipper's own (the file's M73, else the
-        file position) if the progress in it is still ours."""
-        ds, ours = self.display_status, self.progress_set
-        self.progress_set = None
-        if ds is not None and ours is not None and ds.progress == ours:
-            ds.progress = None
-            ds.expire_progress = 0.
+        D is print_stats' print_duration and R the remaining time, both at the eventtime
+        asked: webhooks asks every subscribed object with one eventtime per cycle, so the
+        front ends' own arithmetic on that cycle, D / progress - D (Mainsail's "file"
+        estimate with its progress from M73), gives R exactly, through pauses, heater
+        waits, exclusions and speed changes; and the progress is the share of the print's
+        time done. Klipper's own value (the file's M73, else the file position) is what
+        display_status says at any other time, on any error, once the module is disabled,
+        and with `set_progress: False` (then display_status is not touched at all)."""
+        ds = self.display_status
+        original = ds.get_status
+
+        def get_status(eventtime: float) -> Any:
+            status = original(eventtime)
+            if self.disabled:
+                return status
+            try:
+                progress = self.display_progress(eventtime)
+            except Exception:
+                return status
+            if progress is None:
+                return status
+            status = dict(status)
+            status["progress"] = progress
+            return status
+        ds.get_status = get_status
+
+    def display_progress(self, eventtime: float) -> float | None:
+        """D / (D + R) at `eventtime` while a print is followed with a known time, else
+        None."""
+        if (self.path is None or self.table is None or self.failed is not None
+                or self.print_stats is None or self.anchor is None):
+            return None
+        stats = self.print_stats.get_status(eventtime)
+        state = stats.get("state")
+        if state not in ("printing", "paused", "complete"):
+            return None
+        remaining = self.remaining_at(self.now_print_time(eventtime))
+        if remaining is None:
+            return None
+        duration = float(stats.get("print_duration", 0.))
+        if duration + remaining <= 0.:
+            return 1. if state == "complete" else 0.
+        return duration / (duration + remaining)
 
     def _update_timer(self, eventtime: float) -> float:
         self._guard(self.update)(eventtime)
@@ -1018,7 +1039,6 @@ class Kestimator:
                 self.want_anchor = False
                 self.anchor_here(vsd.file_position)
         self.status = self.status_at(self.now_print_time(eventtime), eventtime)
-        self._set_display_progress(eventtime)
 
     def state_before_print(self, eventtime: float) -> list[str]:
         """Commands that take the printer from its printer.cfg to the state it is in as a

@@ -197,9 +197,10 @@ class VirtualSD:
 class PrintStats:
     def __init__(self) -> None:
         self.state = "standby"
+        self.print_duration = 0.
 
     def get_status(self, eventtime: float) -> dict[str, Any]:
-        return {"state": self.state}
+        return {"state": self.state, "print_duration": self.print_duration}
 
 
 class DisplayStatus:
@@ -207,6 +208,11 @@ class DisplayStatus:
         self.progress: float | None = None
         self.expire_progress = 0.
         gcode.register_command("M73", self.cmd_M73)
+
+    def get_status(self, eventtime: float) -> dict[str, Any]:
+        """As Klipper's: the M73 progress, else (here) 0."""
+        return {"progress": self.progress if self.progress is not None else 0.,
+                "message": None}
 
     def cmd_M73(self, gcmd: GCodeCommand) -> None:
         progress = gcmd.get_float("P")
