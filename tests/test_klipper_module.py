@@ -148,7 +148,8 @@ def test_excluding_an_object_drops_its_time_at_once_then_asks_for_the_exact_one(
     printer.reactor.advance(1.)
     status = kest.get_status(0.)
     assert status["remaining_s"] == pytest.approx(50. - 20.)
-    assert status["objects"] == {"a": 30., "B": 0.}
+    # keyed as Klipper names them (upper-cased), to be joined to exclude_object's status
+    assert status["objects"] == {"A": 30., "B": 0.}
     assert status["excluded_objects"] == ["B"]
     kest.on_answer(answer(2, objects=True))
     printer.gcode.respond_info("Unexcluding object B")

@@ -934,11 +934,14 @@ class Kestimator:
             return status
         status.update(self._time_fields(remaining, eventtime))
         status["source"] = "provisional" if self.provisional else table.source
-        objects = table.objects_at(self.vsd.file_position)
+        # Keyed as Klipper names objects (upper-cased), as exclude_object's status does.
+        at = table.objects_at(self.vsd.file_position)
         excluded = set(self.excluded)
+        objects = {}
         for name, key in zip(table.object_names, table.object_keys):
-            if name in objects and (state == "complete" or key in excluded):
-                objects[name] = 0.
+            if name in at:
+                objects[key] = (0. if state == "complete" or key in excluded
+                                else at[name])
         ranked = sorted(objects.items(), key=lambda kv: -kv[1])
         status["objects"] = dict(
             (name, round(left, 3)) for name, left in ranked[:MAX_STATUS_OBJECTS])
