@@ -217,3 +217,24 @@ def test_a_storm_of_speed_changes_leaves_one_exact_answer(tmp_path: Path) -> Non
     after = _after_change(result)
     assert len(after) >= 5
     assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
+@pytest.mark.parametrize("forgery", ["huge_table", "negative_time"])
+def test_a_hostile_table_in_the_file_is_refused_and_klipper_prints_on(
+        tmp_path: Path, forgery: str) -> None:
+    """A table declaring 4,000 objects x 4,000 points (16 KB compressed; it once made the
+    worker take 1.1 GB), or an object with -1,000,000 s left: the worker refuses it and
+    estimates the file instead, within its memory bound; the time is exact."""
+    from tests.table_forgery import forge_payload, forged_block, huge_table_payload
+
+    def forge(path: str) -> None:
+        data = Path(path).read_bytes()
+        size = len(data)
+        payload = (huge_table_payload(size) if forgery == "huge_table" else forge_payload(
+            size, 100_000, [(0, 0), (size, 100_000)], names=[b"A"], object_offsets=[0],
+            remaining_ms=[[-1_000_000_000]]))
+        Path(path).write_bytes(data + forged_block(payload, size))
+    result = _print(tmp_path, "prusaslicer", finish_file=forge)
+    assert {s["source"] for s in result["samples"]} == {"estimate"}
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert result["memory_kib"]["worker"]["VmHWM"] < 300 * 1024

@@ -18,7 +18,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
-from typing import Any
+from typing import Any, Callable
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
@@ -92,7 +92,8 @@ def make_test_file(src: str, dst: str, samples: int,
 def run_print(src: str, work: str, samples: int = 12,
               users: list[tuple[float, str]] | None = None, inject: bool = False,
               base_cfg: str = CORPUS_CFG, python: str | None = None,
-              extra_cfg: str = "") -> dict[str, Any]:
+              extra_cfg: str = "",
+              finish_file: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Print `src` in Klipper with the module; returns the probe's results, each sample
     with `truth_s` (Klipper's remaining time from there) and `error_s`."""
     paths = oracle_paths()
@@ -113,6 +114,8 @@ def run_print(src: str, work: str, samples: int = 12,
     if inject:
         subprocess.run([python, "-m", "kestimator", "inject", test_file, "--printer-cfg", cfg],
                        check=True, capture_output=True, cwd=work)
+    if finish_file is not None:
+        finish_file(test_file)
     _link(MODULE, klipper, "kestimator.py")
     _link(os.path.join(HERE, "ktest_probe.py"), klipper, "ktest_probe.py")
     _link(os.path.join(ORACLE_DIR, "oracle_probe.py"), klipper, "oracle_probe.py")
