@@ -78,9 +78,9 @@ def test_past_the_anchor_a_moving_head_goes_on_to_the_end_of_its_line() -> None:
     toolhead.print_time = 10.
     assert kest.anchor is not None
     kest.anchor = (10., 100)      # the moves before byte 100 end at print_time 10
-    # A long macro line from byte 100 to 300 is running; its moves are in the queue.
+    # A long macro line from byte 100 to 300 is running; Klipper has planned its moves.
     vsd.cmd_from_sd, vsd.next_file_position = True, 300
-    toolhead.lookahead.queue.append(stubs.Move())
+    toolhead.print_time = 60.
     assert kest.remaining_at(10.) == pytest.approx(90.)
     assert kest.remaining_at(15.) == pytest.approx(85.)
     # never past the end of the line being run (byte 300: 70 s left)
@@ -163,3 +163,16 @@ def test_the_status_is_of_the_eventtime_it_is_asked_for() -> None:
     assert kest.get_status(0.)["remaining_s"] == pytest.approx(60.)
     toolhead.mcu.estimated_print_time = lambda eventtime: 40. + eventtime
     assert kest.get_status(0.25)["remaining_s"] == pytest.approx(59.75)
+
+
+def test_moves_waiting_for_the_queue_to_prime_are_not_yet_time_done() -> None:
+    """After a heater wait the next lines' moves sit in the look-ahead queue while Klipper
+    primes it: the head is idle, the time left stands."""
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    kest.anchor = (10., 100)      # the moves before byte 100 ended at 10, then the wait
+    toolhead.print_time = 10.
+    vsd.cmd_from_sd, vsd.next_file_position = True, 300
+    toolhead.lookahead.queue.append(stubs.Move())
+    assert kest.remaining_at(13.) == pytest.approx(90.)

@@ -892,12 +892,10 @@ class Kestimator:
 
     def _moving_until(self) -> float:
         """The print_time up to which the toolhead is known to move: the end of the
-        planned moves, or for ever while moves wait in the look-ahead queue."""
-        toolhead = self.toolhead
-        queue = getattr(toolhead, "lookahead", None)
-        if queue is not None and queue.get_last() is not None:
-            return float("inf")
-        return float(toolhead.print_time)
+        moves Klipper has planned. Moves still in the look-ahead queue are not yet
+        timed: after a heater wait or a pause they wait for Klipper to prime the queue
+        again, and the head is idle meanwhile."""
+        return float(self.toolhead.print_time)
 
     def _line_end(self) -> int:
         """File position after the line virtual_sdcard is running (its start between
