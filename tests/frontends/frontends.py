@@ -51,7 +51,7 @@ METADATA_FIELDS = ("filename", "gcode_start_byte", "gcode_end_byte", "filament_t
                    "estimated_time", "job_id")
 
 
-class FrontendsUnavailable(RuntimeError):
+class FrontendsUnavailableError(RuntimeError):
     """node, npm or the pinned sources are missing."""
 
 
@@ -66,7 +66,7 @@ def cache_root() -> Path:
 def _programs() -> tuple[str, str]:
     node, npm = shutil.which("node"), shutil.which("npm")
     if node is None or npm is None:
-        raise FrontendsUnavailable("node and npm are needed (missing: %s)" % ", ".join(
+        raise FrontendsUnavailableError("node and npm are needed (missing: %s)" % ", ".join(
             name for name, path in (("node", node), ("npm", npm)) if path is None))
     return node, npm
 
@@ -79,7 +79,7 @@ def _key() -> str:
     for tarball, commit in SOURCES.values():
         path = UPSTREAM / tarball
         if not path.is_file():
-            raise FrontendsUnavailable("the pinned source %s is missing" % path)
+            raise FrontendsUnavailableError("the pinned source %s is missing" % path)
         stat = path.stat()
         digest.update(("%s %s %d\0" % (tarball, commit, stat.st_size)).encode())
     return digest.hexdigest()[:16]
