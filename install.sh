@@ -19,11 +19,15 @@ YES=0
 UNINSTALL=0
 ALLOW_ROOT=0
 RESTART=1
+FRONTEND_SETTINGS=0
+MOONRAKER_URL="http://127.0.0.1:7125"
+SETTINGS_TOOL="$REPO/plugins/klipper/frontend_settings.py"
 STATE_NAME="kestimator-install.state"
 
 usage() {
     cat <<EOF
 Usage: ./install.sh [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
+                    [--frontend-settings [--moonraker URL]]
        ./install.sh --uninstall [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
 
 Installs kestimator in its own virtualenv ($VENV), compiled
@@ -40,6 +44,11 @@ Run it again after any change: it changes nothing twice.
   --uninstall    undo: klipper_estimator back, moonraker.conf as it was before
   --no-restart   never restart Moonraker
   --allow-root   run as root (only if Moonraker itself runs as root)
+  --frontend-settings
+                 set Mainsail's progress, estimate and ETA settings (and Fluidd's
+                 progress) so they show the Klipper module's time, through
+                 Moonraker's database API; --uninstall puts back what was there
+  --moonraker URL  Moonraker's address for that (default: http://127.0.0.1:7125)
   -h, --help     this text
 
 KESTIMATOR_BUILD=pure installs the pure-Python build without trying to compile.
@@ -57,6 +66,8 @@ while [ $# -gt 0 ]; do
         --uninstall) UNINSTALL=1 ;;
         --allow-root) ALLOW_ROOT=1 ;;
         --no-restart) RESTART=0 ;;
+        --frontend-settings) FRONTEND_SETTINGS=1 ;;
+        --moonraker) [ $# -ge 2 ] || die "--moonraker needs a URL"; MOONRAKER_URL="$2"; shift ;;
         -h|--help) usage; exit 0 ;;
         *) usage >&2; die "unknown option: $1" ;;
     esac
@@ -188,8 +199,19 @@ unlink_module() {
     fi
 }
 
+# Mainsail's and Fluidd's settings, through Moonraker's database API (never their files).
+frontend_settings() {
+    if python3 "$SETTINGS_TOOL" --moonraker "$MOONRAKER_URL" "$@"; then
+        return 0
+    fi
+    say "WARNING: Mainsail's and Fluidd's settings were not changed (Moonraker at $MOONRAKER_URL: see above); run again with --frontend-settings when Moonraker runs."
+}
+
 uninstall() {
     local p link
+    if state_has frontend_settings; then
+        frontend_settings --undo
+    fi
     unlink_module
     if [ -f "$CONF" ] && [ "$(conf_tool remove "$CONF")" = removed ]; then
         say "moonraker.conf: kestimator's [analysis]/[update_manager kestimator] lines removed"
@@ -399,6 +421,10 @@ fi
 
 # --- the Klipper module ---------------------------------------------------------
 link_module
+if [ "$FRONTEND_SETTINGS" = 1 ]; then
+    state_add frontend_settings
+    frontend_settings
+fi
 
 say "Installed: $version_line"
 restart_moonraker

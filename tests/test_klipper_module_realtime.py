@@ -25,7 +25,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "kli
 import run_print  # noqa: E402
 import run_realtime  # noqa: E402
 
-from tests.conftest import require_klipper  # noqa: E402
+from tests.conftest import require_klipper, require_program  # noqa: E402
 
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
@@ -246,3 +246,32 @@ def test_a_pause_and_a_heater_wait_leave_the_time_left_standing(prints: dict[str
     assert len(paused) >= 4
     assert len({_kest(s)["remaining_s"] for s in paused}) == 1
     assert _kest(paused[-1])["excluded_objects"]
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_mainsail_by_its_own_code_shows_klippers_remaining_time(prints: dict[str, Any],
+                                                                name: str) -> None:
+    """The recorded status stream fed to Mainsail's own store code (tests/frontends/) with
+    the three settings of the module's guide: its remaining time and its ETA are within 1 s
+    of what Klipper then really took at every checked cycle (through the pause, the
+    heater waits, the exclusion and the speed and limit changes); its progress and Fluidd's
+    (set to M73) are display_status's, Klipper-time-true."""
+    sys.path.insert(0, str(Path(__file__).parent / "frontends"))
+    import frontends
+
+    require_program("node")
+    require_program("npm")
+    result = _result(prints, name)
+    checked = {id(s) for s, _, _ in _checked(result["samples"], result["typed"])}
+    views = frontends.realtime_view(result)
+    off = []
+    for sample, view in zip(result["samples"], views):
+        if id(sample) not in checked:
+            continue
+        progress = sample["status"]["display_status"]["progress"]
+        assert view["mainsail_progress"] == pytest.approx(progress, abs=1e-9)
+        assert view["fluidd_progress"] == pytest.approx(progress, abs=1e-9)
+        for field in ("mainsail_estimate_error_s", "mainsail_eta_left_error_s"):
+            if view[field] is None or abs(view[field]) > 1.:
+                off.append((round(sample["print_time"], 2), field, view[field]))
+    assert off == []
