@@ -78,6 +78,7 @@ def test_past_the_anchor_a_moving_head_goes_on_to_the_end_of_its_line() -> None:
     toolhead.print_time = 10.
     assert kest.anchor is not None
     kest.anchor = (10., 100)      # the moves before byte 100 end at print_time 10
+    kest.anchor_idle = False      # (planned with moves queued: the head moves on)
     # A long macro line from byte 100 to 300 is running; Klipper has planned its moves.
     vsd.cmd_from_sd, vsd.next_file_position = True, 300
     toolhead.print_time = 60.
@@ -176,3 +177,37 @@ def test_moves_waiting_for_the_queue_to_prime_are_not_yet_time_done() -> None:
     vsd.cmd_from_sd, vsd.next_file_position = True, 300
     toolhead.lookahead.queue.append(stubs.Move())
     assert kest.remaining_at(13.) == pytest.approx(90.)
+
+
+def test_an_anchor_taken_with_nothing_queued_moves_to_where_klipper_primes_again() -> None:
+    """A heater wait ran the queue dry at print_time 10; the next line anchors with nothing
+    queued; Klipper primes the queue again at 14 (toolhead:sync_print_time): the moves
+    from that line on start there, and the 4 s between are no progress."""
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    toolhead.print_time = 10.
+    vsd.file_position, vsd.cmd_from_sd = 100, True
+    kest.want_anchor = True
+    printer.gcode.run_script("G1 X1")           # the line after the wait: nothing queued
+    assert kest.anchor == (10., 100) and kest.anchor_idle
+    toolhead.print_time = 15.                   # its moves planned from 14 on
+    assert kest.remaining_at(13.) == pytest.approx(90.)
+    printer.send_event("toolhead:sync_print_time", 0., 13.75, 14.)
+    assert kest.anchor == (14., 100)
+    assert kest.remaining_at(13.) == pytest.approx(91.)
+    vsd.next_file_position = 300
+    assert kest.remaining_at(14.5) == pytest.approx(89.5)
+
+
+def test_an_idle_gap_after_a_planned_anchor_is_no_progress() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    kest.anchor, kest.anchor_idle = (10., 100), False
+    vsd.cmd_from_sd, vsd.next_file_position = True, 300
+    toolhead.print_time = 12.                   # moves to 12, then the queue ran dry
+    printer.send_event("toolhead:sync_print_time", 0., 15.75, 16.)
+    toolhead.print_time = 18.
+    assert kest.want_anchor
+    assert kest.remaining_at(17.) == pytest.approx(90.)     # not 83: no base to go on from

@@ -430,6 +430,8 @@ class Kestimator:
             self._stop_worker))
         printer.register_event_handler("klippy:disconnect", self._guard(
             self._stop_worker))
+        printer.register_event_handler("toolhead:sync_print_time", self._guard(
+            self._handle_sync_print_time))
         printer.register_event_handler("virtual_sdcard:reset_file",
                                        self._guard(self._handle_reset_file))
         self.gcode.register_output_handler(self._guard(self._handle_output))
@@ -634,6 +636,10 @@ class Kestimator:
         self.events: list[tuple[int, str]] = []
         # (print_time, file position) last planned
         self.anchor: tuple[float, int] | None = None
+        # Taken with nothing queued (its print_time may be before an idle gap), or
+        # followed by one: the head's progress past it is not known from print_time.
+        self.anchor_idle = False
+        self.anchor_stale = False
         self.anchor_pending = 0
         # The update timer asks; the next line start (or typed command) anchors.
         self.want_anchor = False
@@ -847,14 +853,37 @@ class Kestimator:
             queue = getattr(toolhead, "move_queue", None)
         last = queue.get_last() if queue is not None else None
         if last is None:
+            # Nothing queued: every earlier move ends at print_time. If the queue ran
+            # dry, the next moves start when Klipper primes it again
+            # (toolhead:sync_print_time), which moves this anchor there.
             self.anchor = (toolhead.print_time, position)
+            self.anchor_idle = True
+            self.anchor_stale = False
             return
         self.anchor_pending += 1
 
         def planned(print_time: float, position: int = position) -> None:
             self.anchor_pending -= 1
             self.anchor = (print_time, position)
+            self.anchor_idle = self.anchor_stale = False
         last.timing_callbacks.append(self._guard(planned))
+
+    def _handle_sync_print_time(self, curtime: float, est_print_time: float,
+                                print_time: float) -> None:
+        """Klipper primed an empty queue again (after a heater wait, a pause, an M400):
+        the head was idle until `print_time`, where the next moves start."""
+        anchor = self.anchor
+        if anchor is None or anchor[0] >= print_time:
+            return
+        if self.anchor_idle:
+            # Taken with nothing queued: the moves from its position on start here.
+            self.anchor = (print_time, anchor[1])
+            self.anchor_idle = False
+        else:
+            # Moves after it ran, then the head idled: no longer a base to go on from;
+            # the next line start anchors again.
+            self.anchor_stale = True
+            self.want_anchor = True
 
     def remaining_at(self, print_time: float) -> float | None:
         """Seconds of printing left when the head is at `print_time`.
@@ -873,7 +902,7 @@ class Kestimator:
         left = max(0., table.total_s - table.time_at(position))
         if anchor_pt >= print_time:
             left += anchor_pt - print_time
-        else:
+        elif not self.anchor_idle and not self.anchor_stale:
             moving_until = self._moving_until()
             if moving_until > anchor_pt:
                 floor = max(0., table.total_s - table.time_at(self._line_end()))

@@ -84,7 +84,7 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
                     "oracle_probe.py")
     batch = os.path.join(work, "batch.gcode")
     with open(batch, "w") as f:
-        f.write("G28\n")
+        f.write("ORACLE_HOME ZERO=1\n")   # the estimator's start convention (run_print)
         for command in before or []:
             f.write(command + "\n")
         f.write("SDCARD_PRINT_FILE FILENAME=test.gcode\n")
