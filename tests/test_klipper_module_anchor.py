@@ -211,3 +211,38 @@ def test_an_idle_gap_after_a_planned_anchor_is_no_progress() -> None:
     toolhead.print_time = 18.
     assert kest.want_anchor
     assert kest.remaining_at(17.) == pytest.approx(90.)     # not 83: no base to go on from
+
+
+def test_the_state_before_the_print_is_read_before_the_files_first_line() -> None:
+    """SDCARD_PRINT_FILE resets virtual_sdcard before it starts the file; the file's own
+    first lines (an OrcaSlicer SET_VELOCITY_LIMIT) may run before the module's next update
+    and are the file's, already in its estimate and its table."""
+    printer = stubs.Printer()
+    kest = MOD_load(printer)
+    printer.send_event("klippy:ready")
+    printer.gcode.run("M220", S="150")            # typed at the console
+    worker = _fake_worker(kest)
+    printer.send_event("virtual_sdcard:reset_file")
+    vsd = printer.objects["virtual_sdcard"]
+    vsd.path, vsd.active, vsd.cmd_from_sd = "/sd/x.gcode", True, True
+    printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="5000")    # the file's line 1
+    printer.objects["print_stats"].state = "printing"
+    printer.reactor.run_timers()
+    (request,) = worker.requests
+    assert request["events"] == [[0, "M220 S150"]]
+
+
+def test_a_state_that_cannot_be_read_is_a_warning_not_an_error() -> None:
+    printer = stubs.Printer()
+    kest = MOD_load(printer)
+    printer.send_event("klippy:ready")
+    printer.gcode.run("M220", S="150")
+
+    def broken(eventtime: float) -> dict[str, float]:
+        raise KeyError("max_accel")
+    printer.objects["toolhead"].get_status = broken
+    events = kest.state_before_print(0.)
+    assert events == ["M220 S150"]
+    assert not kest.disabled
+    (warning,) = kest.state_warnings
+    assert "toolhead limits" in warning and "printer.cfg" in warning

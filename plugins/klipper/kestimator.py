@@ -392,6 +392,10 @@ class Kestimator:
         config_file = start_args.get("config_file")
         self.config_file = os.path.abspath(config_file) if config_file else None
         self.gcode = printer.lookup_object("gcode")
+        # What the user left set before the print (state_before_print), taken when
+        # virtual_sdcard resets for a new file.
+        self.state_at_start: list[str] | None = None
+        self.state_warnings: list[str] = []
         # Klipper's objects (klippy:ready).
         self.toolhead: Any = None
         self.vsd: Any = None
@@ -677,6 +681,11 @@ class Kestimator:
     # One print
     def _handle_reset_file(self) -> None:
         self._reset_print(None)
+        # SDCARD_PRINT_FILE resets before it loads and starts the file: the state now is
+        # the one the user left, before the file's own first line changes it.
+        self.state_at_start = None
+        if self.toolhead is not None:
+            self.state_at_start = self.state_before_print(self.reactor.monotonic())
         if self.timer is not None:
             # A print is starting (SDCARD_PRINT_FILE): look at it as soon as it has.
             self.reactor.update_timer(self.timer, self.reactor.NOW)
@@ -953,7 +962,7 @@ class Kestimator:
             # Nothing is left to print (print_stats says why).
             return status
         status["table_bytes"] = table.nbytes
-        status["warnings"] = list(table.warnings)
+        status["warnings"] = list(table.warnings) + self.state_warnings
         remaining = self.remaining_at(print_time)
         if state == "complete" and remaining is None:
             remaining = 0.
@@ -1028,7 +1037,15 @@ class Kestimator:
         duration = float(stats.get("print_duration", 0.))
         if duration + remaining <= 0.:
             return 1. if state == "complete" else 0.
-        return duration / (duration + remaining)
+        progress = duration / (duration + remaining)
+        if state == "paused":
+            # Paused, D and R stand still, and so would the progress: Mainsail would then
+            # not recompute its ETA (a cached getter, now + D / progress - D), which must
+            # move on with the clock. A change of one part in 1e12, every other cycle,
+            # has it recomputed; its estimate moves by under a microsecond.
+            if int(eventtime * 4.) % 2:
+                progress *= 1. - 1e-12
+        return progress
 
     def _update_timer(self, eventtime: float) -> float:
         self._guard(self.update)(eventtime)
@@ -1047,7 +1064,11 @@ class Kestimator:
         if path is not None and vsd.is_active() and path != self.path:
             logging.info("kestimator: following the print of %s", path)
             self._reset_print(path)
-            for text in self.state_before_print(eventtime):
+            state, self.state_at_start = self.state_at_start, None
+            if state is None:
+                # Not started by SDCARD_PRINT_FILE (no reset seen): the state now.
+                state = self.state_before_print(eventtime)
+            for text in state:
                 # Set at the console before the print: it applies to all of it.
                 self.events.append((0, text))
             self._request()
@@ -1072,94 +1093,11 @@ class Kestimator:
 
     def state_before_print(self, eventtime: float) -> list[str]:
         """Commands that take the printer from its printer.cfg to the state it is in as a
-        print starts: what the user set at the console before it (Mainsail's and Fluidd's
-        limit and speed sliders, a Z offset, pressure advance, retraction, input shaper)
-        stays until a restart, and the print runs with it. Klipper's own status and
-        configfile's settings are compared; each difference is an event at the file's
-        start."""
-        lookup = self.printer.lookup_object
-        configfile = lookup("configfile", None)
-        settings: dict[str, Any] = {}
-        if configfile is not None:
-            settings = configfile.get_status(eventtime).get("settings", {})
-
-        def differ(live: Any, conf: Any) -> bool:
-            try:
-                return abs(float(live) - float(conf)) > 1e-9 * max(1., abs(float(conf)))
-            except (TypeError, ValueError):
-                return False
-
-        def words(pairs: list[tuple[str, Any]]) -> str:
-            return " ".join("%s=%.10g" % (word, float(value)) for word, value in pairs)
-        events = []
-        # toolhead: SET_VELOCITY_LIMIT / M204
-        th = self.toolhead.get_status(eventtime)
-        printer_cfg = settings.get("printer", {})
-        limits = [(word, th[key]) for key, word, default in (
-            ("max_velocity", "VELOCITY", None), ("max_accel", "ACCEL", None),
-            ("square_corner_velocity", "SQUARE_CORNER_VELOCITY", 5.),
-            ("minimum_cruise_ratio", "MINIMUM_CRUISE_RATIO", .5))
-            if key in th and differ(th[key], printer_cfg.get(key, default))]
-        if limits:
-            events.append("SET_VELOCITY_LIMIT " + words(limits))
-        # gcode_move: M220, M221, SET_GCODE_OFFSET
-        if self.gcode_move is not None:
-            gm = self.gcode_move.get_status(eventtime)
-            if differ(gm.get("speed_factor", 1.), 1.):
-                events.append("M220 S%.10g" % (gm["speed_factor"] * 100.,))
-            if differ(gm.get("extrude_factor", 1.), 1.):
-                events.append("M221 S%.10g" % (gm["extrude_factor"] * 100.,))
-            origin = list(gm.get("homing_origin", [0., 0., 0.]))[:3]
-            offsets = [(axis, v) for axis, v in zip("XYZ", origin) if differ(v, 0.)]
-            if offsets:
-                events.append("SET_GCODE_OFFSET " + words(offsets))
-        # extruders: SET_PRESSURE_ADVANCE
-        for name, obj in self.printer.lookup_objects():
-            if (not name.startswith("extruder") or not name[8:].isdigit() and name[8:]
-                    or not hasattr(obj, "get_status")):
-                continue
-            status = obj.get_status(eventtime)
-            conf = settings.get(name, {})
-            pa = [(word, status[key]) for key, word, option, default in (
-                ("pressure_advance", "ADVANCE", "pressure_advance", 0.),
-                ("smooth_time", "SMOOTH_TIME", "pressure_advance_smooth_time", .04))
-                if key in status and differ(status[key], conf.get(option, default))]
-            if pa:
-                events.append("SET_PRESSURE_ADVANCE EXTRUDER=%s %s" % (name, words(pa)))
-        # firmware_retraction: SET_RETRACTION
-        retraction = lookup("firmware_retraction", None)
-        if retraction is not None:
-            status = retraction.get_status(eventtime)
-            conf = settings.get("firmware_retraction", {})
-            defaults = {"retract_length": 0., "retract_speed": 20.,
-                        "unretract_extra_length": 0., "unretract_speed": 10.}
-            changed = [(key.upper(), status[key]) for key in sorted(defaults)
-                       if key in status
-                       and differ(status[key], conf.get(key, defaults[key]))]
-            if changed:
-                events.append("SET_RETRACTION " + words(changed))
-        # input_shaper: SET_INPUT_SHAPER
-        shaper = lookup("input_shaper", None)
-        if shaper is not None and hasattr(shaper, "get_shapers"):
-            conf = settings.get("input_shaper", {})
-            parts = []
-            for axis_shaper in shaper.get_shapers():
-                axis = str(axis_shaper.axis)
-                params = axis_shaper.params
-                live_type = str(params.shaper_type)
-                conf_type = str(conf.get("shaper_type_" + axis,
-                                         conf.get("shaper_type", "mzv"))).lower()
-                if (differ(params.shaper_freq, conf.get("shaper_freq_" + axis, 0.))
-                        or differ(params.damping_ratio,
-                                  conf.get("damping_ratio_" + axis, .1))
-                        or live_type != conf_type):
-                    parts.append("SHAPER_TYPE_%s=%s SHAPER_FREQ_%s=%.10g "
-                                  "DAMPING_RATIO_%s=%.10g" % (
-                                      axis.upper(), live_type, axis.upper(),
-                                      params.shaper_freq, axis.upper(),
-                                      params.damping_ratio))
-            if parts:
-                events.append("SET_INPUT_SHAPER " + " ".join(parts))
+        print starts (StateBeforePrint); a part that cannot be read is said in the
+        status's warnings, never an error."""
+        events, self.state_warnings = StateBeforePrint(self).read(eventtime)
+        for warning in self.state_warnings:
+            logging.warning("kestimator: %s", warning)
         return events
 
     def get_status(self, eventtime: float) -> dict[str, Any]:
@@ -1194,6 +1132,129 @@ class Kestimator:
                 status["remaining_s"], status["total_s"],
                 status["progress"] * 100., status["source"]))
 
+
+
+def _differ(live: Any, conf: Any) -> bool:
+    try:
+        return abs(float(live) - float(conf)) > 1e-9 * max(1., abs(float(conf)))
+    except (TypeError, ValueError):
+        return False
+
+
+def _words(pairs: list[tuple[str, Any]]) -> str:
+    return " ".join("%s=%.10g" % (word, float(value)) for word, value in pairs)
+
+
+class StateBeforePrint:
+    """What the user set at the console before a print, as commands: Mainsail's and
+    Fluidd's limit and speed sliders, a Z offset, pressure advance, retraction and input
+    shaper stay until a restart, and the print runs with them. Klipper's own status is
+    compared with configfile's settings (printer.cfg as loaded, defaults included); each
+    difference is one command, an event at the file's start."""
+
+    def __init__(self, kest: Kestimator) -> None:
+        self.kest = kest
+        self.lookup = kest.printer.lookup_object
+
+    def read(self, eventtime: float) -> tuple[list[str], list[str]]:
+        """(commands, warnings): each part read on its own, so that one Klipper object
+        laid out otherwise costs only its part, said in a warning."""
+        configfile = self.lookup("configfile", None)
+        settings: dict[str, Any] = {}
+        if configfile is not None:
+            settings = configfile.get_status(eventtime).get("settings", {})
+        events: list[str] = []
+        warnings = []
+        for name, part in (("toolhead limits", self.toolhead),
+                           ("speed, flow and offsets", self.gcode_move),
+                           ("pressure advance", self.extruders),
+                           ("firmware retraction", self.retraction),
+                           ("input shaper", self.input_shaper)):
+            try:
+                events += part(eventtime, settings)
+            except Exception as e:
+                warnings.append("the %s set before the print could not be read (%s: %s); "
+                                "the estimate uses printer.cfg's"
+                                % (name, type(e).__name__, str(e)[:100]))
+        return events, warnings
+
+    def toolhead(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
+        """SET_VELOCITY_LIMIT (and M204)."""
+        th = self.kest.toolhead.get_status(eventtime)
+        printer_cfg = settings.get("printer", {})
+        limits = [(word, th[key]) for key, word, default in (
+            ("max_velocity", "VELOCITY", None), ("max_accel", "ACCEL", None),
+            ("square_corner_velocity", "SQUARE_CORNER_VELOCITY", 5.),
+            ("minimum_cruise_ratio", "MINIMUM_CRUISE_RATIO", .5))
+            if key in th and _differ(th[key], printer_cfg.get(key, default))]
+        return ["SET_VELOCITY_LIMIT " + _words(limits)] if limits else []
+
+    def gcode_move(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
+        """M220, M221, SET_GCODE_OFFSET."""
+        events = []
+        if self.kest.gcode_move is None:
+            return events
+        gm = self.kest.gcode_move.get_status(eventtime)
+        if _differ(gm.get("speed_factor", 1.), 1.):
+            events.append("M220 S%.10g" % (gm["speed_factor"] * 100.,))
+        if _differ(gm.get("extrude_factor", 1.), 1.):
+            events.append("M221 S%.10g" % (gm["extrude_factor"] * 100.,))
+        origin = list(gm.get("homing_origin", [0., 0., 0.]))[:3]
+        offsets = [(axis, v) for axis, v in zip("XYZ", origin) if _differ(v, 0.)]
+        if offsets:
+            events.append("SET_GCODE_OFFSET " + _words(offsets))
+        return events
+
+    def extruders(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
+        """SET_PRESSURE_ADVANCE, per extruder."""
+        events = []
+        for name, obj in self.kest.printer.lookup_objects():
+            if (not name.startswith("extruder") or not name[8:].isdigit() and name[8:]
+                    or not hasattr(obj, "get_status")):
+                continue
+            status = obj.get_status(eventtime)
+            conf = settings.get(name, {})
+            pa = [(word, status[key]) for key, word, option, default in (
+                ("pressure_advance", "ADVANCE", "pressure_advance", 0.),
+                ("smooth_time", "SMOOTH_TIME", "pressure_advance_smooth_time", .04))
+                if key in status and _differ(status[key], conf.get(option, default))]
+            if pa:
+                events.append("SET_PRESSURE_ADVANCE EXTRUDER=%s %s" % (name, _words(pa)))
+        return events
+
+    def retraction(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
+        """SET_RETRACTION."""
+        retraction = self.lookup("firmware_retraction", None)
+        if retraction is None:
+            return []
+        status = retraction.get_status(eventtime)
+        conf = settings.get("firmware_retraction", {})
+        defaults = {"retract_length": 0., "retract_speed": 20.,
+                    "unretract_extra_length": 0., "unretract_speed": 10.}
+        changed = [(key.upper(), status[key]) for key in sorted(defaults)
+                   if key in status and _differ(status[key], conf.get(key, defaults[key]))]
+        return ["SET_RETRACTION " + _words(changed)] if changed else []
+
+    def input_shaper(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
+        """SET_INPUT_SHAPER (input_shaper has no status: its shapers' parameters)."""
+        shaper = self.lookup("input_shaper", None)
+        if shaper is None:
+            return []
+        conf = settings.get("input_shaper", {})
+        parts = []
+        for axis_shaper in shaper.get_shapers():
+            axis = str(axis_shaper.axis)
+            params = axis_shaper.params
+            live_type = str(params.shaper_type)
+            conf_type = str(conf.get("shaper_type_" + axis,
+                                     conf.get("shaper_type", "mzv"))).lower()
+            if (_differ(params.shaper_freq, conf.get("shaper_freq_" + axis, 0.))
+                    or _differ(params.damping_ratio, conf.get("damping_ratio_" + axis, .1))
+                    or live_type != conf_type):
+                parts.append("SHAPER_TYPE_%s=%s SHAPER_FREQ_%s=%.10g DAMPING_RATIO_%s=%.10g"
+                             % (axis.upper(), live_type, axis.upper(), params.shaper_freq,
+                                axis.upper(), params.damping_ratio))
+        return ["SET_INPUT_SHAPER " + " ".join(parts)] if parts else []
 
 def _is_m220(text: str) -> bool:
     return text.startswith("M220 ")
