@@ -1,0 +1,56 @@
+"""Print the numbers plugins/klipper/README.md gives for real-time prints: the cases of
+tests/test_klipper_module_realtime.py (real Klipper at wall-clock speed with the module), as a
+Markdown table: status cycles checked, the worst error of `remaining_s` against the time
+Klipper then took, the worst of Mainsail's own estimate and ETA (its store code,
+tests/frontends/), and the module's longest reactor callback.
+
+    python3 tests/klipper_module/measure_realtime.py      (about 9 minutes)
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "frontends"))
+import frontends  # noqa: E402
+
+from tests import test_klipper_module_realtime as rt  # noqa: E402
+
+
+def row(name: str, result: dict[str, Any]) -> str:
+    checked = rt._checked(result["samples"], result["typed"])
+    worst = max(checked, key=lambda c: abs(c[0]["error_s"]))[0]
+    ids = {id(s) for s, _, _ in checked}
+    views = [v for s, v in zip(result["samples"], frontends.realtime_view(result))
+             if id(s) in ids]
+    mainsail = max(abs(v["mainsail_estimate_error_s"] or 0.) for v in views)
+    eta = max(abs(v["mainsail_eta_left_error_s"] or 0.) for v in views)
+    callback = max(float(s["status"].get("kestimator", {}).get("max_callback_ms") or 0.)
+                   for s in result["samples"])
+    typed = ", ".join(t["cmd"].split()[0] for t in result["typed"]) or "-"
+    return "| %s | %s | %d | %.3f s at %.0f s left | %.2f s | %.2f s | %.2f ms |" % (
+        name, typed, len(checked), abs(worst["error_s"]), worst["truth_s"], mainsail, eta,
+        callback)
+
+
+def main() -> None:
+    print("| case | typed | cycles checked | worst error | Mainsail estimate | Mainsail ETA "
+          "| longest callback |")
+    print("|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp, \
+            concurrent.futures.ThreadPoolExecutor(max_workers=3) as pool:
+        futures = {name: pool.submit(case, Path(tmp) / name)
+                   for name, case in rt.CASES.items()}
+        for name, future in futures.items():
+            print(row(name, future.result()), flush=True)
+
+
+if __name__ == "__main__":
+    main()
