@@ -39,6 +39,29 @@ def oracle_paths() -> tuple[str, str] | None:
     return None
 
 
+def run_klippy(cfg: str, batch: str, log: str, out: str, env: dict[str, str],
+               timeout: float) -> dict[str, Any]:
+    """Klipper's klippy.py in batch mode on `cfg` with the commands of `batch`, the test
+    module writing its results (JSON) to `out`: those results, with `returncode`."""
+    paths = oracle_paths()
+    if paths is None:
+        raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
+    klipper, kpython = paths
+    proc = subprocess.run(
+        [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", batch,
+         "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"), "-l", log],
+        env=env, stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper, timeout=timeout)
+    if not os.path.exists(out):
+        with open(log, errors="replace") as f:
+            tail = f.read()[-3000:]
+        raise RuntimeError("Klipper did not finish the print (rc %d):\n%s"
+                           % (proc.returncode, tail))
+    with open(out) as f:
+        result: dict[str, Any] = json.load(f)
+    result["returncode"] = proc.returncode
+    return result
+
+
 def _link(src: str, klipper: str, name: str) -> None:
     dst = os.path.join(klipper, "klippy", "extras", name)
     if os.path.lexists(dst) and os.path.realpath(dst) != os.path.realpath(src):
@@ -99,7 +122,7 @@ def run_print(src: str, work: str, samples: int = 12,
     paths = oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
-    klipper, kpython = paths
+    klipper, _ = paths
     python = python or sys.executable
     sd = os.path.join(work, "sd")
     os.makedirs(sd, exist_ok=True)
@@ -125,17 +148,7 @@ def run_print(src: str, work: str, samples: int = 12,
     out = os.path.join(work, "ktest.json")
     log = os.path.join(work, "klippy.log")
     env = dict(os.environ, KTEST_OUT=out, ORACLE_OUT=os.path.join(work, "oracle.json"))
-    proc = subprocess.run(
-        [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", batch,
-         "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"), "-l", log],
-        env=env, stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper, timeout=1800)
-    if not os.path.exists(out):
-        with open(log, errors="replace") as f:
-            tail = f.read()[-3000:]
-        raise RuntimeError("Klipper did not finish the print (rc %d):\n%s"
-                           % (proc.returncode, tail))
-    with open(out) as f:
-        result: dict[str, Any] = json.load(f)
+    result = run_klippy(cfg, batch, log, out, env, 1800.)
     end = result["end_print_time"]
     for sample in result["samples"]:
         sample["truth_s"] = end - sample["print_time"]

@@ -63,7 +63,7 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
     paths = run_print.oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
-    klipper, kpython = paths
+    klipper, _ = paths
     python = python or sys.executable
     sd = os.path.join(work, "sd")
     os.makedirs(sd, exist_ok=True)
@@ -92,17 +92,7 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
     log = os.path.join(work, "klippy.log")
     env = dict(os.environ, KTEST_OUT=out, ORACLE_OUT=os.path.join(work, "oracle.json"),
                KTEST_SCRIPT=json.dumps(script or []))
-    proc = subprocess.run(
-        [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", batch,
-         "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"), "-l", log],
-        env=env, stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper, timeout=timeout)
-    if not os.path.exists(out):
-        with open(log, errors="replace") as f:
-            tail = f.read()[-3000:]
-        raise RuntimeError("Klipper did not finish the print (rc %d):\n%s"
-                           % (proc.returncode, tail))
-    with open(out) as f:
-        result: dict[str, Any] = json.load(f)
+    result = run_print.run_klippy(cfg, batch, log, out, env, timeout)
     end = result["end_print_time"]
     samples = _merge(result.pop("stream"), result["clock_offset"])
     for sample in samples:
@@ -113,7 +103,6 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
             sample["error_s"] = sample["remaining_s"] - sample["truth_s"]
     result["samples"] = samples
     result["klippy_log"] = log
-    result["returncode"] = proc.returncode
     return result
 
 
