@@ -1191,7 +1191,7 @@ class StateBeforePrint:
 
     def gcode_move(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
         """M220, M221, SET_GCODE_OFFSET."""
-        events = []
+        events: list[str] = []
         if self.kest.gcode_move is None:
             return events
         gm = self.kest.gcode_move.get_status(eventtime)
@@ -1207,7 +1207,7 @@ class StateBeforePrint:
 
     def extruders(self, eventtime: float, settings: dict[str, Any]) -> list[str]:
         """SET_PRESSURE_ADVANCE, per extruder."""
-        events = []
+        events: list[str] = []
         for name, obj in self.kest.printer.lookup_objects():
             if (not name.startswith("extruder") or not name[8:].isdigit() and name[8:]
                     or not hasattr(obj, "get_status")):
