@@ -22,7 +22,9 @@ need them; pass 2 copies every line byte for byte except the ones kestimator own
   points' offsets are those of this output, noted as pass 2 writes it (the table's lines
   are stops of the block copy, like the noted lines). An old table is dropped, and the new
   one takes its place when every point lies before it (what a post-processor appended after
-  it stays after it); a file without a final line ending gets one before the table.
+  it stays after it); a file without a final line ending gets one before the table. The
+  table records the printer settings the estimate ran with (`table_settings`), so that it
+  is not followed on another printer.
 
 Inserted lines take the line ending of the line they stand next to. A second run drops
 its own lines and writes them again, so it is byte-identical. The output goes to a
@@ -73,16 +75,18 @@ from kestimator.files import (
     same_file,
     write_atomically,
 )
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 from kestimator.macros import MacroTimes
 from kestimator.progress_table import (
     CHUNK_PREFIX,
     HEADER_PREFIX,
     ProgressTable,
     Selection,
+    Settings,
     is_chunk_line,
     is_header_line,
     select,
+    setting_text,
 )
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
@@ -275,6 +279,42 @@ def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
                                first_layer_estimate_s=None)
 
 
+def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 0.0,
+                   macros: MacroTimes | None = None) -> Settings:
+    """Every setting an estimate's times depend on besides the file, as a progress table
+    records them (kestimator.progress_table, "The printer it was made for"): each `Limits`
+    field (the machine limits, kinematics, extruders, shaper, arcs, retraction, the Klipper
+    generation, the config's sections and macros), the kinematics' own sections of the
+    printer's config (steppers, probe, homing, bed mesh; values only, not where they were
+    read; [printer]'s options that are `Limits` fields only once, resolved, above), the
+    seconds per G28 and per heater wait, and the macro times (the profile's and the
+    learned ones). `inject` writes them into the table and the worker compares them with
+    the printer's: both call this with what they give the estimate."""
+    pairs: list[tuple[str, object]] = []
+    for name in Limits.field_names():
+        value = getattr(limits, name)
+        if name == "configured_sections":
+            value = sorted(value)  # the printer's set of sections, in any order
+        elif isinstance(value, tuple):
+            value = json_value(value)
+        pairs.append((name, value))
+    machine = limits.machine
+    # [printer]'s options that are Limits fields are recorded above, as resolved.
+    fields = frozenset(Limits.field_names())
+    pairs.append(("kinematics_sections", None if machine is None else [
+        [section, [[option, text] for option, text, _source in options
+                   if section != "printer" or option not in fields]]
+        for section, options in machine.sections]))
+    pairs += [("homing_time_s", homing_time), ("heat_time_s", heat_time)]
+    macros = macros if macros is not None else MacroTimes()
+    prep, ratio = macros.before_first_extrusion, macros.motion_ratio
+    pairs += [("macro_times", sorted([name, t.seconds] for name, t in macros.macros.items())
+               if macros.macros else None),
+              ("learned_prep_s", None if prep is None else prep.seconds),
+              ("learned_motion_ratio", None if ratio is None else ratio.seconds)]
+    return tuple((name, setting_text(value)) for name, value in pairs)
+
+
 @dataclasses.dataclass(frozen=True)
 class InjectPlan:
     """Everything pass 2 needs from pass 1."""
@@ -301,6 +341,8 @@ class InjectPlan:
     table: Selection | None = None
     """The progress table's points (kestimator.progress_table), by line: `copy_stream`
     writes the table with their offsets in the output; None writes none."""
+    table_settings: Settings | None = None
+    """The printer settings the table records (`table_settings`)."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -625,7 +667,7 @@ class Rewriter:
         """The progress table's lines, here: every byte written so far is before it."""
         assert self.plan.table is not None
         self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets.get,
-                                                  self._out_pos)
+                                                  self._out_pos, self.plan.table_settings)
         return self.table.encode(eol)
 
     def finish(self) -> list[bytes]:
@@ -787,6 +829,9 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
         # Layer numbers only where the file sets none itself (its first and last MiB).
         layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
         and _FOREIGN_LAYER_INFO_RE.search(tail) is None, table=table)
+    if table:
+        plan = dataclasses.replace(plan, table_settings=table_settings(
+            limits, homing_time, heat_time, macros))
     return plan, est, slicer, slicer_s
 
 
