@@ -282,7 +282,9 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
                          zip(est.tail_lines, est.tail_times)):
         after = line + 1
         by_line[after] = max(t, by_line.get(after, 0.0))
-    lines = sorted(line for line in by_line if line <= est.n_lines)
+    # Line n_lines + 1 is the file's end: where the output of a file whose last line is a
+    # move goes on (inject's own lines after it), as in a second run's input.
+    lines = sorted(line for line in by_line if line <= est.n_lines + 1)
     times = []
     latest = 0.0
     for line in lines:
@@ -390,7 +392,9 @@ class ProgressTable:
         if not offsets or offsets[0] != 0:
             offsets.insert(0, 0)
             times.insert(0, 0.0)
-        if offsets[-1] < content_bytes:
+        if offsets[-1] == content_bytes:  # the file's end: every time counted
+            times[-1] = max(selection.total_s, times[-1])
+        elif offsets[-1] < content_bytes:
             offsets.append(content_bytes)
             times.append(max(selection.total_s, times[-1]))
         object_offsets: list[int] = []

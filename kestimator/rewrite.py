@@ -22,7 +22,9 @@ need them; pass 2 copies every line byte for byte except the ones kestimator own
   points' offsets are those of this output, noted as pass 2 writes it (the table's lines
   are stops of the block copy, like the noted lines). An old table is dropped, and the new
   one takes its place when every point lies before it (what a post-processor appended after
-  it stays after it); a file without a final line ending gets one before the table. The
+  it stays after it); a file without a final line ending gets one before the table, and
+  its last line is processed as the line it becomes (a move gets its M73 P100 R0 after it,
+  a layer marker its lines after it, a lone CR is a CRLF), as a second run reads it. The
   table records the printer settings the estimate ran with (`table_settings`), so that it
   is not followed on another printer.
 
@@ -623,14 +625,27 @@ class Rewriter:
                 write(piece)
             if tail:
                 write(self.eol)
+        # The table, not yet written in an old one's place, goes at the end.
+        table = self.plan.table is not None and self.table is None
+        if table and carry:
+            # The table's lines stand on their own, so a last line without a line ending
+            # gets one: it is processed as the line it becomes (a move gets its M73 P100 R0
+            # after it, a layer marker its lines after it, a lone CR is a CRLF) and the tail
+            # time comment follows it, as in a second run's input.
+            last = b"".join(carry)
+            carry = []
+            for piece in process(last + (b"\n" if last.endswith(b"\r") else self.eol)):
+                write(piece)
+        if table:
+            self._note_table_line()  # the file's end, line n + 1: before the tail comment
         # The tail time comment ends the file; before a last line without a line ending, so
-        # that none is ever added to the file.
+        # that none is ever added to the file (but for the table's, above).
         for piece in tail:
             write(piece)
         if carry:
             for piece in process(b"".join(carry)):
                 write(piece)
-        if self.plan.table is not None and self.table is None:
+        if table:
             if self._out_pos and not self._ends_in_lf:
                 write(self.eol)  # the table's lines stand on their own
             write(self._table_block(self.eol))
@@ -662,6 +677,15 @@ class Rewriter:
                 self._table_next = k + 1
             return process_line(raw)
         return counted, process
+
+    def _note_table_line(self) -> None:
+        """Note where the next line's output starts if the table needs it: at the end of
+        the input, the file's end (line n + 1, where a second run finds the line after a
+        last move: the M73 P100 R0 it drops)."""
+        k = self._table_next
+        if k < len(self._table_lines) and self._table_lines[k] == self.lineno + 1:
+            self._table_offsets[self._table_lines[k]] = self._out_pos
+            self._table_next = k + 1
 
     def _table_block(self, eol: bytes) -> bytes:
         """The progress table's lines, here: every byte written so far is before it."""
