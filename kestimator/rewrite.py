@@ -628,16 +628,16 @@ class Rewriter:
         # The table, not yet written in an old one's place, goes at the end.
         table = self.plan.table is not None and self.table is None
         if table and carry:
-            # The table's lines stand on their own, so a last line without a line ending
-            # gets one: it is processed as the line it becomes (a move gets its M73 P100 R0
-            # after it, a layer marker its lines after it, a lone CR is a CRLF) and the tail
-            # time comment follows it, as in a second run's input.
+            # The table's line ending ends the last line too: it is processed as the line it
+            # becomes, and the tail comment follows it, as in a second run's input.
             last = b"".join(carry)
             carry = []
             for piece in process(last + (b"\n" if last.endswith(b"\r") else self.eol)):
                 write(piece)
         if table:
-            self._note_table_line()  # the file's end, line n + 1: before the tail comment
+            # The file's end, line n + 1 (a second run finds the line after a last move
+            # there: the M73 P100 R0 it drops), before the tail comment.
+            self._note_table_line()
         # The tail time comment ends the file; before a last line without a line ending, so
         # that none is ever added to the file (but for the table's, above).
         for piece in tail:
@@ -665,23 +665,15 @@ class Rewriter:
                 self._ends_in_lf = data[-1:] == b"\n"
             return write(data)
 
-        wanted = self._table_lines
-        offsets = self._table_offsets
         process_line = self.process
 
         def process(raw: bytes) -> list[bytes]:
-            k = self._table_next
-            if k < len(wanted) and wanted[k] == self.lineno + 1:
-                # before `_comment` may write the table here
-                offsets[wanted[k]] = self._out_pos
-                self._table_next = k + 1
+            self._note_table_line()  # before `_comment` may write the table here
             return process_line(raw)
         return counted, process
 
     def _note_table_line(self) -> None:
-        """Note where the next line's output starts if the table needs it: at the end of
-        the input, the file's end (line n + 1, where a second run finds the line after a
-        last move: the M73 P100 R0 it drops)."""
+        """Note where the next line's output starts, if the table needs it."""
         k = self._table_next
         if k < len(self._table_lines) and self._table_lines[k] == self.lineno + 1:
             self._table_offsets[self._table_lines[k]] = self._out_pos
