@@ -182,19 +182,16 @@ def settings_differences(made_for: Settings, here: Settings) -> list[str]:
     for name, value in here:
         old = theirs.get(name)
         if old is None:
-            found.append("no %s (this printer has %s)" % (name, _shown(value)))
+            found.append("a kestimator that did not record %s" % name)
         elif old != value:
             if old.startswith(DIGEST_PREFIX) or value.startswith(DIGEST_PREFIX):
                 found.append("other %s than this printer's" % name)
             else:
                 found.append("%s %s, this printer has %s" % (name, old, value))
-    found += ["%s %s, which this printer's settings lack" % (name, _shown(value))
+    found += ["%s, which this kestimator does not record" % (
+        name if value.startswith(DIGEST_PREFIX) else "%s %s" % (name, value))
               for name, value in made_for if name not in ours]
     return found
-
-
-def _shown(value: str) -> str:
-    return "(a list or long text)" if value.startswith(DIGEST_PREFIX) else value
 
 
 def describe_differences(differences: Sequence[str]) -> str:

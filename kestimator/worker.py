@@ -31,7 +31,8 @@ slicer's settings and the learned times resolved the same way, the printer.cfg w
 each event run before the line that starts at (or after) its byte offset, and the table
 built from that estimate with the file's own byte offsets. Every request gets an answer
 (no error ends the process); end of input ends it with status 0. Only the standard library
-and the table's module are imported up front; the estimator loads on the first estimate.
+and the table's module are imported up front; the estimator loads on the first estimate
+(or the first check of a table against a printer.cfg).
 
 Files are hostile, and the Klipper module reads every answer inside Klipper's process, so
 every answer is bounded whatever the file holds. A table read from a file is refused past

@@ -447,11 +447,14 @@ def test_differences_name_the_first_few_settings_and_count_the_rest() -> None:
                      "max_velocity 300, this printer has 250",
                      "square_corner_velocity 5, this printer has 8",
                      "other gcode_macros than this printer's",
-                     "no new_setting (this printer has 1)"]
+                     "a kestimator that did not record new_setting"]
     assert describe_differences(found) == (
         "max_accel 3000, this printer has 5000; max_velocity 300, this printer has 250; "
         "square_corner_velocity 5, this printer has 8 (and 2 more settings)")
     assert settings_differences(SETTINGS, SETTINGS) == []
+    assert settings_differences(SETTINGS + (("old", "2"), ("older", "#0123456789abcdef")),
+                                SETTINGS) == ["old 2, which this kestimator does not record",
+                                              "older, which this kestimator does not record"]
 
 
 @pytest.mark.parametrize("bad", ["over_count", "long_name", "long_value", "twice", "ascii"])
