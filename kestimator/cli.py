@@ -182,8 +182,8 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="time the print with these objects cancelled (EXCLUDE_OBJECT NAME=, "
                           "names as the file's EXCLUDE_OBJECT_DEFINE/START give them)")
     est.add_argument("--at", type=int, default=None, metavar="LINE",
-                     help="cancel the --exclude objects right before this line of the file "
-                          "(default: before its first line)")
+                     help="cancel the --exclude objects right before this line of the file, "
+                          "1 to its last (default: before its first line)")
     _add_debug_option(est)
     inj = sub.add_parser(
         "inject", help="write Klipper's times into a G-code file (M73 and time comments)",
@@ -410,24 +410,32 @@ def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Es
 def exclusion_events(args: argparse.Namespace, limits: Limits) -> list[Event]:
     """`--exclude NAME[,NAME...] --at LINE` as events: EXCLUDE_OBJECT NAME= for each name,
     right before LINE (line 1 by default). Each name must label an object of the file
-    (Klipper upper-cases names, so case does not matter), and a printer whose config is
-    known must have [exclude_object] (without it Klipper ignores EXCLUDE_OBJECT)."""
-    names = [name.strip() for item in getattr(args, "exclude", []) for name in item.split(",")
-             if name.strip()]
+    (Klipper upper-cases names, so case does not matter), LINE must be a line of the file,
+    and a printer whose config is known must have [exclude_object] (without it Klipper
+    ignores EXCLUDE_OBJECT). A command line that cannot mean anything (an empty name, --at
+    without --exclude, below 1 or past the file's last line) is a usage error (exit 2)."""
+    names: list[str] = []
+    for item in getattr(args, "exclude", []):
+        parts = [name.strip() for name in item.split(",")]
+        if not all(parts):
+            raise UsageError("--exclude %s has an empty name: give NAME[,NAME...], the "
+                             "objects' names as the file's EXCLUDE_OBJECT_DEFINE/START give "
+                             "them" % shlex.quote(item))
+        names += parts
     at = getattr(args, "at", None)
     if not names:
         if at is not None:
-            raise KestimatorError("--at needs --exclude (the objects to cancel at that line)")
+            raise UsageError("--at needs --exclude (the objects to cancel at that line)")
         return []
     at = 1 if at is None else at
     if at < 1:
-        raise KestimatorError("--at takes a line number (1 is the file's first line)")
+        raise UsageError("--at takes a line number (1 is the file's first line), not %d" % at)
     if limits.configured_sections and \
             "exclude_object" not in loaded_modules(limits.configured_sections):
         raise KestimatorError("the printer's config has no [exclude_object] section: Klipper "
                               "would ignore EXCLUDE_OBJECT, so --exclude cannot be timed",
                               args.shown)
-    known = labelled_objects(args.file)
+    known, n_lines = objects_and_lines(args.file)
     unknown = [name for name in names if name.upper() not in known]
     if unknown:
         raise KestimatorError(
@@ -436,6 +444,10 @@ def exclusion_events(args: argparse.Namespace, limits: Limits) -> list[Event]:
                 ", ".join(sorted(known)) if known else "no objects (no EXCLUDE_OBJECT_DEFINE "
                 "or EXCLUDE_OBJECT_START; Moonraker's preprocess_cancellation adds them)"),
             args.shown)
+    if at > n_lines:
+        raise UsageError("--at %d is past the file's end: it has %d lines, so nothing would be "
+                         "cancelled (give a line from 1 to %d)" % (at, n_lines, n_lines),
+                         args.shown)
     args.excluded = {"names": [name.upper() for name in names], "line": at}
     return [(at, "EXCLUDE_OBJECT NAME=%s" % shlex.quote(name)) for name in names]
 
@@ -443,8 +455,16 @@ def exclusion_events(args: argparse.Namespace, limits: Limits) -> list[Event]:
 def labelled_objects(path: str) -> set[str]:
     """Every object name (upper case, as Klipper keeps it) an EXCLUDE_OBJECT_DEFINE or
     EXCLUDE_OBJECT_START line of the file gives."""
+    return objects_and_lines(path)[0]
+
+
+def objects_and_lines(path: str) -> tuple[set[str], int]:
+    """`labelled_objects` of the file, and how many lines it has (a last line without a
+    line ending counts)."""
     names: set[str] = set()
+    n_lines = 0
     for raw in iter_lines(path):
+        n_lines += 1
         if b"EXCLUDE_OBJECT_" not in raw[:40].upper():
             continue
         cmd = parse_line(raw.decode("utf-8", "replace").strip())
@@ -455,7 +475,7 @@ def labelled_objects(path: str) -> set[str]:
                 continue
             if name:
                 names.add(name.upper())
-    return names
+    return names, n_lines
 
 
 def cmd_estimate(args: argparse.Namespace) -> int:

@@ -24,9 +24,9 @@ first, then by name). An object whose name is over MAX_NAME_BYTES bytes of UTF-8
 another); `Selection.objects_left_out` counts the objects left out for either limit, whose
 time still counts in the total.
 
-Encoding (version 1): a header line and base64 lines, at the end of the file::
+Encoding (version 2): a header line and base64 lines, at the end of the file::
 
-    ; kestimator_table v1 bytes=<content length> lines=<n> crc32=<8 hex digits>
+    ; kestimator_table v2 bytes=<content length> lines=<n> crc32=<8 hex digits>
     ; kt <base64, at most CHUNK_CHARS characters>      (n lines)
 
 `bytes=` is the length of the file before the header: a table whose header is anywhere else
@@ -36,6 +36,19 @@ MAX_TRAILING_BYTES of them, may follow the table (a line a post-processor append
 kestimator-compat's ident line). A file edited after the table without changing its length
 cannot be told from the original by the table alone.
 
+The printer it was made for (version 2). A table's times hold only for the settings the
+estimate ran with, so a version-2 table ends with them (`ProgressTable.settings`): (name,
+value text) pairs, every setting that changes time, in a fixed order (`kestimator.rewrite.
+table_settings` builds them from what the estimate was given: the resolved limits, the
+printer's kinematics sections, the homing and heating times, the macro times). A value is
+its text (`setting_text`: numbers as Python's shortest round-trip repr without a trailing
+".0", booleans as true/false) or, when long or a list, "#" and 16 hex digits of its SHA-256.
+`settings_digest` is the fingerprint: 16 hex digits of the SHA-256 of every pair. Whoever
+follows a print with the table (`kestimator.worker`) resolves the printer's settings the same
+way and trusts the table only when the two are equal; `settings_differences` names what
+differs. A version-1 table (written before, and still by `encode` for a table given no
+settings) records none: it is read, and `settings` is None.
+
 Reading trusts nothing: files are hostile. The reader refuses (TableError) any table the
 writer never writes, and refuses a count past the writer's limits before reading what it
 counts, so a table's memory and the worker's answer stay bounded whatever the file declares:
@@ -43,7 +56,8 @@ at most MAX_TABLE_POINTS time points, MAX_OBJECTS object names of at most MAX_NA
 each (all different), MAX_OBJECT_POINTS object points; offsets strictly increasing from 0 and
 within the file's length; times (whole milliseconds, at most MAX_MS) non-decreasing with the
 offset and never past the total; each object's time left between 0 and the total and never
-growing from one object point to the next.
+growing from one object point to the next; at most MAX_SETTINGS settings, each name and
+value at most MAX_SETTING_BYTES bytes, names all different.
 """
 
 from __future__ import annotations
@@ -51,6 +65,8 @@ from __future__ import annotations
 import base64
 import binascii
 import dataclasses
+import hashlib
+import json
 import math
 import os
 import re
@@ -61,7 +77,11 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from itertools import chain
 from typing import Any, BinaryIO, Protocol
 
-TABLE_VERSION = 1
+TABLE_VERSION = 2
+"""The version `encode` writes for a table that records its printer's settings."""
+VERSION_WITHOUT_SETTINGS = 1
+"""The version of a table that records none (written before settings were recorded)."""
+READ_VERSIONS = (VERSION_WITHOUT_SETTINGS, TABLE_VERSION)
 HEADER_PREFIX = b"; kestimator_table "
 CHUNK_PREFIX = b"; kt "
 CHUNK_CHARS = 200
@@ -91,6 +111,17 @@ MAX_TRAILING_BYTES = 4096
 TAIL_WINDOWS = (1 << 16, 1 << 20, 1 << 23)
 MAX_PAYLOAD_BYTES = 1 << 22
 MS = 1000.0
+# The printer's settings a table records (see the module's docstring): at most this many,
+# each name and value at most this many bytes (a longer value is written as its digest).
+MAX_SETTINGS = 200
+MAX_SETTING_BYTES = 64
+DIGEST_PREFIX = "#"
+DIGEST_HEX = 16
+# How many differing settings `settings_differences` names (the rest are counted).
+NAMED_DIFFERENCES = 3
+
+Settings = tuple[tuple[str, str], ...]
+"""A table's printer settings: (name, value text) pairs in a fixed order."""
 
 
 class TableError(ValueError):
@@ -110,6 +141,66 @@ def is_chunk_line(code: bytes) -> bool:
 def spacing_bound(remaining_s: float) -> float:
     """How far apart in time two neighbouring points may be, `remaining_s` before the end."""
     return max(MIN_SPACING_S, SPACING_FRACTION * remaining_s)
+
+
+def _digest(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:DIGEST_HEX]
+
+
+def setting_text(value: object) -> str:
+    """A setting's value as a table records it (see the module's docstring): exact and
+    the same on every machine for the same value."""
+    if value is None:
+        text = "none"
+    elif isinstance(value, bool):
+        text = "true" if value else "false"
+    elif isinstance(value, (int, float)):
+        text = repr(float(value))
+        text = text[:-2] if text.endswith(".0") else text
+    elif isinstance(value, str):
+        text = value
+    else:
+        return DIGEST_PREFIX + _digest(json.dumps(value, sort_keys=True,
+                                                  separators=(",", ":")))
+    if (len(text.encode("utf-8", "surrogateescape")) > MAX_SETTING_BYTES
+            or text.startswith(DIGEST_PREFIX) or not text.isprintable()):
+        return DIGEST_PREFIX + _digest(text)
+    return text
+
+
+def settings_digest(settings: Settings) -> str:
+    """The fingerprint of a table's settings: 16 hex digits."""
+    return _digest("".join("%s=%s\n" % pair for pair in settings))
+
+
+def settings_differences(made_for: Settings, here: Settings) -> list[str]:
+    """What differs between the settings a table was made for and the printer's, one phrase
+    each, in `here`'s order (the settings only one side records last)."""
+    theirs = dict(made_for)
+    ours = dict(here)
+    found = []
+    for name, value in here:
+        old = theirs.get(name)
+        if old is None:
+            found.append("a kestimator that did not record %s" % name)
+        elif old != value:
+            if old.startswith(DIGEST_PREFIX) or value.startswith(DIGEST_PREFIX):
+                found.append("other %s than this printer's" % name)
+            else:
+                found.append("%s %s, this printer has %s" % (name, old, value))
+    found += ["%s, which this kestimator does not record" % (
+        name if value.startswith(DIGEST_PREFIX) else "%s %s" % (name, value))
+              for name, value in made_for if name not in ours]
+    return found
+
+
+def describe_differences(differences: Sequence[str]) -> str:
+    """`settings_differences` in one phrase: the first NAMED_DIFFERENCES, and how many more."""
+    named = "; ".join(differences[:NAMED_DIFFERENCES])
+    more = len(differences) - NAMED_DIFFERENCES
+    if more > 0:
+        named += " (and %d more setting%s)" % (more, "" if more == 1 else "s")
+    return named
 
 
 class _EstimateLike(Protocol):
@@ -188,7 +279,9 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
                          zip(est.tail_lines, est.tail_times)):
         after = line + 1
         by_line[after] = max(t, by_line.get(after, 0.0))
-    lines = sorted(line for line in by_line if line <= est.n_lines)
+    # Line n_lines + 1 is the file's end: where the output of a file whose last line is a
+    # move goes on (inject's own lines after it), as in a second run's input.
+    lines = sorted(line for line in by_line if line <= est.n_lines + 1)
     times = []
     latest = 0.0
     for line in lines:
@@ -264,12 +357,22 @@ class ProgressTable:
     object_names: list[str] = dataclasses.field(default_factory=list)
     object_offsets: list[int] = dataclasses.field(default_factory=list)
     object_remaining: list[list[float]] = dataclasses.field(default_factory=list)
+    settings: Settings | None = None
+    """The printer settings the times were computed for (None: not recorded, a version-1
+    table)."""
+
+    @property
+    def fingerprint(self) -> str | None:
+        """`settings_digest` of `settings` (None when the table records none)."""
+        return None if self.settings is None else settings_digest(self.settings)
 
     @classmethod
     def from_selection(cls, selection: Selection, offset_of: Callable[[int], int | None],
-                       content_bytes: int) -> ProgressTable:
+                       content_bytes: int, settings: Settings | None = None
+                       ) -> ProgressTable:
         """The table once each selected line's byte offset is known (`offset_of(line)`;
-        None for a line that is not in the file: it starts where the file ends)."""
+        None for a line that is not in the file: it starts where the file ends), made for
+        the printer `settings` describes."""
         def place(line: int) -> int:
             offset = offset_of(line)
             return content_bytes if offset is None else min(offset, content_bytes)
@@ -286,7 +389,9 @@ class ProgressTable:
         if not offsets or offsets[0] != 0:
             offsets.insert(0, 0)
             times.insert(0, 0.0)
-        if offsets[-1] < content_bytes:
+        if offsets[-1] == content_bytes:  # the file's end: every time counted
+            times[-1] = max(selection.total_s, times[-1])
+        elif offsets[-1] < content_bytes:
             offsets.append(content_bytes)
             times.append(max(selection.total_s, times[-1]))
         object_offsets: list[int] = []
@@ -300,7 +405,13 @@ class ProgressTable:
         remaining = [[column[j] for j in keep_columns] for column in selection.object_remaining]
         return cls(total_s=selection.total_s, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=list(selection.object_names),
-                   object_offsets=object_offsets, object_remaining=remaining)
+                   object_offsets=object_offsets, object_remaining=remaining,
+                   settings=settings)
+
+    @property
+    def version(self) -> int:
+        """The version `encode` writes: TABLE_VERSION, or 1 for a table without settings."""
+        return VERSION_WITHOUT_SETTINGS if self.settings is None else TABLE_VERSION
 
     def time_at(self, offset: int) -> float:
         """Klipper's time when the line starting at byte `offset` is reached: linear
@@ -363,7 +474,7 @@ class ProgressTable:
     def payload(self) -> bytes:
         """The table as varints (before compression)."""
         out = _Writer()
-        out.uint(TABLE_VERSION)
+        out.uint(self.version)
         out.uint(self.content_bytes)
         out.uint(_ms(self.total_s))
         out.uint(len(self.offsets))
@@ -390,6 +501,16 @@ class ProgressTable:
                 ms = _ms(seconds)
                 out.sint(ms - previous_ms)
                 previous_ms = ms
+        if self.settings is not None:
+            out.uint(len(self.settings))
+            for pair in self.settings:
+                for text in pair:
+                    raw = text.encode("utf-8", "surrogateescape")
+                    if len(raw) > MAX_SETTING_BYTES:
+                        raise ValueError("a setting's name or value is over %d bytes: %r"
+                                         % (MAX_SETTING_BYTES, text))
+                    out.uint(len(raw))
+                    out.raw(raw)
         return out.bytes()
 
     def encode(self, eol: bytes = b"\n") -> bytes:
@@ -397,20 +518,26 @@ class ProgressTable:
         packed = base64.b64encode(zlib.compress(self.payload(), 9))
         chunks = [packed[i:i + CHUNK_CHARS] for i in range(0, len(packed), CHUNK_CHARS)]
         header = b"%sv%d bytes=%d lines=%d crc32=%08x" % (
-            HEADER_PREFIX, TABLE_VERSION, self.content_bytes, len(chunks),
+            HEADER_PREFIX, self.version, self.content_bytes, len(chunks),
             zlib.crc32(packed) & 0xFFFFFFFF)
         return b"".join([header + eol] + [CHUNK_PREFIX + chunk + eol for chunk in chunks])
 
     @classmethod
-    def from_payload(cls, payload: bytes) -> ProgressTable:
+    def from_payload(cls, payload: bytes, expected_version: int | None = None
+                     ) -> ProgressTable:
         """The table from `payload` (TableError if it is not one the writer could have
-        written: see the module's docstring). Each count is checked against its limit
-        before anything it counts is read."""
+        written: see the module's docstring; or if its version is not `expected_version`,
+        the header's). Each count is checked against its limit before anything it counts
+        is read."""
         data = _Reader(payload)
         try:
             version = data.uint()
-            if version != TABLE_VERSION:
-                raise TableError("table version %d is not %d" % (version, TABLE_VERSION))
+            if version not in READ_VERSIONS:
+                raise TableError("table version %d is not one of %s"
+                                 % (version, _versions_text()))
+            if expected_version is not None and version != expected_version:
+                raise TableError("the table's header says version %d, its data %d"
+                                 % (expected_version, version))
             content_bytes = data.uint()
             total_ms = data.uint()
             if total_ms > MAX_MS:
@@ -460,6 +587,7 @@ class ProgressTable:
                     ms = left
                     column.append(ms / MS)
                 remaining.append(column)
+            settings = None if version == VERSION_WITHOUT_SETTINGS else _read_settings(data)
         except IndexError:
             raise TableError("the table ends early") from None
         if data.pos != len(payload):
@@ -468,7 +596,30 @@ class ProgressTable:
             raise TableError("the table's offsets do not fit the file")
         return cls(total_s=total_ms / MS, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=names, object_offsets=object_offsets,
-                   object_remaining=remaining)
+                   object_remaining=remaining, settings=settings)
+
+
+def _versions_text() -> str:
+    return " or ".join(str(v) for v in READ_VERSIONS)
+
+
+def _read_settings(data: _Reader) -> Settings:
+    """A version-2 table's settings (its last part), checked as the writer writes them."""
+    settings = []
+    names = set()
+    for _ in range(data.count(MAX_SETTINGS, "settings")):
+        try:
+            name = data.raw(data.count(MAX_SETTING_BYTES, "bytes in a setting's name")
+                            ).decode("ascii")
+        except UnicodeDecodeError:
+            raise TableError("a setting's name in the table is not ASCII") from None
+        value = data.raw(data.count(MAX_SETTING_BYTES, "bytes in a setting's value")
+                         ).decode("utf-8", "surrogateescape")
+        if not name or name in names:
+            raise TableError("the table names a setting twice or not at all")
+        names.add(name)
+        settings.append((name, value))
+    return tuple(settings)
 
 
 def _b64(values: array[Any]) -> str:
@@ -551,13 +702,13 @@ def decode_block(block: bytes, header_offset: int) -> ProgressTable:
     header = _HEADER_RE.match(lines[0])
     if header is None:
         other = re.match(rb"; kestimator_table v(\d+)", lines[0])
-        if other is not None and int(other.group(1)) != TABLE_VERSION:
-            raise TableError("table version %s is not %d"
-                             % (other.group(1).decode(), TABLE_VERSION))
+        if other is not None and int(other.group(1)) not in READ_VERSIONS:
+            raise TableError("table version %s is not one of %s"
+                             % (other.group(1).decode(), _versions_text()))
         raise TableError("the table's header line is damaged")
     version, stated, count = (int(header.group(i)) for i in (1, 2, 3))
-    if version != TABLE_VERSION:
-        raise TableError("table version %d is not %d" % (version, TABLE_VERSION))
+    if version not in READ_VERSIONS:
+        raise TableError("table version %d is not one of %s" % (version, _versions_text()))
     if stated != header_offset:
         raise TableError("the file was changed after its table was written (%d bytes "
                          "before the table, the table says %d)" % (header_offset, stated))
@@ -584,7 +735,7 @@ def decode_block(block: bytes, header_offset: int) -> ProgressTable:
         raise TableError("the table cannot be decoded (%s)" % exc) from None
     if inflate.unconsumed_tail or not inflate.eof:
         raise TableError("the table is too big or cut short")
-    table = ProgressTable.from_payload(payload)
+    table = ProgressTable.from_payload(payload, version)
     if table.content_bytes != header_offset:
         raise TableError("the table's length does not match its header")
     return table

@@ -22,7 +22,11 @@ need them; pass 2 copies every line byte for byte except the ones kestimator own
   points' offsets are those of this output, noted as pass 2 writes it (the table's lines
   are stops of the block copy, like the noted lines). An old table is dropped, and the new
   one takes its place when every point lies before it (what a post-processor appended after
-  it stays after it); a file without a final line ending gets one before the table.
+  it stays after it); a file without a final line ending gets one before the table, and
+  its last line is processed as the line it becomes (a move gets its M73 P100 R0 after it,
+  a layer marker its lines after it, a lone CR is a CRLF), as a second run reads it. The
+  table records the printer settings the estimate ran with (`table_settings`), so that it
+  is not followed on another printer.
 
 Inserted lines take the line ending of the line they stand next to. A second run drops
 its own lines and writes them again, so it is byte-identical. The output goes to a
@@ -73,16 +77,18 @@ from kestimator.files import (
     same_file,
     write_atomically,
 )
-from kestimator.limits import Limits
+from kestimator.limits import Limits, json_value
 from kestimator.macros import MacroTimes
 from kestimator.progress_table import (
     CHUNK_PREFIX,
     HEADER_PREFIX,
     ProgressTable,
     Selection,
+    Settings,
     is_chunk_line,
     is_header_line,
     select,
+    setting_text,
 )
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
@@ -275,6 +281,42 @@ def slicer_of_file(path: str | os.PathLike[str]) -> SlicerInfo:
                                first_layer_estimate_s=None)
 
 
+def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 0.0,
+                   macros: MacroTimes | None = None) -> Settings:
+    """Every setting an estimate's times depend on besides the file, as a progress table
+    records them (kestimator.progress_table, "The printer it was made for"): each `Limits`
+    field (the machine limits, kinematics, extruders, shaper, arcs, retraction, the Klipper
+    generation, the config's sections and macros), the kinematics' own sections of the
+    printer's config (steppers, probe, homing, bed mesh; values only, not where they were
+    read; [printer]'s options that are `Limits` fields only once, resolved, above), the
+    seconds per G28 and per heater wait, and the macro times (the profile's and the
+    learned ones). `inject` writes them into the table and the worker compares them with
+    the printer's: both call this with what they give the estimate."""
+    pairs: list[tuple[str, object]] = []
+    for name in Limits.field_names():
+        value = getattr(limits, name)
+        if name == "configured_sections":
+            value = sorted(value)  # the printer's set of sections, in any order
+        elif isinstance(value, tuple):
+            value = json_value(value)
+        pairs.append((name, value))
+    machine = limits.machine
+    # [printer]'s options that are Limits fields are recorded above, as resolved.
+    fields = frozenset(Limits.field_names())
+    pairs.append(("kinematics_sections", None if machine is None else [
+        [section, [[option, text] for option, text, _source in options
+                   if section != "printer" or option not in fields]]
+        for section, options in machine.sections]))
+    pairs += [("homing_time_s", homing_time), ("heat_time_s", heat_time)]
+    macros = macros if macros is not None else MacroTimes()
+    prep, ratio = macros.before_first_extrusion, macros.motion_ratio
+    pairs += [("macro_times", sorted([name, t.seconds] for name, t in macros.macros.items())
+               if macros.macros else None),
+              ("learned_prep_s", None if prep is None else prep.seconds),
+              ("learned_motion_ratio", None if ratio is None else ratio.seconds)]
+    return tuple((name, setting_text(value)) for name, value in pairs)
+
+
 @dataclasses.dataclass(frozen=True)
 class InjectPlan:
     """Everything pass 2 needs from pass 1."""
@@ -301,6 +343,8 @@ class InjectPlan:
     table: Selection | None = None
     """The progress table's points (kestimator.progress_table), by line: `copy_stream`
     writes the table with their offsets in the output; None writes none."""
+    table_settings: Settings | None = None
+    """The printer settings the table records (`table_settings`)."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -581,14 +625,27 @@ class Rewriter:
                 write(piece)
             if tail:
                 write(self.eol)
+        # The table, not yet written in an old one's place, goes at the end.
+        table = self.plan.table is not None and self.table is None
+        if table and carry:
+            # The table's line ending ends the last line too: it is processed as the line it
+            # becomes, and the tail comment follows it, as in a second run's input.
+            last = b"".join(carry)
+            carry = []
+            for piece in process(last + (b"\n" if last.endswith(b"\r") else self.eol)):
+                write(piece)
+        if table:
+            # The file's end, line n + 1 (a second run finds the line after a last move
+            # there: the M73 P100 R0 it drops), before the tail comment.
+            self._note_table_line()
         # The tail time comment ends the file; before a last line without a line ending, so
-        # that none is ever added to the file.
+        # that none is ever added to the file (but for the table's, above).
         for piece in tail:
             write(piece)
         if carry:
             for piece in process(b"".join(carry)):
                 write(piece)
-        if self.plan.table is not None and self.table is None:
+        if table:
             if self._out_pos and not self._ends_in_lf:
                 write(self.eol)  # the table's lines stand on their own
             write(self._table_block(self.eol))
@@ -608,24 +665,25 @@ class Rewriter:
                 self._ends_in_lf = data[-1:] == b"\n"
             return write(data)
 
-        wanted = self._table_lines
-        offsets = self._table_offsets
         process_line = self.process
 
         def process(raw: bytes) -> list[bytes]:
-            k = self._table_next
-            if k < len(wanted) and wanted[k] == self.lineno + 1:
-                # before `_comment` may write the table here
-                offsets[wanted[k]] = self._out_pos
-                self._table_next = k + 1
+            self._note_table_line()  # before `_comment` may write the table here
             return process_line(raw)
         return counted, process
+
+    def _note_table_line(self) -> None:
+        """Note where the next line's output starts, if the table needs it."""
+        k = self._table_next
+        if k < len(self._table_lines) and self._table_lines[k] == self.lineno + 1:
+            self._table_offsets[self._table_lines[k]] = self._out_pos
+            self._table_next = k + 1
 
     def _table_block(self, eol: bytes) -> bytes:
         """The progress table's lines, here: every byte written so far is before it."""
         assert self.plan.table is not None
         self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets.get,
-                                                  self._out_pos)
+                                                  self._out_pos, self.plan.table_settings)
         return self.table.encode(eol)
 
     def finish(self) -> list[bytes]:
@@ -787,6 +845,9 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
         # Layer numbers only where the file sets none itself (its first and last MiB).
         layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
         and _FOREIGN_LAYER_INFO_RE.search(tail) is None, table=table)
+    if table:
+        plan = dataclasses.replace(plan, table_settings=table_settings(
+            limits, homing_time, heat_time, macros))
     return plan, est, slicer, slicer_s
 
 

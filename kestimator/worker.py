@@ -16,13 +16,23 @@ The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": .
 as base64 machine arrays instead (`ProgressTable.to_json`: ``offsets_b64``, ...).
 
 With `use_table`, no events and a valid table at the file's end (`kestimator inject` wrote
-it), the answer is that table, read from the file's end only. Otherwise the file is
+it), the answer is that table, read from the file's end only, if it was made for this
+printer: given `config`, the worker resolves the settings an estimate would use (below) and
+compares them with those the table records (kestimator.progress_table, "The printer it was
+made for"). When they differ (another printer, a changed max_accel, another homing time in
+the profile, ...) the file is estimated afresh, with a warning naming the first differing
+settings ("the file's table was made for max_accel 3000, this printer has 5000: estimated
+afresh"); a version-1 table, which records no settings, is estimated afresh too, with a
+warning saying so. When the settings cannot be resolved (a printer.cfg kestimator cannot
+read) the table is used, with a warning that it could not be checked; with `config` null
+nothing is known to check it against, and it is used as it is. Otherwise the file is
 estimated as ``kestimator estimate FILE --printer-cfg CONFIG`` would (the profile, the
 slicer's settings and the learned times resolved the same way, the printer.cfg winning),
 each event run before the line that starts at (or after) its byte offset, and the table
 built from that estimate with the file's own byte offsets. Every request gets an answer
 (no error ends the process); end of input ends it with status 0. Only the standard library
-and the table's module are imported up front; the estimator loads on the first estimate.
+and the table's module are imported up front; the estimator loads on the first estimate
+(or the first check of a table against a printer.cfg).
 
 Files are hostile, and the Klipper module reads every answer inside Klipper's process, so
 every answer is bounded whatever the file holds. A table read from a file is refused past
@@ -48,23 +58,31 @@ code prints goes there (and standard input is read only by the worker).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
 import sys
 import time
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from kestimator.progress_table import (
     MAX_NAME_BYTES,
     MAX_OBJECTS,
     ProgressTable,
+    Settings,
     TableError,
+    describe_differences,
     line_offsets,
     lines_at_offsets,
     read_table,
     select,
+    settings_differences,
 )
+
+if TYPE_CHECKING:
+    from kestimator.config.resolve import ResolvedLimits
+    from kestimator.macros import MacroTimes
 
 # A request line longer than this is refused without being parsed (memory stays bounded).
 MAX_REQUEST_BYTES = 1 << 20
@@ -149,6 +167,7 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
     warnings: list[str] = []
     table: ProgressTable | None = None
     source = "estimate"
+    printer: Printer | None = None
     if request["use_table"] and not request["events"]:
         try:
             with open(path, "rb") as f:
@@ -156,14 +175,41 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
             source = "table"
         except TableError as exc:
             warnings.append("no usable progress table (%s): estimated" % exc)
+        config = request.get("config")
+        if table is not None and config is not None:
+            try:
+                printer = resolve_printer(path, config)
+            except Exception as exc:  # noqa: BLE001 - the table is still the best answer
+                warnings.append("the file's table could not be checked against %s (%s): "
+                                "used as it is" % (config, _one_line(str(exc)
+                                                                     or type(exc).__name__)))
+            else:
+                why = table_mismatch(table, printer)
+                if why is not None:
+                    warnings.append(why)
+                    table = None
+                    source = "estimate"
     if table is None:
-        table, more = estimate_table(path, request.get("config"), request["events"])
+        table, more = estimate_table(path, request.get("config"), request["events"], printer)
         warnings += more
     doc: dict[str, Any] = {"id": request.get("id"), "ok": True, "source": source}
     doc.update(table.to_json(request.get("encoding")))
     doc["warnings"] = _bounded_warnings(warnings)
     doc["elapsed_s"] = round(time.monotonic() - started, 3)
     return doc
+
+
+def table_mismatch(table: ProgressTable, printer: Printer) -> str | None:
+    """Why the file's table does not hold for this printer (a warning), or None when it was
+    made for the very settings this printer has."""
+    if table.settings is None:
+        return ("the file's table records no printer settings (a version-1 table, written "
+                "before kestimator recorded them), so it may be for another printer: "
+                "estimated afresh")
+    if table.settings == printer.settings:
+        return None
+    return ("the file's table was made for %s: estimated afresh"
+            % describe_differences(settings_differences(table.settings, printer.settings)))
 
 
 def _bounded_warnings(warnings: list[str]) -> list[str]:
@@ -174,12 +220,44 @@ def _bounded_warnings(warnings: list[str]) -> list[str]:
     return kept + ["and %d more warnings" % (len(warnings) - len(kept))]
 
 
-def estimate_table(path: str, config: str | None,
-                   events: list[tuple[int, str]]) -> tuple[ProgressTable, list[str]]:
-    """Estimate `path` as `kestimator estimate --printer-cfg CONFIG` would, with `events`
-    (byte offset, command) run at their lines; the table with the file's offsets."""
+@dataclasses.dataclass(frozen=True)
+class Printer:
+    """What an estimate of one file for one printer.cfg is given, resolved once."""
+
+    resolved: ResolvedLimits
+    macros: MacroTimes
+    settings: Settings
+    """`kestimator.rewrite.table_settings` of the above: what a table made for it records."""
+
+    @property
+    def homing_time(self) -> float:
+        return float(self.resolved.homing_time_s or 0.0)
+
+    @property
+    def heat_time(self) -> float:
+        return float(self.resolved.heat_time_s or 0.0)
+
+
+def resolve_printer(path: str, config: str | None) -> Printer:
+    """The settings `path` is estimated with for the printer.cfg `config`, as
+    ``kestimator estimate --printer-cfg CONFIG`` resolves them (the profile, the slicer's
+    settings and the learned times, the printer.cfg winning)."""
     from kestimator import learn
     from kestimator.config.resolve import LimitRequest, resolve_limits
+    from kestimator.rewrite import table_settings
+
+    resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config))
+    macros = learn.macro_times_for(resolved, True)
+    homing = resolved.homing_time_s or 0.0
+    heat = resolved.heat_time_s or 0.0
+    return Printer(resolved, macros, table_settings(resolved.limits, homing, heat, macros))
+
+
+def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
+                   printer: Printer | None = None) -> tuple[ProgressTable, list[str]]:
+    """Estimate `path` as `kestimator estimate --printer-cfg CONFIG` would, with `events`
+    (byte offset, command) run at their lines; the table with the file's offsets. `printer`:
+    the settings already resolved for `config` (`resolve_printer`), else resolved here."""
     from kestimator.estimate import estimate_lines, iter_lines
     from kestimator.rewrite import check_gcode_file
 
@@ -188,12 +266,13 @@ def estimate_table(path: str, config: str | None,
         with open(path, "rb") as f:
             lines = lines_at_offsets(f.read, [offset for offset, _ in events])
     check_gcode_file(path)
-    resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config))
-    macros = learn.macro_times_for(resolved, True)
+    if printer is None:
+        printer = resolve_printer(path, config)
+    resolved, macros = printer.resolved, printer.macros
     warnings = list(resolved.warnings) + list(macros.warnings)
     est = estimate_lines(iter_lines(path), resolved.limits, path,
-                         homing_time=resolved.homing_time_s or 0.0,
-                         heat_time=resolved.heat_time_s or 0.0, sample=True, macros=macros,
+                         homing_time=printer.homing_time, heat_time=printer.heat_time,
+                         sample=True, macros=macros,
                          events=list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
     selection = select(est, precision=WORKER_PRECISION)
@@ -204,7 +283,8 @@ def estimate_table(path: str, config: str | None,
     size = os.path.getsize(path)
     with open(path, "rb") as f:
         offsets = line_offsets(f.read, selection.wanted_lines())
-    return ProgressTable.from_selection(selection, offsets.get, size), warnings
+    return ProgressTable.from_selection(selection, offsets.get, size,
+                                        printer.settings), warnings
 
 
 def handle(line: bytes) -> dict[str, Any]:

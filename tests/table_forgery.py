@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from kestimator.progress_table import TABLE_VERSION, ProgressTable, _Writer
+from kestimator.progress_table import VERSION_WITHOUT_SETTINGS, ProgressTable, _Writer
 
 
 def forge_payload(content_bytes: int, total_ms: int, points: Sequence[tuple[int, int]],
@@ -18,7 +18,7 @@ def forge_payload(content_bytes: int, total_ms: int, points: Sequence[tuple[int,
     milliseconds left at object_offsets[j] (any sign), or `remaining_raw` in their place
     (the bytes as they are, whatever the counts declare)."""
     out = _Writer()
-    out.uint(TABLE_VERSION)
+    out.uint(VERSION_WITHOUT_SETTINGS)
     out.uint(content_bytes)
     out.uint(total_ms)
     out.uint(len(points))

@@ -209,3 +209,43 @@ def test_estimate_says_which_objects_were_excluded_where(
                      "--exclude", "a", "--at", "7"]) == 0
     assert "Excluded     : A, cancelled before line 7 (EXCLUDE_OBJECT)" in \
         capsys.readouterr().out
+
+
+def _estimate_exclude(tmp_path: Path, *options: str) -> int:
+    path = tmp_path / "p.gcode"
+    path.write_text(SIMPLE)  # 28 lines
+    return cli.main(["estimate", str(path), "--printer-cfg", str(runs.CFG), "--no-profile",
+                     *options])
+
+
+@pytest.mark.parametrize("at", ["29", "99999"])
+def test_estimate_exclude_at_past_the_files_end_is_a_usage_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], at: str) -> None:
+    """Issue 38 item 7: it said "Excluded: A, cancelled before line 99999" and excluded
+    nothing."""
+    assert _estimate_exclude(tmp_path, "--exclude", "a", "--at", at) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1
+    assert "--at %s is past the file's end: it has 28 lines" % at in err
+
+
+def test_estimate_exclude_at_the_last_line_is_allowed(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _estimate_exclude(tmp_path, "--exclude", "a", "--at", "28") == 0
+    assert "cancelled before line 28" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("names", [",", "a,", ",a", "a,,a", " "])
+def test_estimate_exclude_refuses_empty_names(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], names: str) -> None:
+    """Issue 38 item 7: `--exclude ,` ran silently, excluding nothing."""
+    assert _estimate_exclude(tmp_path, "--exclude", names) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and err.count("\n") == 1 and "has an empty name" in err
+
+
+@pytest.mark.parametrize("options", [["--at", "3"], ["--exclude", "a", "--at", "0"]])
+def test_estimate_at_without_exclude_or_below_1_is_a_usage_error(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], options: list[str]) -> None:
+    assert _estimate_exclude(tmp_path, *options) == 2
+    assert capsys.readouterr().err.count("\n") == 1

@@ -4,6 +4,7 @@ output (offsets of the output, one table after re-runs, refused once the file is
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import os
 import shutil
@@ -28,11 +29,15 @@ from kestimator.progress_table import (
     Selection,
     TableError,
     decode_block,
+    describe_differences,
     line_offsets,
     lines_at_offsets,
     read_table,
     read_table_file,
     select,
+    setting_text,
+    settings_differences,
+    settings_digest,
     spacing_bound,
 )
 from kestimator.rewrite import inject_file
@@ -402,3 +407,66 @@ def test_a_selection_without_objects_has_none() -> None:
     table = ProgressTable.from_selection(selection, {1: 0, 2: 10}.get, 20)
     assert table.offsets == [0, 10, 20] and table.times == [0.0, 5.0, 10.0]
     assert table.objects_remaining_at(5) == {}
+
+
+SETTINGS = (("kinematics", "corexy"), ("max_accel", "3000"), ("max_velocity", "300"),
+            ("square_corner_velocity", "5"), ("gcode_macros", "#0123456789abcdef"),
+            ("shaper_type_x", "näme"))
+
+
+def test_a_table_records_the_printer_settings_it_was_made_for() -> None:
+    """Issue 38 item 2: version 2 carries the settings (and so the fingerprint); a table
+    without settings is still written and read as version 1."""
+    table = dataclasses.replace(_table(), settings=SETTINGS)
+    block = table.encode()
+    assert block.startswith(b"; kestimator_table v2 ")
+    back = decode_block(block, table.content_bytes)
+    assert back == table and back.settings == SETTINGS
+    assert back.fingerprint == settings_digest(SETTINGS) and len(back.fingerprint) == 16
+    old = _table()
+    assert old.encode().startswith(b"; kestimator_table v1 ")
+    assert decode_block(old.encode(), old.content_bytes).settings is None
+    assert old.fingerprint is None
+
+
+def test_setting_texts_are_exact_and_long_or_list_values_are_digests() -> None:
+    assert [setting_text(v) for v in (3000.0, 3000, 0.1, 1e-7, True, None, "mzv")] == [
+        "3000", "3000", "0.1", "1e-07", "true", "none", "mzv"]
+    assert setting_text(0.1 + 0.2) != setting_text(0.3)
+    digest = setting_text([["G28", "G28 X"]])
+    assert digest.startswith("#") and len(digest) == 17
+    assert setting_text("x" * 65).startswith("#") and setting_text("#1") != "#1"
+
+
+def test_differences_name_the_first_few_settings_and_count_the_rest() -> None:
+    here = (("kinematics", "corexy"), ("max_accel", "5000"), ("max_velocity", "250"),
+            ("square_corner_velocity", "8"), ("gcode_macros", "#fedcba9876543210"),
+            ("shaper_type_x", "näme"), ("new_setting", "1"))
+    found = settings_differences(SETTINGS, here)
+    assert found == ["max_accel 3000, this printer has 5000",
+                     "max_velocity 300, this printer has 250",
+                     "square_corner_velocity 5, this printer has 8",
+                     "other gcode_macros than this printer's",
+                     "a kestimator that did not record new_setting"]
+    assert describe_differences(found) == (
+        "max_accel 3000, this printer has 5000; max_velocity 300, this printer has 250; "
+        "square_corner_velocity 5, this printer has 8 (and 2 more settings)")
+    assert settings_differences(SETTINGS, SETTINGS) == []
+    assert settings_differences(SETTINGS + (("old", "2"), ("older", "#0123456789abcdef")),
+                                SETTINGS) == ["old 2, which this kestimator does not record",
+                                              "older, which this kestimator does not record"]
+
+
+@pytest.mark.parametrize("bad", ["over_count", "long_name", "long_value", "twice", "ascii"])
+def test_forged_settings_are_refused(bad: str) -> None:
+    table = dataclasses.replace(_table(), settings=(("a", "1"),))
+    payload = table.payload()
+    assert payload.endswith(b"\x01\x01a\x011")
+    head = payload[:-len(b"\x01\x01a\x011")]
+    tail = {"over_count": b"\xc9\x01",  # MAX_SETTINGS + 1 = 201
+            "long_name": b"\x01\x41" + b"a" * 65 + b"\x011",
+            "long_value": b"\x01\x01a\x41" + b"1" * 65,
+            "twice": b"\x02\x01a\x011\x01a\x012",
+            "ascii": b"\x01\x02\xc3\xa4\x011"}[bad]
+    with pytest.raises(TableError):
+        ProgressTable.from_payload(head + tail)

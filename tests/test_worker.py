@@ -7,6 +7,7 @@ answers ever reaches its standard output."""
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import os
 import shutil
@@ -244,3 +245,104 @@ def test_worker_writes_only_answers_on_stdout_and_survives_any_request(
                if i not in (0, 9))
     assert "SystemExit(3)" in answers[2]["error"]
     assert b"stray print from library code" in err and b"stray write to descriptor 1" in err
+
+
+def _printer_cfg_with(tmp_path: Path, name: str, old: str, new: str) -> Path:
+    """The corpus printer.cfg with one line changed (printer B)."""
+    text = CORPUS_CFG.read_text(encoding="utf-8")
+    assert old in text
+    path = tmp_path / name
+    path.write_text(text.replace(old, new, 1), encoding="utf-8")
+    return path
+
+
+def _finish(proc: subprocess.Popen[bytes]) -> None:
+    assert proc.stdin is not None
+    proc.stdin.close()
+    assert proc.wait(timeout=60) == 0
+
+
+def test_a_table_made_for_another_printer_is_estimated_afresh_naming_the_difference(
+        corpus_root: Path, tmp_path: Path) -> None:
+    """Issue 38 item 2: a file injected for printer A and printed on B (max_accel changed)
+    is followed by an estimate for B, with a warning naming max_accel; on A, the table."""
+    src = corpus_root / NUT
+    injected = tmp_path / "nut.gcode"
+    shutil.copyfile(src, injected)
+    os.chmod(injected, 0o644)
+    inject_file(injected, limits_from_printer_cfg(CORPUS_CFG)[0])
+    other = _printer_cfg_with(tmp_path, "b.cfg", "max_accel: 3000", "max_accel: 5000")
+    other_total = estimate_file(src, limits_from_printer_cfg(other)[0]).total_s
+    proc = _start(tmp_path)
+    try:
+        same = _ask(proc, {"id": 1, "file": str(injected), "config": str(CORPUS_CFG),
+                           "events": [], "use_table": True})
+        assert same["ok"] and same["source"] == "table", same
+        assert same["warnings"] == []
+        changed = _ask(proc, {"id": 2, "file": str(injected), "config": str(other),
+                              "events": [], "use_table": True})
+        assert changed["ok"] and changed["source"] == "estimate", changed
+        assert abs(changed["total_s"] - other_total) < 0.001
+        assert abs(changed["total_s"] - same["total_s"]) > 1.0
+        (why,) = [w for w in changed["warnings"] if "the file's table" in w]
+        assert why == ("the file's table was made for max_accel 3000, this printer has 5000: "
+                       "estimated afresh")
+        assert why.endswith("estimated afresh")
+    finally:
+        _finish(proc)
+
+
+def test_an_old_table_without_printer_settings_is_not_trusted_for_a_printer_cfg(
+        corpus_root: Path, tmp_path: Path) -> None:
+    """A version-1 table records no settings: given a printer.cfg the worker estimates
+    afresh and says why; without one it has nothing to check and uses the table."""
+    from kestimator.progress_table import read_table_file
+
+    injected = tmp_path / "nut.gcode"
+    shutil.copyfile(corpus_root / NUT, injected)
+    os.chmod(injected, 0o644)
+    inject_file(injected, limits_from_printer_cfg(CORPUS_CFG)[0])
+    table = read_table_file(injected)
+    assert table.settings is not None
+    old = dataclasses.replace(table, settings=None)
+    data = injected.read_bytes()[:table.content_bytes] + old.encode()
+    assert b"; kestimator_table v1 " in data
+    injected.write_bytes(data)
+    proc = _start(tmp_path)
+    try:
+        checked = _ask(proc, {"id": 1, "file": str(injected), "config": str(CORPUS_CFG),
+                              "events": [], "use_table": True})
+        assert checked["ok"] and checked["source"] == "estimate", checked
+        assert any("records no printer settings" in w for w in checked["warnings"])
+        unchecked = _ask(proc, {"id": 2, "file": str(injected), "config": None,
+                                "events": [], "use_table": True})
+        assert unchecked["ok"] and unchecked["source"] == "table", unchecked
+    finally:
+        _finish(proc)
+
+
+def test_cli_inject_then_worker_uses_the_table_only_for_the_printer_it_was_made_for(
+        corpus_root: Path, tmp_path: Path) -> None:
+    """Through the real command: `kestimator inject --printer-cfg A`, then the worker."""
+    injected = tmp_path / "nut.gcode"
+    shutil.copyfile(corpus_root / NUT, injected)
+    os.chmod(injected, 0o644)
+    env = dict(os.environ, PYTHONPATH=str(PROJECT), HOME=str(tmp_path),
+               XDG_CONFIG_HOME=str(tmp_path / "config"), XDG_CACHE_HOME=str(tmp_path / "cache"))
+    done = subprocess.run([sys.executable, "-m", "kestimator", "inject", str(injected),
+                           "--printer-cfg", str(CORPUS_CFG), "-q"], env=env,
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    other = _printer_cfg_with(tmp_path, "b.cfg", "max_velocity: 300", "max_velocity: 250")
+    proc = _start(tmp_path)
+    try:
+        same = _ask(proc, {"id": 1, "file": str(injected), "config": str(CORPUS_CFG),
+                           "events": [], "use_table": True})
+        assert same["ok"] and same["source"] == "table" and same["warnings"] == [], same
+        changed = _ask(proc, {"id": 2, "file": str(injected), "config": str(other),
+                              "events": [], "use_table": True})
+        assert changed["ok"] and changed["source"] == "estimate", changed
+        assert any("max_velocity 300, this printer has 250" in w
+                   for w in changed["warnings"]), changed["warnings"]
+    finally:
+        _finish(proc)
