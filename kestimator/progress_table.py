@@ -27,14 +27,21 @@ time still counts in the total.
 Encoding (version 2): a header line and base64 lines, at the end of the file::
 
     ; kestimator_table v2 bytes=<content length> lines=<n> crc32=<8 hex digits>
+        content_crc32=<8 hex digits>                   (on the header's line)
     ; kt <base64, at most CHUNK_CHARS characters>      (n lines)
 
 `bytes=` is the length of the file before the header: a table whose header is anywhere else
 is refused (the file was edited after it was written). The base64 text is zlib-compressed
-LEB128 varints (`_Writer`), its CRC-32 in the header. Only comment or blank lines, at most
-MAX_TRAILING_BYTES of them, may follow the table (a line a post-processor appends, such as
-kestimator-compat's ident line). A file edited after the table without changing its length
-cannot be told from the original by the table alone.
+LEB128 varints (`_Writer`), its CRC-32 in the header (`crc32=`). `content_crc32=` is the
+CRC-32 of the `bytes=` bytes before the header (absent from tables written before it was):
+`read_table(..., check_content=True)` reads them once and refuses the table when it differs,
+so that a file edited after the table without changing its length is noticed too (what is
+after the table is not covered). Only comment or blank lines may follow the table: at most
+MAX_TRAILING_BYTES of them (a line a post-processor appends, such as kestimator-compat's
+ident line), besides a slicer's settings block of at most MAX_SETTINGS_BLOCK_BYTES of
+"; key = value" lines (`is_setting_line`): PrusaSlicer before 2.4, Slic3r, Slic3r PE and
+SuperSlicer read that block back from the file's last lines, so `kestimator inject` puts the
+table before it (`settings_block_start`).
 
 The printer it was made for (version 2). A table's times hold only for the settings the
 estimate ran with, so a version-2 table ends with them (`ProgressTable.settings`): (name,
@@ -86,7 +93,7 @@ HEADER_PREFIX = b"; kestimator_table "
 CHUNK_PREFIX = b"; kt "
 CHUNK_CHARS = 200
 _HEADER_RE = re.compile(rb"; kestimator_table v(\d{1,6}) bytes=(\d{1,20}) lines=(\d{1,9})"
-                        rb" crc32=([0-9a-f]{8})\r?\n?\Z")
+                        rb" crc32=([0-9a-f]{8})(?: content_crc32=([0-9a-f]{8}))?\r?\n?\Z")
 _CHUNK_RE = re.compile(rb"; kt ([A-Za-z0-9+/=]{1,%d})\r?\n?\Z" % CHUNK_CHARS)
 # Which points are kept (see the module's docstring).
 MIN_SPACING_S = 0.4
@@ -108,6 +115,18 @@ MAX_MS = (1 << 63) - 1
 # MAX_TABLE_POINTS time values and MAX_OBJECTS x (MAX_OBJECT_POINTS + 1) object values,
 # the names' bytes and their lengths.
 MAX_TRAILING_BYTES = 4096
+# A slicer's settings block that PrusaSlicer before 2.4 (and Slic3r, Slic3r PE, SuperSlicer)
+# reads back from the file's end: the last lines, each "; key = value" (`is_setting_line`),
+# read back to the first line that is not one, within the file's last 65535 bytes (PrusaSlicer
+# refuses fewer than 80 settings; Slic3r PE 1.33 wrote blocks it reads 68 of, so a run of 20
+# such lines is taken for a settings block). Its lines may follow the table too
+# (`settings_block_start`).
+_SETTING_LINE_RE = re.compile(rb"; [A-Za-z][A-Za-z0-9_]{2,} = [^\r\n]*\r?\n?\Z")
+MIN_SETTING_LINE_BYTES = 10
+MIN_SETTINGS_BLOCK_LINES = 20
+MAX_SETTINGS_BLOCK_BYTES = 65535
+# PrusaSlicer 2.4 and later delimit the block and find it anywhere: left where it is.
+DELIMITED_BLOCK_END = b"; prusaslicer_config = end"
 TAIL_WINDOWS = (1 << 16, 1 << 20, 1 << 23)
 MAX_PAYLOAD_BYTES = 1 << 22
 MS = 1000.0
@@ -136,6 +155,63 @@ def is_header_line(code: bytes) -> bool:
 def is_chunk_line(code: bytes) -> bool:
     """True for one of a table's base64 lines (`code` left-stripped)."""
     return _CHUNK_RE.match(code) is not None
+
+
+def is_setting_line(line: bytes) -> bool:
+    """True for a line (with or without its line ending) that PrusaSlicer's loader for
+    files without delimiters reads as a setting: "; key = value", the key a letter and at
+    least two more letters, digits or underscores, the line at least 10 bytes."""
+    return (_SETTING_LINE_RE.match(line) is not None
+            and len(line.rstrip(b"\r\n")) >= MIN_SETTING_LINE_BYTES)
+
+
+def settings_block_start(tail: bytes) -> int | None:
+    """Where the slicer's settings block that ends the file starts in `tail` (the file's
+    last bytes, from a line start), as PrusaSlicer before 2.4 reads it back: the run of
+    setting lines (`is_setting_line`) and empty lines that ends the file, within its last
+    MAX_SETTINGS_BLOCK_BYTES bytes, not counting a table's own lines; None when that run
+    holds fewer than MIN_SETTINGS_BLOCK_LINES settings (no such slicer would read it) or
+    ends in DELIMITED_BLOCK_END (a block PrusaSlicer 2.4+ finds wherever it is)."""
+    window = max(0, len(tail) - MAX_SETTINGS_BLOCK_BYTES)
+    end = len(tail)
+    start = None
+    count = 0
+    last = True
+    while end > window:
+        begin = tail.rfind(b"\n", 0, end - 1) + 1
+        if window and begin <= window:
+            break  # the line at the window's edge: not read
+        line = tail[begin:end]
+        code = line.rstrip(b"\r\n")
+        if not code:
+            pass
+        elif is_setting_line(line):
+            if last and code == DELIMITED_BLOCK_END:
+                return None
+            last = False
+            start = begin
+            count += 1
+        elif not (is_header_line(line) or is_chunk_line(line)):
+            break
+        end = begin
+    return start if count >= MIN_SETTINGS_BLOCK_LINES else None
+
+
+def trailing_ok(trailing: Sequence[bytes]) -> bool:
+    """Whether the lines after a table's base64 lines (split at LF, the last one without its
+    line ending) are what may follow it: comment or blank lines only, at most
+    MAX_TRAILING_BYTES of them besides a slicer's settings lines (`is_setting_line`), at
+    most MAX_SETTINGS_BLOCK_BYTES of these."""
+    other = settings = 0
+    for line in trailing:
+        code = line.lstrip()
+        if code and not code.startswith(b";"):
+            return False
+        if is_setting_line(line):
+            settings += len(line) + 1
+        else:
+            other += len(line) + 1
+    return other <= MAX_TRAILING_BYTES + 1 and settings <= MAX_SETTINGS_BLOCK_BYTES + 1
 
 
 def spacing_bound(remaining_s: float) -> float:
@@ -360,6 +436,9 @@ class ProgressTable:
     settings: Settings | None = None
     """The printer settings the times were computed for (None: not recorded, a version-1
     table)."""
+    content_crc32: int | None = None
+    """CRC-32 of the file's first `content_bytes` bytes, which the table covers (None: not
+    recorded, a table written before it was)."""
 
     @property
     def fingerprint(self) -> str | None:
@@ -368,8 +447,8 @@ class ProgressTable:
 
     @classmethod
     def from_selection(cls, selection: Selection, offset_of: Callable[[int], int | None],
-                       content_bytes: int, settings: Settings | None = None
-                       ) -> ProgressTable:
+                       content_bytes: int, settings: Settings | None = None,
+                       content_crc32: int | None = None) -> ProgressTable:
         """The table once each selected line's byte offset is known (`offset_of(line)`;
         None for a line that is not in the file: it starts where the file ends), made for
         the printer `settings` describes."""
@@ -406,7 +485,7 @@ class ProgressTable:
         return cls(total_s=selection.total_s, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=list(selection.object_names),
                    object_offsets=object_offsets, object_remaining=remaining,
-                   settings=settings)
+                   settings=settings, content_crc32=content_crc32)
 
     @property
     def version(self) -> int:
@@ -520,6 +599,8 @@ class ProgressTable:
         header = b"%sv%d bytes=%d lines=%d crc32=%08x" % (
             HEADER_PREFIX, self.version, self.content_bytes, len(chunks),
             zlib.crc32(packed) & 0xFFFFFFFF)
+        if self.content_crc32 is not None:
+            header += b" content_crc32=%08x" % (self.content_crc32 & 0xFFFFFFFF)
         return b"".join([header + eol] + [CHUNK_PREFIX + chunk + eol for chunk in chunks])
 
     @classmethod
@@ -695,6 +776,24 @@ class _Reader:
         return chunk
 
 
+def replaceable_table_at(tail: bytes) -> int | None:
+    """Where the last table in `tail` (the file's last bytes, from a line start) starts,
+    when what follows it may follow a table (`trailing_ok`): a new one can take its place
+    and still be read. None when there is no such table."""
+    at = tail.rfind(b"\n" + HEADER_PREFIX) + 1
+    if not at and not tail.startswith(HEADER_PREFIX):
+        return None
+    lines = tail[at:].split(b"\n")
+    header = _HEADER_RE.match(lines[0])
+    if header is None:
+        return None
+    count = int(header.group(3))
+    if len(lines) < count + 1 or not all(
+            _CHUNK_RE.match(line) for line in lines[1:count + 1]):
+        return None
+    return at if trailing_ok(lines[count + 1:]) else None
+
+
 def decode_block(block: bytes, header_offset: int) -> ProgressTable:
     """The table from its lines (`block` starts at its header, at byte `header_offset` of
     the file; only comment or blank lines may follow its base64 lines)."""
@@ -720,9 +819,7 @@ def decode_block(block: bytes, header_offset: int) -> ProgressTable:
         if match is None:
             raise TableError("a line of the table is damaged")
         chunks.append(match.group(1))
-    trailing = lines[count + 1:]
-    if sum(len(line) + 1 for line in trailing) > MAX_TRAILING_BYTES + 1 or any(
-            line.strip() and not line.lstrip().startswith(b";") for line in trailing):
+    if not trailing_ok(lines[count + 1:]):
         raise TableError("the file goes on after its table")
     packed = b"".join(chunks)
     if zlib.crc32(packed) & 0xFFFFFFFF != int(header.group(4), 16):
@@ -738,13 +835,43 @@ def decode_block(block: bytes, header_offset: int) -> ProgressTable:
     table = ProgressTable.from_payload(payload, version)
     if table.content_bytes != header_offset:
         raise TableError("the table's length does not match its header")
+    content_crc = header.group(5)
+    if content_crc is not None:
+        table = dataclasses.replace(table, content_crc32=int(content_crc, 16))
     return table
 
 
-def read_table(f: BinaryIO) -> ProgressTable:
+def read_table(f: BinaryIO, check_content: bool = False) -> ProgressTable:
     """The table at the end of the open file `f` (binary, seekable), reading only its end:
     at most the last TAIL_WINDOWS[-1] bytes, and only the last TAIL_WINDOWS[0] when the
-    file ends in no table. TableError says why there is none that can be used."""
+    file ends in no table. TableError says why there is none that can be used.
+    `check_content`: also read the bytes the table covers, once, and refuse the table when
+    their CRC-32 is not the one it records (`content_matches`)."""
+    table = _read_table_at_end(f)
+    if check_content and not content_matches(f, table):
+        raise TableError("the file was changed after its table was written (its content's "
+                         "checksum differs)")
+    return table
+
+
+def content_matches(f: BinaryIO, table: ProgressTable, block_bytes: int = 1 << 20) -> bool:
+    """Whether the first `table.content_bytes` bytes of `f` have the CRC-32 the table
+    records (True for a table that records none): one pass, a block at a time."""
+    if table.content_crc32 is None:
+        return True
+    f.seek(0)
+    left = table.content_bytes
+    crc = 0
+    while left > 0:
+        block = f.read(min(block_bytes, left))
+        if not block:
+            return False
+        crc = zlib.crc32(block, crc)
+        left -= len(block)
+    return crc & 0xFFFFFFFF == table.content_crc32
+
+
+def _read_table_at_end(f: BinaryIO) -> ProgressTable:
     size = f.seek(0, os.SEEK_END)
     for window in TAIL_WINDOWS:
         start = max(0, size - window)
@@ -757,7 +884,8 @@ def read_table(f: BinaryIO) -> ProgressTable:
             at = 0
         if at >= 0:
             return decode_block(data[at:], start + at)
-        if start == 0 or (b"\n" + CHUNK_PREFIX) not in data[-(MAX_TRAILING_BYTES + 2048):]:
+        near_end = MAX_TRAILING_BYTES + MAX_SETTINGS_BLOCK_BYTES + 2048
+        if start == 0 or (b"\n" + CHUNK_PREFIX) not in data[-near_end:]:
             # No header and no table line near the end: no table, however far back one
             # is looked for.
             break

@@ -20,9 +20,13 @@ need them; pass 2 copies every line byte for byte except the ones kestimator own
 
 - last, after every other line, the progress table (`kestimator.progress_table`): its
   points' offsets are those of this output, noted as pass 2 writes it (the table's lines
-  are stops of the block copy, like the noted lines). An old table is dropped, and the new
-  one takes its place when every point lies before it (what a post-processor appended after
-  it stays after it); a file without a final line ending gets one before the table, and
+  are stops of the block copy, like the noted lines), and its content checksum that of
+  the output before it. Where it goes is `table_place`'s rule: before a slicer's settings
+  block that the slicer reads back from the file's end (PrusaSlicer before 2.4, Slic3r,
+  Slic3r PE, SuperSlicer), else in an old table's place when what follows that one may
+  follow a table (what a post-processor appended after it stays after it), else at the
+  end; an old table is dropped wherever it is. A file without a final line ending gets one
+  before a table at its end, and
   its last line is processed as the line it becomes (a move gets its M73 P100 R0 after it,
   a layer marker its lines after it, a lone CR is a CRLF), as a second run reads it. The
   table records the printer settings the estimate ran with (`table_settings`), so that it
@@ -52,6 +56,7 @@ import math
 import os
 import re
 import stat
+import zlib
 from array import array
 from bisect import bisect_right
 from collections.abc import Callable, Iterable
@@ -87,8 +92,10 @@ from kestimator.progress_table import (
     Settings,
     is_chunk_line,
     is_header_line,
+    replaceable_table_at,
     select,
     setting_text,
+    settings_block_start,
 )
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
@@ -345,6 +352,8 @@ class InjectPlan:
     writes the table with their offsets in the output; None writes none."""
     table_settings: Settings | None = None
     """The printer settings the table records (`table_settings`)."""
+    table_line: int | None = None
+    """The line the table is written before (`table_place`); None: at the file's end."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -410,11 +419,13 @@ class Rewriter:
         self._table_next = 0
         self._table_offsets: dict[int, int] = {}
         self._out_pos = 0
+        self._crc = 0  # CRC-32 of the output so far (`copy_stream` counts it)
         self._ends_in_lf = False
         self._old_table = False  # an old table's header was met: its base64 lines go
         self.table: ProgressTable | None = None
+        table_line = () if plan.table is None or plan.table_line is None else (plan.table_line,)
         self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines,
-                                             self._table_lines))
+                                             self._table_lines, table_line))
         self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
@@ -662,15 +673,30 @@ class Rewriter:
         def counted(data: bytes) -> object:
             if data:
                 self._out_pos += len(data)
+                self._crc = zlib.crc32(data, self._crc)
                 self._ends_in_lf = data[-1:] == b"\n"
             return write(data)
 
         process_line = self.process
+        table_line = self.plan.table_line
 
         def process(raw: bytes) -> list[bytes]:
-            self._note_table_line()  # before `_comment` may write the table here
+            self._note_table_line()
+            if self.lineno + 1 == table_line and self.table is None:
+                # The table goes before this line (`table_place`): every byte written so far
+                # is before it.
+                return [self._table_block(self._eol_of(raw))] + process_line(raw)
             return process_line(raw)
         return counted, process
+
+    def _eol_of(self, raw: bytes) -> bytes:
+        """The line ending of the line `raw`: its own, or the one a line without one gets."""
+        if raw.endswith(b"\n"):
+            return b"\r\n" if raw.endswith(b"\r\n") else b"\n"
+        pending = self._eol_line
+        if pending is not None:
+            return b"\r\n" if pending.endswith(b"\r\n") else b"\n"
+        return self.eol
 
     def _note_table_line(self) -> None:
         """Note where the next line's output starts, if the table needs it."""
@@ -683,7 +709,8 @@ class Rewriter:
         """The progress table's lines, here: every byte written so far is before it."""
         assert self.plan.table is not None
         self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets.get,
-                                                  self._out_pos, self.plan.table_settings)
+                                                  self._out_pos, self.plan.table_settings,
+                                                  self._crc & 0xFFFFFFFF)
         return self.table.encode(eol)
 
     def finish(self) -> list[bytes]:
@@ -752,14 +779,9 @@ class Rewriter:
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
         if code.startswith(HEADER_PREFIX) and is_header_line(code):
-            # An old progress table: dropped. The new one takes its place when every point
-            # lies before it (so what a post-processor appended after it stays after it,
-            # and a second run is byte-identical); else it goes at the end.
+            # An old progress table: dropped. The new one goes where `table_place` says,
+            # which may be this line (before it: `_table_tracking`).
             self._old_table = True
-            table = self.plan.table
-            if (table is not None and self.table is None and (
-                    not self._table_lines or self._table_lines[-1] <= self.lineno)):
-                return [self._table_block(eol or self.eol)]
             return []
         if self._old_table and code.startswith(CHUNK_PREFIX) and is_chunk_line(code):
             return []
@@ -845,10 +867,32 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
         # Layer numbers only where the file sets none itself (its first and last MiB).
         layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
         and _FOREIGN_LAYER_INFO_RE.search(tail) is None, table=table)
-    if table:
+    if plan.table is not None:
         plan = dataclasses.replace(plan, table_settings=table_settings(
-            limits, homing_time, heat_time, macros))
+            limits, homing_time, heat_time, macros),
+            table_line=table_place(tail, est.n_lines, plan.table))
     return plan, est, slicer, slicer_s
+
+
+def table_place(tail: bytes, n_lines: int, selection: Selection) -> int | None:
+    """The line of the input the progress table is written before (None: at the end).
+
+    Before the slicer's settings block that ends the file when a slicer reads that block
+    back from the file's end without delimiters (PrusaSlicer before 2.4, Slic3r, Slic3r PE,
+    SuperSlicer: `settings_block_start`), so that it still reads it; else in the place of
+    an old table when what follows that one may follow a table (`replaceable_table_at`:
+    what a post-processor appended after it stays after it); else at the end. Never where
+    a point of the table would be after it. `tail` is the input's last bytes (from a line
+    start, to its end) and `n_lines` its number of lines: the same place in a second run's
+    input, whose old table is dropped, so the output is the same."""
+    start = settings_block_start(tail)
+    if start is None:
+        start = replaceable_table_at(tail)
+    if start is None:
+        return None
+    line = n_lines - tail.count(b"\n", start) - (0 if tail.endswith(b"\n") else 1) + 1
+    wanted = selection.wanted_lines()
+    return None if wanted and wanted[-1] > line else line
 
 
 def plan_file(path: str, limits: Limits, limits_source: str, homing_time: float = 0.0,

@@ -16,10 +16,12 @@ The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": .
 as base64 machine arrays instead (`ProgressTable.to_json`: ``offsets_b64``, ...).
 
 With `use_table`, no events and a valid table at the file's end (`kestimator inject` wrote
-it), the answer is that table, read from the file's end only, if it was made for this
-printer: given `config`, the worker resolves the settings an estimate would use (below) and
-compares them with those the table records (kestimator.progress_table, "The printer it was
-made for"). When they differ (another printer, a changed max_accel, another homing time in
+it), the answer is that table, read from the file's end (and the bytes it covers read once,
+their CRC-32 compared with the one it records: a file edited after inject, even to the same
+length, is estimated afresh, with a warning), if it was made for this printer: given
+`config`, the worker resolves the settings an estimate would use (below) and compares them
+with those the table records (kestimator.progress_table, "The printer it was made for").
+When they differ (another printer, a changed max_accel, another homing time in
 the profile, ...) the file is estimated afresh, with a warning naming the first differing
 settings ("the file's table was made for max_accel 3000, this printer has 5000: estimated
 afresh"); a version-1 table, which records no settings, is estimated afresh too, with a
@@ -171,7 +173,7 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
     if request["use_table"] and not request["events"]:
         try:
             with open(path, "rb") as f:
-                table = read_table(f)
+                table = read_table(f, check_content=True)
             source = "table"
         except TableError as exc:
             warnings.append("no usable progress table (%s): estimated" % exc)

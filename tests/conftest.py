@@ -94,4 +94,10 @@ def without_progress_table(data: bytes) -> bytes:
         table = read_table(io.BytesIO(data))
     except TableError:
         return data
-    return data[:table.content_bytes]
+    # What follows the table (a slicer's settings block, a post-processor's line) stays.
+    start = table.content_bytes
+    lines = int(data[start:data.index(b"\n", start)].split(b" lines=")[1].split()[0])
+    end = start
+    for _ in range(lines + 1):
+        end = data.index(b"\n", end) + 1
+    return data[:start] + data[end:]

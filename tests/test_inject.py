@@ -21,10 +21,10 @@ import pytest
 
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
-from kestimator.progress_table import is_chunk_line, is_header_line
+from kestimator.progress_table import HEADER_PREFIX, is_chunk_line, is_header_line, read_table_file
 from kestimator.rewrite import MARKER_PREFIX, inject_file, is_layer_info_line, progress_pr
 
-from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files, require_program
 
 M73_RE = re.compile(rb"^\s*[Mm]73(?=[\s;]|$)")
 M73_PR_RE = re.compile(rb"^M73 P(\d+) R(\d+)\r?\n?$")
@@ -358,3 +358,68 @@ def _arming(target, init):  # type: ignore[no-untyped-def]
         target.armed = 1
         init(self, *args, **kwargs)
     return wrapped
+
+
+# Files whose slicer reads its settings back from the file's end without delimiters
+# (PrusaSlicer before 2.4, Slic3r, Slic3r PE, SuperSlicer before 2.4).
+UNDELIMITED_SETTINGS = ("prusaslicer/cancelobj_ps2.3.3_issue1.gcode",
+                        "slic3r/gcodepreview_benchy_slic3rpe1.33.3_arcwelder.gcode",
+                        "slic3r/cancelobj_slic3r1.3.1dev.gcode",
+                        "slic3r/slic3r130_torus_x3_accel.gcode",
+                        "superslicer/cancelobj_ss2.3.56_arcwelder.gcode")
+
+
+def _legacy_settings(data: bytes) -> list[bytes]:
+    """The settings PrusaSlicer's loader for files without delimiters reads (Config.cpp,
+    load_from_gcode_string_legacy): the file's last 65535 bytes back to front, empty lines
+    skipped, while each line is "; key = value"."""
+    window = data[-65535:]
+    lines = re.split(rb"[\r\n]+", window)[1:]  # the first may be cut
+    found = []
+    for line in reversed(lines):
+        if not line:
+            continue
+        match = re.fullmatch(rb"; ([A-Za-z][A-Za-z0-9_]{2,}) = (.*)", line)
+        if match is None or len(line) < 10:
+            break
+        found.append(line)
+    return found
+
+
+def _prusaslicer_settings(prusa: str, path: Path, tmp_path: Path) -> str:
+    """What the real PrusaSlicer CLI reads back from `path`: the settings it saves, or the
+    one line that says why it could not read them."""
+    saved = tmp_path / (path.name + ".ini")
+    done = subprocess.run([prusa, "--load", str(path), "--save", str(saved)],
+                          capture_output=True, text=True, timeout=300)
+    if done.returncode == 0:  # without its first line, which says when it was saved
+        return saved.read_text().split("\n", 1)[1]
+    why = [line for line in (done.stdout + done.stderr).splitlines() if "[trace]" not in line]
+    return re.sub(r"\S*/", "", why[-1] if why else "failed")
+
+
+@pytest.mark.parametrize("name", UNDELIMITED_SETTINGS)
+def test_a_slicer_reads_its_settings_back_from_an_injected_file(
+        name: str, tmp_path: Path, corpus_limits, corpus_root) -> None:
+    """Issue 38 item 3: these slicers read their settings block from the file's last lines;
+    the table goes before that block, so they read as many settings as from the original
+    (the real PrusaSlicer CLI: 274 from PrusaSlicer 2.3.3's file), and our reader, which
+    reads from the file's end, still finds the table."""
+    src = corpus_root / "gcode" / name
+    work = tmp_path / src.name
+    shutil.copyfile(src, work)
+    inject_file(work, corpus_limits, limits_source="printer.cfg")
+    original = _legacy_settings(src.read_bytes())
+    injected = work.read_bytes()
+    assert len(original) >= 20
+    assert _legacy_settings(injected) == original
+    table = read_table_file(work)
+    assert injected[table.content_bytes:].startswith(HEADER_PREFIX)
+    prusa = require_program("prusa-slicer")
+    copy = tmp_path / "original" / src.name
+    copy.parent.mkdir()
+    shutil.copyfile(src, copy)
+    assert (_prusaslicer_settings(prusa, work, tmp_path)
+            == _prusaslicer_settings(prusa, copy, tmp_path / "original"))
+    if name.startswith("prusaslicer/"):
+        assert len(_prusaslicer_settings(prusa, work, tmp_path).splitlines()) >= 80

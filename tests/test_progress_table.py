@@ -24,6 +24,7 @@ from kestimator.progress_table import (
     MAX_PAYLOAD_BYTES,
     MAX_TABLE_POINTS,
     MAX_TIME_POINTS,
+    MAX_TRAILING_BYTES,
     TAIL_WINDOWS,
     ProgressTable,
     Selection,
@@ -470,3 +471,39 @@ def test_forged_settings_are_refused(bad: str) -> None:
             "ascii": b"\x01\x02\xc3\xa4\x011"}[bad]
     with pytest.raises(TableError):
         ProgressTable.from_payload(head + tail)
+
+
+@pytest.mark.parametrize("appended", [b"M104 S0\nM84\n", b"; a note\n" * 500],
+                         ids=["gcode", "over_4kb_of_comments"])
+def test_reinject_after_something_was_appended_writes_a_table_the_reader_accepts(
+        appended: bytes, limits, corpus_root: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Issue 38 item 4: another post-processor's G-code, or more comments after the table
+    than may follow it: the reader refuses the table, and a second inject writes its new
+    one where the reader finds it (at the end), then stays byte-identical."""
+    work = tmp_path / "nut.gcode"
+    shutil.copyfile(corpus_root / "gcode" / FILES[0], work)
+    os.chmod(work, 0o644)
+    inject_file(work, limits)
+    with open(work, "ab") as f:
+        f.write(appended)
+    with pytest.raises(TableError, match="goes on after"):
+        read_table_file(work)
+    inject_file(work, limits)
+    once = work.read_bytes()
+    table = read_table_file(work)
+    assert once.count(b"\n" + HEADER_PREFIX) == 1
+    assert appended in once[:table.content_bytes]
+    inject_file(work, limits)
+    assert work.read_bytes() == once
+
+
+def test_a_slicers_settings_block_may_follow_the_table() -> None:
+    """Issue 38 item 3: a settings block PrusaSlicer before 2.4 reads from the file's end
+    (up to 64 KiB of "; key = value" lines) may follow the table; other comments only up to
+    MAX_TRAILING_BYTES."""
+    table = _table()
+    block = b"".join(b"; setting_%d = %d\n" % (i, i) for i in range(2000))
+    assert MAX_TRAILING_BYTES < len(block) < 65535
+    assert decode_block(table.encode() + block, table.content_bytes) == table
+    with pytest.raises(TableError, match="goes on after"):
+        decode_block(table.encode() + b"; x\n" * 2000, table.content_bytes)

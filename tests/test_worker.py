@@ -346,3 +346,28 @@ def test_cli_inject_then_worker_uses_the_table_only_for_the_printer_it_was_made_
                    for w in changed["warnings"]), changed["warnings"]
     finally:
         _finish(proc)
+
+
+def test_a_same_length_edit_after_inject_is_noticed(corpus_root: Path, tmp_path: Path) -> None:
+    """Issue 38 item 6: feed rates changed in place (the file's length unchanged) make the
+    table stale; its content checksum no longer matches, so the worker estimates afresh."""
+    injected = tmp_path / "nut.gcode"
+    shutil.copyfile(corpus_root / NUT, injected)
+    os.chmod(injected, 0o644)
+    inject_file(injected, limits_from_printer_cfg(CORPUS_CFG)[0])
+    data = injected.read_bytes()
+    edited = data.replace(b" F1800\n", b" F9000\n")
+    assert edited != data and len(edited) == len(data)
+    injected.write_bytes(edited)
+    proc = _start(tmp_path)
+    try:
+        got = _ask(proc, {"id": 1, "file": str(injected), "config": str(CORPUS_CFG),
+                          "events": [], "use_table": True})
+        assert got["ok"] and got["source"] == "estimate", got
+        assert any("checksum differs" in w for w in got["warnings"]), got["warnings"]
+        injected.write_bytes(data)
+        got = _ask(proc, {"id": 2, "file": str(injected), "config": str(CORPUS_CFG),
+                          "events": [], "use_table": True})
+        assert got["ok"] and got["source"] == "table", got
+    finally:
+        _finish(proc)
