@@ -188,6 +188,13 @@ def _lines_upto(data: bytes, pos: int, stop: int, most: int) -> tuple[int, int]:
     return taken, stop
 
 
+def _line_ending(raw: bytes, pending: bytes | None, eol: bytes) -> bytes:
+    """The line ending of the line `raw`: its own or, without one, that of the last line
+    copied (`pending`, not yet looked at) or `eol`, the one before."""
+    last = raw if raw.endswith(b"\n") else pending if pending is not None else eol
+    return b"\r\n" if last.endswith(b"\r\n") else b"\n"
+
+
 def _is_m73(code: bytes) -> bool:
     """True for an M73 command line (already left-stripped)."""
     return _m73_at(code) is not None
@@ -418,8 +425,7 @@ class Rewriter:
         self._table_lines = array("q", plan.table.wanted_lines() if plan.table else ())
         self._table_next = 0
         self._table_offsets: dict[int, int] = {}
-        self._out_pos = 0
-        self._crc = 0  # CRC-32 of the output so far (`copy_stream` counts it)
+        self._out_pos = self._crc = 0  # the output's length and CRC-32 so far
         self._ends_in_lf = False
         self._old_table = False  # an old table's header was met: its base64 lines go
         self.table: ProgressTable | None = None
@@ -663,11 +669,11 @@ class Rewriter:
 
     def _table_tracking(self, write: Callable[[bytes], object]
                         ) -> tuple[Callable[[bytes], object], Callable[[bytes], list[bytes]]]:
-        """`write` counting the output's bytes, and `process` noting where the output of
-        each line the progress table needs starts: after every line before it, so at the
-        time that line is reached (an M73 put before it takes no time). A line kestimator
-        drops (an old M73) starts where the next line's output starts, so a second run
-        finds the same offsets."""
+        """`write` counting the output's bytes and their CRC-32, and `process` writing the
+        table before `plan.table_line` and noting where the output of each line the table
+        needs starts: after every line before it, so at the time that line is reached (an
+        M73 put before it takes no time). A line kestimator drops (an old M73) starts where
+        the next line's output starts, so a second run finds the same offsets."""
         self._ends_in_lf = False
 
         def counted(data: bytes) -> object:
@@ -683,20 +689,10 @@ class Rewriter:
         def process(raw: bytes) -> list[bytes]:
             self._note_table_line()
             if self.lineno + 1 == table_line and self.table is None:
-                # The table goes before this line (`table_place`): every byte written so far
-                # is before it.
-                return [self._table_block(self._eol_of(raw))] + process_line(raw)
+                eol = _line_ending(raw, self._eol_line, self.eol)
+                return [self._table_block(eol)] + process_line(raw)
             return process_line(raw)
         return counted, process
-
-    def _eol_of(self, raw: bytes) -> bytes:
-        """The line ending of the line `raw`: its own, or the one a line without one gets."""
-        if raw.endswith(b"\n"):
-            return b"\r\n" if raw.endswith(b"\r\n") else b"\n"
-        pending = self._eol_line
-        if pending is not None:
-            return b"\r\n" if pending.endswith(b"\r\n") else b"\n"
-        return self.eol
 
     def _note_table_line(self) -> None:
         """Note where the next line's output starts, if the table needs it."""
@@ -779,8 +775,7 @@ class Rewriter:
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
         if code.startswith(HEADER_PREFIX) and is_header_line(code):
-            # An old progress table: dropped. The new one goes where `table_place` says,
-            # which may be this line (before it: `_table_tracking`).
+            # An old progress table: dropped (the new one goes where `table_place` says).
             self._old_table = True
             return []
         if self._old_table and code.startswith(CHUNK_PREFIX) and is_chunk_line(code):
