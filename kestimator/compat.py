@@ -62,6 +62,12 @@ from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.errors import fixed
 from kestimator.files import Terminated, spooled_stdin
+from kestimator.moonraker_labels import (
+    Prelabel,
+    moonraker_labeller,
+    table_for_labelled_file,
+    table_points,
+)
 
 EXIT_OK = 0
 EXIT_FAILURE = 1
@@ -239,13 +245,28 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     check_gcode_file(path)
     resolved, macros = _limits_and_macros(_request(args, path))
     _warn(resolved, err)
-    result = inject_file(path, resolved.limits, limits_source=resolved.marker_source,
-                         homing_time=resolved.homing_time_s or 0.0,
-                         heat_time=resolved.heat_time_s or 0.0,
-                         macros=macros, finish=append_ident_line)
-    out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)\n"
+    options: dict[str, Any] = dict(limits_source=resolved.marker_source,
+                                   homing_time=resolved.homing_time_s or 0.0,
+                                   heat_time=resolved.heat_time_s or 0.0, macros=macros)
+    labeller = moonraker_labeller()
+    labelled: list[Prelabel] = []
+
+    def finish(temp: str) -> None:
+        append_ident_line(temp)
+        if labeller is not None:
+            labelled.append(table_for_labelled_file(
+                temp, path, labeller, lambda copy: table_points(copy, resolved.limits,
+                                                                **options)))
+
+    result = inject_file(path, resolved.limits, finish=finish, **options)
+    out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)%s\n"
               % (_printable(path), result.estimate.total_s, result.m73_written,
-                 _printable(resolved.summary)))
+                 _printable(resolved.summary),
+                 "; table made for the file as Moonraker labels its objects"
+                 if labelled and labelled[0].labelled else ""))
+    if labelled and labelled[0].why:
+        err.write("kestimator-compat: %s: %s\n" % (_printable(path),
+                                                   _printable(labelled[0].why)))
     return EXIT_OK
 
 
