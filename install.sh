@@ -308,7 +308,9 @@ uninstall() {
         die "cannot write $CONF (or its folder): make it writable, then run --uninstall again. Nothing was changed."
     fi
     if [ "$COMMENT_SECTION" = 1 ]; then
-        python3 "$SECTION_TOOL" comment "$PRINTER_CFG" || die "printer.cfg left as it was; nothing was changed."
+        local commented
+        commented=$(python3 "$SECTION_TOOL" comment "$PRINTER_CFG" 2>&1) || die "$commented"
+        say "$commented"
     fi
     if state_has frontend_settings; then
         frontend_settings --undo

@@ -17,7 +17,8 @@ section's lines that Klipper reads (the header, its options and their continuati
 Klipper's own SAVE_CONFIG comments out a value (`ConfigAutoSave._strip_duplicates`): every
 other byte of every file stays as it was (line endings included), a file reached through a
 symbolic link is edited where the link points, and its mode and owner stay. Every file is
-checked for writing before the first one is changed. One line per commented section; errors
+checked for writing (a file without its owner's write bit counts as read-only, for root
+too) before the first one is changed. One line per commented section; errors
 are one line on stderr naming the file (and line), exit status 1, and no file changed.
 Standard library only: install.sh runs it with the system's python3.
 """
@@ -26,6 +27,7 @@ from __future__ import annotations
 import glob
 import os
 import re
+import stat
 import sys
 
 # configparser.RawConfigParser.SECTCRE, which Klipper's reader matches each line with.
@@ -142,7 +144,9 @@ def comment_sections(printer_cfg: str) -> list[Section]:
         files.setdefault(section.filename, []).append(section)
     for filename in files:
         real = os.path.realpath(filename)
-        if not os.access(real, os.W_OK) or not os.access(os.path.dirname(real), os.W_OK):
+        # A file without its owner's write bit is read-only by choice, for root too.
+        if not os.access(real, os.W_OK) or not os.stat(real).st_mode & stat.S_IWUSR \
+                or not os.access(os.path.dirname(real), os.W_OK):
             raise ConfigError("%s:%d: cannot write %s (nothing was changed)"
                               % (filename, files[filename][0].header_line, real))
     for filename, in_file in files.items():
