@@ -40,8 +40,10 @@ Run it again after any change: it changes nothing twice.
 
   -d DIR         Moonraker's data folder (default: ~/printer_data)
   -k DIR         Klipper's checkout (default: ~/klipper)
-  -y             answer yes: install missing apt packages (sudo apt-get), restart Moonraker
-  --uninstall    undo: klipper_estimator back, moonraker.conf as it was before
+  -y             answer yes: install missing apt packages (sudo apt-get), restart Moonraker;
+                 with --uninstall, comment out printer.cfg's [kestimator] section
+  --uninstall    undo: klipper_estimator back, moonraker.conf as it was before, nothing
+                 of kestimator's left but its checkout
   --no-restart   never restart Moonraker
   --allow-root   run as root (only if Moonraker itself runs as root)
   --frontend-settings
@@ -243,7 +245,7 @@ link_module() {
 unlink_module() {
     if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
         rm -f "$MODULE_LINK"
-        say "Klipper module link removed: restart Klipper (when it is not printing) to unload it."
+        say "Klipper module link removed: restart Klipper when it is not printing (sudo systemctl restart $(service_name klipper)) to unload it."
     fi
     if [ -f "$EXCLUDE" ] && grep -qx "$EXCLUDE_LINE" "$EXCLUDE"; then
         # Our line out of Klipper's .git/info/exclude, with the newline we put before it.
@@ -318,7 +320,9 @@ uninstall() {
     unlink_module
     if [ -f "$CONF" ] && [ "$(conf_tool remove "$CONF")" = removed ]; then
         say "moonraker.conf: kestimator's [analysis]/[update_manager kestimator] lines removed"
-        rm -f "$CONF".[0-9]*-[0-9]*.kestimator.bak
+    fi
+    if [ -f "$CONF" ] && ! conf_tool has-block "$CONF"; then
+        rm -f "$CONF".[0-9]*-[0-9]*.kestimator.bak  # install.sh's backups, of no use now
     fi
     for p in rpi linux osx; do
         link="$TOOLS/klipper_estimator_$p"

@@ -519,3 +519,45 @@ def test_install_sh_failed_moonraker_restart_says_what_is_installed_and_what_to_
     assert removed.returncode == 0, removed.stdout + removed.stderr
     assert "kestimator is uninstalled, but Moonraker still runs it until it restarts. " \
         "Restart Moonraker yourself" in removed.stdout
+
+
+def test_install_sh_uninstall_asks_at_a_terminal_before_commenting_out_the_section(
+        tmp_path: Path) -> None:
+    """At a terminal, --uninstall asks: no stops before anything, yes comments it out."""
+    import pty
+
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    printer_cfg = data / "config" / "printer.cfg"
+    user_cfg = printer_cfg.read_bytes() + b"\n[kestimator]\nset_progress: False\n"
+    printer_cfg.write_bytes(user_cfg)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    line = len(user_cfg.split(b"\n")) - 2
+
+    def uninstall(answer: bytes) -> subprocess.CompletedProcess[str]:
+        leader, follower = pty.openpty()
+        try:
+            os.write(leader, answer + b"\n")
+            return subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                                   "--uninstall", "-d", str(data)], env=_environment(data),
+                                  capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S,
+                                  stdin=follower)
+        finally:
+            os.close(leader)
+            os.close(follower)
+
+    before = _tree(tmp_path / "home", None)
+    refused = uninstall(b"n")
+    assert refused.returncode == 1
+    assert "Klipper does not start with a [kestimator] section and no module: %s:%d" % (
+        printer_cfg, line) in refused.stdout
+    assert "Nothing was changed." in refused.stderr
+    assert _tree(tmp_path / "home", None) == before
+    agreed = uninstall(b"y")
+    assert agreed.returncode == 0, agreed.stdout + agreed.stderr
+    assert printer_cfg.read_bytes() == user_cfg.replace(
+        b"\n[kestimator]\nset_progress: False\n", b"\n#[kestimator]\n#set_progress: False\n")
+    assert not (data / "config" / "moonraker.conf.kestimator.bak").exists()
+    assert not os.path.lexists(tmp_path / "home" / "klipper" / "klippy" / "extras" /
+                               "kestimator.py")
