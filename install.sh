@@ -245,6 +245,8 @@ link_module() {
 unlink_module() {
     if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
         rm -f "$MODULE_LINK"
+        # What Klipper's Python compiled of it (Klipper's own .pyc files stay).
+        rm -f "$EXTRAS/__pycache__/kestimator."*.pyc
         say "Klipper module link removed: restart Klipper when it is not printing (sudo systemctl restart $(service_name klipper)) to unload it."
     fi
     if [ -f "$EXCLUDE" ] && grep -qx "$EXCLUDE_LINE" "$EXCLUDE"; then

@@ -335,15 +335,18 @@ def _klipper_host(home: Path, data_name: str = "printer_data") -> tuple[Path, Pa
 
 def _klipper_starts(klipper_home: Path, printer_cfg: Path, log: Path) -> tuple[bool, str]:
     """Klipper (batch mode, the oracle's MCU dictionary) started on printer_cfg, through its
-    configuration to 'Configured MCU' and out: (whether it did, its log's end)."""
+    configuration to 'Configured MCU' and out: (whether it did, its log's end). Its Python
+    writes .pyc files as on a host (klippy/extras/__pycache__/kestimator.*.pyc too)."""
     oracle_klipper, python = require_klipper()
+    env = dict(os.environ, HOME=str(klipper_home.parent))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
     batch = log.with_suffix(".batch")
     batch.write_text("")
     proc = subprocess.run(
         [python, str(klipper_home / "klippy" / "klippy.py"), str(printer_cfg), "-i", str(batch),
          "-o", "/dev/null", "-d", str(Path(oracle_klipper) / "out" / "klipper.dict"),
          "-l", str(log)], stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper_home,
-        timeout=120, env=dict(os.environ, HOME=str(klipper_home.parent)))
+        timeout=120, env=env)
     text = log.read_text(errors="replace")
     started = proc.returncode == 0 and "Configured MCU" in text and "Config error" not in text
     return started, text[-1500:]
@@ -369,6 +372,8 @@ def test_install_sh_uninstall_gives_back_every_byte_and_klipper_starts(
         conf.write_bytes(conf.read_bytes().replace(b"\n", b"\r\n"))
     elif case == "exclude_no_newline":
         exclude.write_bytes(exclude.read_bytes() + b"klippy/extras/led_effect.py")
+    # A host where Klipper has run: its own .pyc files are there (it stops at the section).
+    assert not _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "0.log")[0]
     before = _tree(home, checkout)
     exclude_before = exclude.read_bytes()
 
@@ -376,6 +381,7 @@ def test_install_sh_uninstall_gives_back_every_byte_and_klipper_starts(
     assert installed.returncode == 0, installed.stdout + installed.stderr
     started, log = _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "on.log")
     assert started, log  # the module is there: Klipper takes the section
+    assert list((klipper / "klippy" / "extras" / "__pycache__").glob("kestimator.*.pyc"))
     if case == "symlinked_conf":
         assert os.readlink(conf) == str(home / "printer-configs" / "moonraker.conf")
         assert b"[update_manager kestimator]" in kept.read_bytes()
