@@ -285,8 +285,11 @@ SECTION_TOOL="$REPO/plugins/klipper/config_section.py"
 # user's yes (-y, or asked), else the uninstall stops and says what to do.
 klipper_section_consent() {
     local found answer=n
-    if ! [ -L "$MODULE_LINK" ] || [ "$(readlink "$MODULE_LINK")" != "$MODULE" ] \
-        || [ ! -f "$PRINTER_CFG" ]; then
+    # Only for this Klipper with our link, or with none (an earlier uninstall removed it):
+    # another kestimator.py there is someone else's.
+    if [ ! -d "$EXTRAS" ] || [ ! -f "$PRINTER_CFG" ] \
+        || { [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" != "$MODULE" ]; } \
+        || { [ ! -L "$MODULE_LINK" ] && [ -e "$MODULE_LINK" ]; }; then
         return 0
     fi
     found=$(python3 "$SECTION_TOOL" find "$PRINTER_CFG" 2>&1) \

@@ -567,3 +567,26 @@ def test_install_sh_uninstall_asks_at_a_terminal_before_commenting_out_the_secti
     assert not (data / "config" / "moonraker.conf.kestimator.bak").exists()
     assert not os.path.lexists(tmp_path / "home" / "klipper" / "klippy" / "extras" /
                                "kestimator.py")
+
+
+def test_install_sh_uninstall_again_after_an_old_uninstall_comments_out_the_section(
+        tmp_path: Path) -> None:
+    """An earlier install.sh's --uninstall removed the module's link and left the section
+    (Klipper no longer starts): --uninstall -y run again comments it out."""
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    printer_cfg = data / "config" / "printer.cfg"
+    user_cfg = printer_cfg.read_bytes() + b"[kestimator]\n"
+    printer_cfg.write_bytes(user_cfg)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").unlink()
+    removed = _install(checkout, data, "--uninstall", "-y")
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    assert printer_cfg.read_bytes() == user_cfg[:-len(b"[kestimator]\n")] + b"#[kestimator]\n"
+    # Someone else's kestimator.py in extras/: their module, their section, left alone.
+    printer_cfg.write_bytes(user_cfg)
+    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").write_text("")
+    again = _install(checkout, data, "--uninstall", "-y")
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert printer_cfg.read_bytes() == user_cfg
