@@ -289,7 +289,8 @@ klipper_section_consent() {
     # another kestimator.py there is someone else's.
     if [ ! -d "$EXTRAS" ] || [ ! -f "$PRINTER_CFG" ] \
         || { [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" != "$MODULE" ]; } \
-        || { [ ! -L "$MODULE_LINK" ] && [ -e "$MODULE_LINK" ]; }; then
+        || { [ ! -L "$MODULE_LINK" ] && [ -e "$MODULE_LINK" ]; } \
+        || [ -e "$EXTRAS/kestimator/__init__.py" ]; then
         return 0
     fi
     found=$(python3 "$SECTION_TOOL" find "$PRINTER_CFG" 2>&1) \
