@@ -40,8 +40,10 @@ Run it again after any change: it changes nothing twice.
 
   -d DIR         Moonraker's data folder (default: ~/printer_data)
   -k DIR         Klipper's checkout (default: ~/klipper)
-  -y             answer yes: install missing apt packages (sudo apt-get), restart Moonraker
-  --uninstall    undo: klipper_estimator back, moonraker.conf as it was before
+  -y             answer yes: install missing apt packages (sudo apt-get), restart Moonraker;
+                 with --uninstall, comment out printer.cfg's [kestimator] section
+  --uninstall    undo: klipper_estimator back, moonraker.conf as it was before, nothing
+                 of kestimator's left but its checkout
   --no-restart   never restart Moonraker
   --allow-root   run as root (only if Moonraker itself runs as root)
   --frontend-settings
@@ -104,18 +106,20 @@ platform() {
     esac
 }
 
-# Edits moonraker.conf, keeping every byte it did not add (python3: configparser,
-# as Moonraker reads it). Prints what it did, one line each.
+# Edits moonraker.conf, keeping every byte it did not add (its line endings too) and
+# editing through a symbolic link where it points (python3: configparser, as Moonraker
+# reads it). Prints what it did, one line each.
 conf_tool() {
     python3 - "$@" <<'PYTHON'
-import configparser, sys
+import configparser, os, sys
 action, conf = sys.argv[1], sys.argv[2]
-BEGIN = "# >>> kestimator (install.sh; ./install.sh --uninstall removes this block)"
-END = "# <<< kestimator"
-text = open(conf, encoding="utf-8").read()
+BEGIN = b"# >>> kestimator (install.sh; ./install.sh --uninstall removes this block)"
+END = b"# <<< kestimator"
+data = open(conf, "rb").read()
+eol = b"\r\n" if b"\r\n" in data else b"\n"
 if action == "sections":
     parser = configparser.ConfigParser(strict=False, interpolation=None)
-    parser.read_string(text)
+    parser.read_string(data.decode("utf-8"))
     for name in parser.sections():
         print(name)
     if parser.has_section("analysis"):
@@ -123,46 +127,85 @@ if action == "sections":
                     "enable_estimator_updates"):
             if parser.has_option("analysis", key):
                 print("analysis.%s=%s" % (key, parser.get("analysis", key).strip()))
+elif action == "has-block":
+    sys.exit(0 if BEGIN in data else 1)
 elif action == "add":
-    block = sys.argv[3]
-    if BEGIN in text:
+    block = sys.argv[3].encode("utf-8").replace(b"\n", eol)
+    if BEGIN in data:
         sys.exit(0)
-    with open(conf, "a", encoding="utf-8") as f:
-        f.write("\n" + BEGIN + "\n" + block + END + "\n")
+    with open(conf, "ab") as f:
+        f.write(eol + BEGIN + eol + block + END + eol)
     print("added")
 elif action == "remove":
-    start = text.find("\n" + BEGIN + "\n")
+    start = data.find(eol + BEGIN + eol)
     if start < 0:
         sys.exit(0)
-    end = text.find("\n" + END + "\n", start)
+    end = data.find(eol + END + eol, start)
     if end < 0:
         sys.exit("moonraker.conf: %r without %r: remove kestimator's lines by hand"
-                 % (BEGIN, END))
-    text = text[:start] + text[end + len(END) + 2:]
-    with open(conf + ".kestimator-tmp", "w", encoding="utf-8") as f:
-        f.write(text)
-    import os, shutil
-    shutil.copymode(conf, conf + ".kestimator-tmp")
-    os.replace(conf + ".kestimator-tmp", conf)
+                 % (BEGIN.decode(), END.decode()))
+    data = data[:start] + data[end + len(END) + 2 * len(eol):]
+    real = os.path.realpath(conf)
+    before = os.stat(real)
+    with open(real + ".kestimator-tmp", "wb") as f:
+        f.write(data)
+    os.chmod(real + ".kestimator-tmp", before.st_mode & 0o7777)
+    if os.geteuid() == 0:
+        os.chown(real + ".kestimator-tmp", before.st_uid, before.st_gid)
+    os.replace(real + ".kestimator-tmp", real)
     print("removed")
 PYTHON
 }
 
+# The systemd unit of this data folder's Moonraker or Klipper ($1): KIAUH names the units of
+# a host's further instances moonraker-<name>.service, each reading <data>/systemd/*.env.
+SYSTEMD_DIR="${KESTIMATOR_SYSTEMD_DIR:-/etc/systemd/system}"
+service_name() {
+    local unit
+    for unit in "$SYSTEMD_DIR/$1.service" "$SYSTEMD_DIR/$1"-*.service; do
+        if [ -f "$unit" ] && grep -qF "$DATA/" "$unit"; then
+            basename "$unit" .service
+            return
+        fi
+    done
+    printf '%s\n' "$1"
+}
+
+# $1: what is now installed or removed, said when Moonraker is not restarted.
 restart_moonraker() {
+    local done_what=$1 service answer=n reason
+    service=$(service_name moonraker)
     if [ "$RESTART" = 0 ]; then
-        say "Moonraker not restarted (--no-restart): sudo systemctl restart moonraker"
+        say "Moonraker not restarted (--no-restart): sudo systemctl restart $service"
         return
     fi
-    local answer=n
     if [ "$YES" = 1 ]; then
         answer=y
     elif [ -t 0 ]; then
-        read -r -p "Restart Moonraker now (sudo systemctl restart moonraker)? [y/N] " answer
+        read -r -p "Restart Moonraker now (sudo systemctl restart $service)? [y/N] " answer
     fi
     case "$answer" in
-        y|Y|yes) as_root systemctl restart moonraker && say "Moonraker restarted." ;;
-        *) say "Moonraker not restarted: run sudo systemctl restart moonraker" ;;
+        y|Y|yes) ;;
+        *) say "Moonraker not restarted: run sudo systemctl restart $service"; return ;;
     esac
+    if ! command -v systemctl >/dev/null; then
+        reason="this host has no systemctl"
+    elif reason=$(as_root systemctl restart "$service" 2>&1); then
+        say "Moonraker restarted ($service)."
+        return
+    fi
+    reason=$(printf '%s' "${reason:-systemctl failed}" | head -n 1)
+    say "WARNING: Moonraker was not restarted (systemctl restart $service: $reason)."
+    say "$done_what Restart Moonraker yourself for it to take effect (sudo systemctl restart $service, or however this host starts Moonraker)."
+}
+
+# moonraker.conf can be changed: its file (where a link points) and folders are writable,
+# and the file is not read-only even for root.
+conf_writable() {
+    local real
+    real=$(readlink -f "$CONF")
+    [ -w "$real" ] && [ -w "$(dirname "$real")" ] && [ -w "$(dirname "$CONF")" ] \
+        && [ "$(stat -c %A "$real" | cut -c 3)" = w ]
 }
 
 state_has() { [ -f "$STATE" ] && grep -qx "$1" "$STATE"; }
@@ -172,6 +215,8 @@ state_add() { state_has "$1" || printf '%s\n' "$1" >> "$STATE"; }
 # Klipper add-ons install), kept out of Klipper's git status so its updates stay clean.
 EXTRAS="$KLIPPER_DIR/klippy/extras"
 MODULE_LINK="$EXTRAS/kestimator.py"
+EXCLUDE="$KLIPPER_DIR/.git/info/exclude"
+EXCLUDE_LINE="klippy/extras/kestimator.py"
 link_module() {
     if [ ! -d "$EXTRAS" ]; then
         say "no Klipper at $KLIPPER_DIR (-k DIR): the Klipper module is not linked."
@@ -186,16 +231,43 @@ link_module() {
         ln -s "$MODULE" "$MODULE_LINK"
         say "Klipper module linked: $MODULE_LINK"
     fi
-    local exclude="$KLIPPER_DIR/.git/info/exclude"
-    if [ -d "$KLIPPER_DIR/.git/info" ] && ! grep -qx "klippy/extras/kestimator.py" "$exclude" 2>/dev/null; then
-        printf '%s\n' "klippy/extras/kestimator.py" >> "$exclude"
+    if [ -d "$KLIPPER_DIR/.git/info" ] && ! grep -qx "$EXCLUDE_LINE" "$EXCLUDE" 2>/dev/null; then
+        [ -e "$EXCLUDE" ] || state_add exclude_created
+        if [ -s "$EXCLUDE" ] && [ -n "$(tail -c 1 "$EXCLUDE")" ]; then
+            # The user's last pattern has no newline: ours goes on a line of its own.
+            printf '\n' >> "$EXCLUDE"
+            state_add exclude_newline
+        fi
+        printf '%s\n' "$EXCLUDE_LINE" >> "$EXCLUDE"
     fi
     say "To turn it on, add a [kestimator] section to printer.cfg and restart Klipper (see plugins/klipper/README.md)."
 }
 unlink_module() {
     if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
         rm -f "$MODULE_LINK"
-        say "Klipper module link removed: remove [kestimator] from printer.cfg before Klipper restarts."
+        # What Klipper's Python compiled of it (Klipper's own .pyc files stay).
+        rm -f "$EXTRAS/__pycache__/kestimator."*.pyc
+        say "Klipper module link removed: restart Klipper when it is not printing (sudo systemctl restart $(service_name klipper)) to unload it."
+    fi
+    if [ -f "$EXCLUDE" ] && grep -qx "$EXCLUDE_LINE" "$EXCLUDE"; then
+        # Our line out of Klipper's .git/info/exclude, with the newline we put before it.
+        local newline_added=0
+        if state_has exclude_newline; then newline_added=1; fi
+        python3 - "$EXCLUDE" "$EXCLUDE_LINE" "$newline_added" <<'PYTHON'
+import os, sys
+path, line, newline_added = sys.argv[1], sys.argv[2].encode() + b"\n", sys.argv[3] == "1"
+data = open(path, "rb").read()
+lines = data.splitlines(keepends=True)
+kept = [item for item in lines if item != line]
+data = b"".join(kept)
+if newline_added and len(kept) < len(lines) and lines[-1] == line and data.endswith(b"\n"):
+    data = data[:-1]
+with open(path, "wb") as f:
+    f.write(data)
+PYTHON
+        if state_has exclude_created && [ ! -s "$EXCLUDE" ]; then
+            rm -f "$EXCLUDE"
+        fi
     fi
 }
 
@@ -207,14 +279,56 @@ frontend_settings() {
     say "WARNING: Mainsail's and Fluidd's settings were not changed (Moonraker at $MOONRAKER_URL: see above); run again with --frontend-settings when Moonraker runs."
 }
 
+SECTION_TOOL="$REPO/plugins/klipper/config_section.py"
+# Klipper does not start with a [kestimator] section and no module: before anything is
+# changed, the section (in printer.cfg or a file it includes) is commented out with the
+# user's yes (-y, or asked), else the uninstall stops and says what to do.
+klipper_section_consent() {
+    local found answer=n
+    # Only for this Klipper with our link, or with none (an earlier uninstall removed it):
+    # another kestimator.py there is someone else's.
+    if [ ! -d "$EXTRAS" ] || [ ! -f "$PRINTER_CFG" ] \
+        || { [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" != "$MODULE" ]; } \
+        || { [ ! -L "$MODULE_LINK" ] && [ -e "$MODULE_LINK" ]; } \
+        || [ -e "$EXTRAS/kestimator/__init__.py" ]; then
+        return 0
+    fi
+    found=$(python3 "$SECTION_TOOL" find "$PRINTER_CFG" 2>&1) \
+        || die "$found (Klipper reads it so: fix it, then run --uninstall again)"
+    [ -n "$found" ] || return 0
+    if [ "$YES" = 1 ]; then
+        answer=y
+    elif [ -t 0 ]; then
+        say "Klipper does not start with a [kestimator] section and no module: $(tr '\n' ' ' <<<"$found")"
+        read -r -p "Comment out that section ('#' before its lines, nothing else changes)? [y/N] " answer
+    fi
+    case "$answer" in
+        y|Y|yes) COMMENT_SECTION=1 ;;
+        *) die "[kestimator] is in $(tr '\n' ' ' <<<"$found")and Klipper does not start with it once the module is gone: remove the section (or run ./install.sh --uninstall -y, which comments it out), then run --uninstall again. Nothing was changed." ;;
+    esac
+}
+COMMENT_SECTION=0
+
 uninstall() {
     local p link
+    klipper_section_consent
+    if [ -f "$CONF" ] && conf_tool has-block "$CONF" && ! conf_writable; then
+        die "cannot write $CONF (or its folder): make it writable, then run --uninstall again. Nothing was changed."
+    fi
+    if [ "$COMMENT_SECTION" = 1 ]; then
+        local commented
+        commented=$(python3 "$SECTION_TOOL" comment "$PRINTER_CFG" 2>&1) || die "$commented"
+        say "$commented"
+    fi
     if state_has frontend_settings; then
         frontend_settings --undo
     fi
     unlink_module
     if [ -f "$CONF" ] && [ "$(conf_tool remove "$CONF")" = removed ]; then
         say "moonraker.conf: kestimator's [analysis]/[update_manager kestimator] lines removed"
+    fi
+    if [ -f "$CONF" ] && ! conf_tool has-block "$CONF"; then
+        rm -f "$CONF".[0-9]*-[0-9]*.kestimator.bak  # install.sh's backups, of no use now
     fi
     for p in rpi linux osx; do
         link="$TOOLS/klipper_estimator_$p"
@@ -242,15 +356,24 @@ uninstall() {
         rm -f "$PROFILE"
         say "$PROFILE removed (it was install.sh's, unchanged)"
     fi
+    local created
+    created=$(sed -n 's/^created_folder=//p' "$STATE" 2>/dev/null || true)
     rm -f "$STATE"
     rm -rf "$VENV"
+    # The folders install.sh made, deepest first, when nothing else is in them.
+    if [ -n "$created" ]; then
+        sort -r <<<"$created" | while IFS= read -r p; do rmdir "$p" 2>/dev/null || true; done
+    fi
     say "kestimator uninstalled (its checkout $REPO stays; delete it if you like)."
-    restart_moonraker
+    restart_moonraker "kestimator is uninstalled, but Moonraker still runs it until it restarts."
 }
 
 if [ "$UNINSTALL" = 1 ]; then
     uninstall
     exit 0
+fi
+if ! conf_tool has-block "$CONF" && ! conf_writable; then
+    die "cannot write $CONF (or its folder): make it writable, then run ./install.sh again. Nothing was changed."
 fi
 
 # --- the build -------------------------------------------------------------
@@ -324,8 +447,20 @@ if [ -z "$PLATFORM" ]; then
     PLATFORM=linux
     SET_PLATFORM="platform: linux"
 fi
-mkdir -p "$TOOLS"
-touch "$STATE"
+# mkdir -p, remembering each folder it made for --uninstall (the state file must exist).
+make_folder() {
+    local folder=$1 made=()
+    while [ ! -d "$folder" ]; do
+        made+=("$folder")
+        folder=$(dirname "$folder")
+    done
+    mkdir -p "$1"
+    touch "$STATE"
+    for folder in "${made[@]}"; do
+        state_add "created_folder=$folder"
+    done
+}
+make_folder "$TOOLS"
 LINK="$TOOLS/klipper_estimator_$PLATFORM"
 if [ -L "$LINK" ] && [ "$(readlink "$LINK")" = "$LAUNCHER" ]; then
     :
@@ -350,9 +485,14 @@ fi
 if [ -e "$PROFILE" ]; then
     say "kestimator profile $PROFILE kept as it is."
 elif [ -f "$PRINTER_CFG" ]; then
-    mkdir -p "$(dirname "$PROFILE")"
+    make_folder "$(dirname "$PROFILE")"
+    # A TOML basic string: a '"' or '\' in the path escaped, control characters as \uXXXX.
+    quoted=$(python3 -c 'import sys
+print("\"%s\"" % "".join("\\" + c if c in "\"\\" else "\\u%04x" % ord(c)
+                         if ord(c) < 32 or ord(c) == 127 else c for c in sys.argv[1]))' \
+        "$PRINTER_CFG")
     printf '%s\n%s\n' "# Written by kestimator's install.sh: kestimator and Moonraker's [analysis] take this printer's limits from its printer.cfg." \
-        "printer_cfg = \"$PRINTER_CFG\"" > "$PROFILE"
+        "printer_cfg = $quoted" > "$PROFILE"
     cp "$PROFILE" "$VENV/profile-written"
     state_add profile
     say "kestimator profile $PROFILE: printer_cfg = $PRINTER_CFG"
@@ -427,5 +567,5 @@ if [ "$FRONTEND_SETTINGS" = 1 ]; then
 fi
 
 say "Installed: $version_line"
-restart_moonraker
+restart_moonraker "kestimator ($version_line) is installed: Moonraker's klipper_estimator runs it and moonraker.conf has its lines, but Moonraker runs them only once restarted."
 say "Check: GET /server/analysis/status says \"estimator_ready\": true and kestimator's version."

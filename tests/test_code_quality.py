@@ -47,6 +47,11 @@ def test_klipper_module_type_checks_with_mypy() -> None:
     _mypy_finds_nothing("plugins/klipper/kestimator.py")
 
 
+def test_klipper_config_section_tool_type_checks_with_mypy() -> None:
+    """plugins/klipper/config_section.py, which install.sh --uninstall runs."""
+    _mypy_finds_nothing("plugins/klipper/config_section.py")
+
+
 def test_core_imports_only_the_standard_library() -> None:
     offenders = []
     for path in sorted((PROJECT / "kestimator").rglob("*.py")):

@@ -15,6 +15,7 @@ import os
 import shutil
 import stat
 import subprocess
+import sys
 import time
 import urllib.parse
 from pathlib import Path
@@ -24,7 +25,7 @@ import pytest
 from kestimator import __version__, compat
 from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.estimate import estimate_file
-from tests.conftest import CORPUS, CORPUS_CFG, PROJECT, require_program
+from tests.conftest import CORPUS, CORPUS_CFG, PROJECT, require_klipper, require_program
 from tests.moonraker_host import (  # noqa: F401 (moonraker_python is the session fixture)
     _free_port,
     _metadata,
@@ -284,3 +285,308 @@ def test_install_sh_compiled_build(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "kestimator build: compiled with mypyc\n" in proc.stdout
     assert "Installed: kestimator %s (compiled)" % __version__ in proc.stdout
+
+
+# --- after --uninstall: every byte back, nothing of ours, Klipper starts (issue 35) -----------
+
+KESTIMATOR_SECTION = b"# the time module\n[kestimator]\nupdate_interval: 1.0\n  \n; mine\n"
+KESTIMATOR_SECTION_COMMENTED = (b"# the time module\n#[kestimator]\n#update_interval: 1.0\n"
+                                b"  \n; mine\n")
+
+
+def _tree(root: Path, skip: Path | None) -> dict[str, tuple[object, ...]]:
+    """Every file, link and folder under root (but skip): bytes, targets and modes. A rustup
+    on the test machine's PATH writes ~/.rustup the first time a build runs its proxies: not
+    install.sh's, and not on a printer host."""
+    found: dict[str, tuple[object, ...]] = {}
+    for folder, folders, files in os.walk(root):
+        here = Path(folder)
+        folders[:] = [name for name in folders
+                      if here / name != skip and here / name != root / ".rustup"]
+        for name in folders + files:
+            path = here / name
+            relative = str(path.relative_to(root))
+            mode = stat.S_IMODE(path.lstat().st_mode)
+            if path.is_symlink():
+                found[relative] = ("link", os.readlink(path))
+            elif path.is_dir():
+                found[relative] = ("folder", mode)
+            else:
+                found[relative] = ("file", path.read_bytes(), mode)
+    return found
+
+
+def _klipper_host(home: Path, data_name: str = "printer_data") -> tuple[Path, Path]:
+    """A host as _host makes it, its ~/klipper the oracle's real klippy (the module links into
+    its extras/), printer.cfg including kestimator.cfg with the user's [kestimator] section."""
+    klipper, _ = require_klipper()
+    data, _ = _host(home, 7125)
+    if data_name != data.name:
+        data = data.rename(data.parent / data_name)
+    shutil.rmtree(home / "klipper" / "klippy")
+    shutil.copytree(Path(klipper) / "klippy", home / "klipper" / "klippy", symlinks=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "kestimator.py"))
+    config = data / "config"
+    with open(config / "printer.cfg", "ab") as f:
+        f.write(b"\n[include kestimator.cfg]\n")
+    (config / "kestimator.cfg").write_bytes(KESTIMATOR_SECTION)
+    return data, home / "klipper"
+
+
+def _klipper_starts(klipper_home: Path, printer_cfg: Path, log: Path) -> tuple[bool, str]:
+    """Klipper (batch mode, the oracle's MCU dictionary) started on printer_cfg, through its
+    configuration to 'Configured MCU' and out: (whether it did, its log's end). Its Python
+    writes .pyc files as on a host (klippy/extras/__pycache__/kestimator.*.pyc too)."""
+    oracle_klipper, python = require_klipper()
+    env = dict(os.environ, HOME=str(klipper_home.parent))
+    env.pop("PYTHONDONTWRITEBYTECODE", None)
+    batch = log.with_suffix(".batch")
+    batch.write_text("")
+    proc = subprocess.run(
+        [python, str(klipper_home / "klippy" / "klippy.py"), str(printer_cfg), "-i", str(batch),
+         "-o", "/dev/null", "-d", str(Path(oracle_klipper) / "out" / "klipper.dict"),
+         "-l", str(log)], stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper_home,
+        timeout=120, env=env)
+    text = log.read_text(errors="replace")
+    started = proc.returncode == 0 and "Configured MCU" in text and "Config error" not in text
+    return started, text[-1500:]
+
+
+@pytest.mark.parametrize("case", ["plain", "symlinked_conf", "crlf_conf", "exclude_no_newline",
+                                  "quote_in_data_path"])
+def test_install_sh_uninstall_gives_back_every_byte_and_klipper_starts(
+        case: str, corpus_root: Path, tmp_path: Path) -> None:
+    checkout = _checkout(tmp_path)
+    home = tmp_path / "home"
+    data, klipper = _klipper_host(
+        home, 'printer "one"_data' if case == "quote_in_data_path" else "printer_data")
+    conf = data / "config" / "moonraker.conf"
+    exclude = klipper / ".git" / "info" / "exclude"
+    if case == "symlinked_conf":
+        # Configs kept in a git folder, moonraker.conf a link to its file there.
+        kept = home / "printer-configs" / "moonraker.conf"
+        kept.parent.mkdir()
+        conf.rename(kept)
+        conf.symlink_to(kept)
+    elif case == "crlf_conf":
+        conf.write_bytes(conf.read_bytes().replace(b"\n", b"\r\n"))
+    elif case == "exclude_no_newline":
+        exclude.write_bytes(exclude.read_bytes() + b"klippy/extras/led_effect.py")
+    # A host where Klipper has run: its own .pyc files are there (it stops at the section).
+    assert not _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "0.log")[0]
+    before = _tree(home, checkout)
+    exclude_before = exclude.read_bytes()
+
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    started, log = _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "on.log")
+    assert started, log  # the module is there: Klipper takes the section
+    assert list((klipper / "klippy" / "extras" / "__pycache__").glob("kestimator.*.pyc"))
+    if case == "symlinked_conf":
+        assert os.readlink(conf) == str(home / "printer-configs" / "moonraker.conf")
+        assert b"[update_manager kestimator]" in kept.read_bytes()
+    elif case == "crlf_conf":
+        added = conf.read_bytes()
+        assert b"\r\n[update_manager kestimator]\r\n" in added
+        assert b"\n" not in added.replace(b"\r\n", b"")
+    elif case == "exclude_no_newline":
+        again = _install(checkout, data)
+        assert again.returncode == 0, again.stdout + again.stderr
+        assert exclude.read_bytes() == exclude_before + b"\nklippy/extras/kestimator.py\n"
+    elif case == "quote_in_data_path":
+        if sys.version_info >= (3, 11):
+            import tomllib
+        else:
+            import tomli as tomllib
+
+        profile = data / "xdg-config" / "kestimator" / "config.toml"
+        with open(profile, "rb") as f:
+            assert tomllib.load(f)["printer_cfg"] == str(data / "config" / "printer.cfg")
+        assert (data / "tools" / "klipper_estimator" / "default_estimator_cfg.json").exists()
+
+    removed = _install(checkout, data, "--uninstall", "-y")
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    if case == "symlinked_conf":
+        assert os.readlink(conf) == str(kept)  # still the link, its file without our lines
+        assert b"kestimator" not in kept.read_bytes()
+    elif case == "crlf_conf":
+        assert conf.read_bytes() == before[str(conf.relative_to(home))][1]
+    assert "kestimator.cfg:2: [kestimator] commented out" in removed.stdout
+    after = _tree(home, checkout)
+    user_cfg = str((data / "config" / "kestimator.cfg").relative_to(home))
+    assert after.pop(user_cfg)[1] == KESTIMATOR_SECTION_COMMENTED
+    before.pop(user_cfg)
+    assert after == before
+    assert _git("status", "--porcelain", cwd=checkout) == ""
+    started, log = _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "off.log")
+    assert started, log
+
+
+def test_install_sh_uninstall_without_consent_stops_before_changing_anything(
+        corpus_root: Path, tmp_path: Path) -> None:
+    """Without -y and without a terminal to ask, --uninstall names the [kestimator] section
+    that would keep Klipper from starting, says what to do, and changes nothing."""
+    checkout = _checkout(tmp_path)
+    home = tmp_path / "home"
+    data, klipper = _klipper_host(home)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    before = _tree(home, None)
+    refused = _install(checkout, data, "--uninstall")
+    assert refused.returncode == 1
+    assert refused.stdout == ""
+    assert "[kestimator] is in %s:2 " % (data / "config" / "kestimator.cfg") in refused.stderr
+    assert "--uninstall -y" in refused.stderr and "Nothing was changed." in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert _tree(home, None) == before  # type: ignore[arg-type]
+    started, log = _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "k.log")
+    assert started, log
+
+
+def test_install_sh_refuses_a_read_only_moonraker_conf_before_changing_anything(
+        tmp_path: Path) -> None:
+    checkout = _checkout(tmp_path)
+    home = tmp_path / "home"
+    data, _ = _host(home, 7125)
+    conf = data / "config" / "moonraker.conf"
+    conf.chmod(0o444)
+    before = _tree(home, checkout)
+    refused = _install(checkout, data, "-y")
+    assert refused.returncode == 1
+    assert refused.stdout == ""
+    assert refused.stderr == ("install.sh: cannot write %s (or its folder): make it writable, "
+                              "then run ./install.sh again. Nothing was changed.\n" % conf)
+    assert _tree(home, checkout) == before
+    assert not (checkout / ".venv-host").exists()
+    # Installed, then made read-only: --uninstall refuses the same way, before anything.
+    conf.chmod(0o644)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    conf.chmod(0o444)
+    middle = _tree(home, None)
+    refused = _install(checkout, data, "--uninstall", "-y")
+    assert refused.returncode == 1 and "cannot write %s" % conf in refused.stderr
+    assert _tree(home, None) == middle  # type: ignore[arg-type]
+
+
+def _fake_systemctl(tmp_path: Path, present: bool) -> dict[str, str]:
+    """A PATH whose systemctl fails as in a container without systemd (and records its
+    arguments), or that has no systemctl at all."""
+    programs = tmp_path / "bin"
+    programs.mkdir()
+    for folder in os.environ.get("PATH", "").split(os.pathsep):
+        if not os.path.isdir(folder):
+            continue
+        for name in os.listdir(folder):
+            target = programs / name
+            if name not in ("systemctl", "sudo") and not os.path.lexists(target):
+                target.symlink_to(os.path.join(folder, name))
+    if present:
+        fake = programs / "systemctl"
+        fake.write_text('#!/bin/sh\necho "$@" >> "%s"\necho "System has not been booted with '
+                        'systemd as init system (PID 1). Can\'t operate." >&2\nexit 1\n'
+                        % (tmp_path / "systemctl.args"))
+        fake.chmod(0o755)
+    return {"PATH": str(programs)}
+
+
+@pytest.mark.parametrize("systemctl", ["fails", "missing"])
+def test_install_sh_failed_moonraker_restart_says_what_is_installed_and_what_to_restart(
+        systemctl: str, tmp_path: Path) -> None:
+    """-y on a KIAUH multi-instance host (this data folder's Moonraker is moonraker-1) where
+    the restart cannot happen: exit 0 after the whole install, the unit named in words."""
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    units = tmp_path / "systemd"
+    units.mkdir()
+    (units / "moonraker.service").write_text(
+        "[Service]\nEnvironmentFile=%s/printer_data/systemd/moonraker.env\n" % (tmp_path / "x"))
+    (units / "moonraker-1.service").write_text(
+        "[Service]\nEnvironmentFile=%s/systemd/moonraker.env\n" % data)
+    env = dict(_environment(data), KESTIMATOR_SYSTEMD_DIR=str(units),
+               **_fake_systemctl(tmp_path, systemctl == "fails"))
+    proc = subprocess.run([str(checkout / "install.sh"), "--allow-root", "-y", "-d", str(data)],
+                          env=env, capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S,
+                          stdin=subprocess.DEVNULL)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    reason = ("System has not been booted with systemd as init system (PID 1). Can't operate."
+              if systemctl == "fails" else "this host has no systemctl")
+    assert ("WARNING: Moonraker was not restarted (systemctl restart moonraker-1: %s).\n"
+            % reason) in proc.stdout
+    assert ("kestimator (kestimator %s (pure Python)) is installed: Moonraker's "
+            "klipper_estimator runs it and moonraker.conf has its lines, but Moonraker runs "
+            "them only once restarted. Restart Moonraker yourself for it to take effect (sudo "
+            "systemctl restart moonraker-1" % __version__) in proc.stdout
+    if systemctl == "fails":
+        assert (tmp_path / "systemctl.args").read_text() == "restart moonraker-1\n"
+    removed = subprocess.run([str(checkout / "install.sh"), "--allow-root", "-y", "--uninstall",
+                              "-d", str(data)], env=env, capture_output=True, text=True,
+                             timeout=INSTALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    assert "kestimator is uninstalled, but Moonraker still runs it until it restarts. " \
+        "Restart Moonraker yourself" in removed.stdout
+
+
+def test_install_sh_uninstall_asks_at_a_terminal_before_commenting_out_the_section(
+        tmp_path: Path) -> None:
+    """At a terminal, --uninstall asks: no stops before anything, yes comments it out."""
+    import pty
+
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    printer_cfg = data / "config" / "printer.cfg"
+    user_cfg = printer_cfg.read_bytes() + b"\n[kestimator]\nset_progress: False\n"
+    printer_cfg.write_bytes(user_cfg)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    line = len(user_cfg.split(b"\n")) - 2
+
+    def uninstall(answer: bytes) -> subprocess.CompletedProcess[str]:
+        leader, follower = pty.openpty()
+        try:
+            os.write(leader, answer + b"\n")
+            return subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                                   "--uninstall", "-d", str(data)], env=_environment(data),
+                                  capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S,
+                                  stdin=follower)
+        finally:
+            os.close(leader)
+            os.close(follower)
+
+    before = _tree(tmp_path / "home", None)
+    refused = uninstall(b"n")
+    assert refused.returncode == 1
+    assert "Klipper does not start with a [kestimator] section and no module: %s:%d" % (
+        printer_cfg, line) in refused.stdout
+    assert "Nothing was changed." in refused.stderr
+    assert _tree(tmp_path / "home", None) == before
+    agreed = uninstall(b"y")
+    assert agreed.returncode == 0, agreed.stdout + agreed.stderr
+    assert printer_cfg.read_bytes() == user_cfg.replace(
+        b"\n[kestimator]\nset_progress: False\n", b"\n#[kestimator]\n#set_progress: False\n")
+    assert not (data / "config" / "moonraker.conf.kestimator.bak").exists()
+    assert not os.path.lexists(tmp_path / "home" / "klipper" / "klippy" / "extras" /
+                               "kestimator.py")
+
+
+def test_install_sh_uninstall_again_after_an_old_uninstall_comments_out_the_section(
+        tmp_path: Path) -> None:
+    """An earlier install.sh's --uninstall removed the module's link and left the section
+    (Klipper no longer starts): --uninstall -y run again comments it out."""
+    checkout = _checkout(tmp_path)
+    data, _ = _host(tmp_path / "home", 7125)
+    printer_cfg = data / "config" / "printer.cfg"
+    user_cfg = printer_cfg.read_bytes() + b"[kestimator]\n"
+    printer_cfg.write_bytes(user_cfg)
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").unlink()
+    removed = _install(checkout, data, "--uninstall", "-y")
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    assert printer_cfg.read_bytes() == user_cfg[:-len(b"[kestimator]\n")] + b"#[kestimator]\n"
+    # Someone else's kestimator.py in extras/: their module, their section, left alone.
+    printer_cfg.write_bytes(user_cfg)
+    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").write_text("")
+    again = _install(checkout, data, "--uninstall", "-y")
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert printer_cfg.read_bytes() == user_cfg
