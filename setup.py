@@ -15,7 +15,9 @@ the development set-up) stays pure unless KESTIMATOR_BUILD=compiled.
 from __future__ import annotations
 
 import os
+import pickle
 import platform
+import subprocess
 import sys
 import sysconfig
 import tempfile
@@ -46,6 +48,13 @@ COMPILED_MODULES = [
            for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
            if name.endswith(".py"))
 PREFIX = "kestimator build: "
+MYPYC_CHILD = "--kestimator-mypyc-child"
+# gcc's garbage collector tuned for a small board: collect when the heap grows by 10 %
+# past 16 MiB. On this 24 GiB host gcc's defaults (grow 100 % past 128 MiB) let cc1 reach
+# twice the memory for the largest module; the code made is the same (gcc's own docs:
+# the parameters change only when memory is collected), the compile takes ~15 % more CPU.
+_GCC_MEMORY_FLAGS = ["--param=ggc-min-expand=10", "--param=ggc-min-heapsize=16384"]
+_COMPILER_FLAGS: list[str] = []  # _GCC_MEMORY_FLAGS when the probe's compiler takes them
 
 
 def _say(message: str) -> None:
@@ -75,6 +84,13 @@ def _c_compiler_problem() -> str | None:
             compiler.compile([source], output_dir=tmp, include_dirs=[include])
         except Exception as exc:  # CompileError, or the compiler program is missing
             return "no working C compiler (%s)" % (str(exc).splitlines() or ["?"])[0]
+        try:  # gcc takes the memory flags; another compiler (clang) may not
+            compiler.compile([source], output_dir=tmp, include_dirs=[include],
+                             extra_postargs=["-Werror", *_GCC_MEMORY_FLAGS])
+        except Exception:
+            _COMPILER_FLAGS.clear()
+        else:
+            _COMPILER_FLAGS[:] = _GCC_MEMORY_FLAGS
     return None
 
 
@@ -122,6 +138,40 @@ class BuildExtOrPure(build_ext):
 METADATA_ONLY = {"egg_info", "dist_info"}
 
 
+def _mypyc_in_child() -> list[object]:
+    """mypyc's C sources and extensions, made in a child process.
+
+    Type-checking and generating C takes mypy about 165 MiB; in a child that memory is the
+    system's again before gcc starts (a process seldom returns freed memory), so the build's
+    peak is mypy's or one gcc's, never both (benchmarks/install_memory.py)."""
+    with tempfile.TemporaryDirectory(prefix="kestimator-mypyc-") as tmp:
+        result = os.path.join(tmp, "extensions.pickle")
+        proc = subprocess.run([sys.executable, os.path.abspath(__file__), MYPYC_CHILD, result],
+                              cwd=HERE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        if proc.returncode != 0:
+            lines = proc.stdout.decode(errors="replace").strip().splitlines()
+            if proc.returncode < 0:
+                why = "killed by signal %d (out of memory?)" % -proc.returncode
+            else:
+                why = (lines or ["exit status %d" % proc.returncode])[-1]
+            raise RuntimeError(why)
+        with open(result, "rb") as f:
+            modules: list[object] = pickle.load(f)
+    for extension in modules:
+        extension.extra_compile_args = [  # type: ignore[attr-defined]
+            *extension.extra_compile_args, *_COMPILER_FLAGS]  # type: ignore[attr-defined]
+    return modules
+
+
+def _mypyc_child(result: str) -> None:
+    """The child's work: mypycify (writes build/*.c), its extensions pickled to `result`."""
+    from mypyc.build import mypycify
+    modules = mypycify(["--ignore-missing-imports", *COMPILED_MODULES],
+                       opt_level="3", debug_level="0", separate=True)
+    with open(result, "wb") as f:
+        pickle.dump(list(modules), f)
+
+
 def _ext_modules() -> list[object]:
     commands = [arg for arg in sys.argv[1:] if not arg.startswith("-")]
     if commands and set(commands[:1]) <= METADATA_ONLY:
@@ -130,11 +180,9 @@ def _ext_modules() -> list[object]:
     if reason is not None:
         _say("pure Python (%s)" % reason)
         return []
-    from mypyc.build import mypycify
     try:
-        modules = mypycify(["--ignore-missing-imports", *COMPILED_MODULES],
-                           opt_level="3", group_name="kestimator")
-    except (Exception, SystemExit) as exc:
+        modules = _mypyc_in_child()
+    except Exception as exc:
         if os.environ.get("KESTIMATOR_BUILD", "").strip().lower() == "compiled":
             raise
         _say("pure Python (mypyc failed: %s)" % exc)
@@ -144,4 +192,7 @@ def _ext_modules() -> list[object]:
     return list(modules)
 
 
-setup(ext_modules=_ext_modules(), cmdclass={"build_ext": BuildExtOrPure})
+if __name__ == "__main__" and sys.argv[1:2] == [MYPYC_CHILD]:
+    _mypyc_child(sys.argv[2])
+else:
+    setup(ext_modules=_ext_modules(), cmdclass={"build_ext": BuildExtOrPure})
