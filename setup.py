@@ -47,6 +47,22 @@ COMPILED_MODULES = [
 ] + sorted("kestimator/kinematics/" + name
            for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
            if name.endswith(".py"))
+# mypyc's compilation groups: each is one C file, one gcc run and one shared library. One
+# group for everything made a 10 MiB C file that took cc1 448 MiB (670 MiB for the whole
+# install with Debian's Python); a group per module repeats mypyc's runtime in each (twice
+# the CPU) and cannot hold a package's __init__. Four groups, the calls of the per-move path
+# (gcode_move -> toolhead -> kinematics) crossing at most one group's boundary each.
+KINEMATICS = [m for m in COMPILED_MODULES if m.startswith("kestimator/kinematics/")]
+GROUPS = [
+    (["kestimator/gcode.py", "kestimator/motion_queuing.py", "kestimator/extruder.py",
+      "kestimator/toolhead.py", "kestimator/gcode_move.py"], "kestimator_planner"),
+    (["kestimator/estimate.py", "kestimator/segments.py", "kestimator/interpreter.py",
+      "kestimator/gcode_arcs.py", "kestimator/firmware_retraction.py",
+      "kestimator/input_shaper.py"], "kestimator_timeline"),
+    (["kestimator/bed_mesh.py", "kestimator/skew_correction.py",
+      "kestimator/config/machine.py"], "kestimator_transforms"),
+    (KINEMATICS, "kestimator_kinematics"),
+]
 PREFIX = "kestimator build: "
 MYPYC_CHILD = "--kestimator-mypyc-child"
 # gcc's garbage collector tuned for a small board: collect when the heap grows by 10 %
@@ -167,7 +183,7 @@ def _mypyc_child(result: str) -> None:
     """The child's work: mypycify (writes build/*.c), its extensions pickled to `result`."""
     from mypyc.build import mypycify
     modules = mypycify(["--ignore-missing-imports", *COMPILED_MODULES],
-                       opt_level="3", debug_level="0", separate=True)
+                       opt_level="3", debug_level="0", separate=GROUPS)
     with open(result, "wb") as f:
         pickle.dump(list(modules), f)
 
