@@ -50,17 +50,19 @@ COMPILED_MODULES = [
 # mypyc's compilation groups: each is one C file, one gcc run and one shared library. One
 # group for everything made a 10 MiB C file that took cc1 448 MiB (670 MiB for the whole
 # install with Debian's Python); a group per module repeats mypyc's runtime in each (twice
-# the CPU) and cannot hold a package's __init__. Four groups, the calls of the per-move path
-# (gcode_move -> toolhead -> kinematics) crossing at most one group's boundary each.
+# the CPU) and cannot hold a package's __init__. Three groups: the per-line loop and
+# everything it calls for a plain move (estimate -> gcode -> gcode_move -> toolhead) in one,
+# as a call across groups goes through a table of pointers; the other commands and
+# transforms in the second; the kinematics (called through the kinematics' class) in the third.
 KINEMATICS = [m for m in COMPILED_MODULES if m.startswith("kestimator/kinematics/")]
 GROUPS = [
     (["kestimator/gcode.py", "kestimator/motion_queuing.py", "kestimator/extruder.py",
-      "kestimator/toolhead.py", "kestimator/gcode_move.py"], "kestimator_planner"),
-    (["kestimator/estimate.py", "kestimator/segments.py", "kestimator/interpreter.py",
-      "kestimator/gcode_arcs.py", "kestimator/firmware_retraction.py",
-      "kestimator/input_shaper.py"], "kestimator_timeline"),
-    (["kestimator/bed_mesh.py", "kestimator/skew_correction.py",
-      "kestimator/config/machine.py"], "kestimator_transforms"),
+      "kestimator/toolhead.py", "kestimator/gcode_move.py", "kestimator/segments.py",
+      "kestimator/estimate.py"], "kestimator_core"),
+    (["kestimator/interpreter.py", "kestimator/gcode_arcs.py",
+      "kestimator/firmware_retraction.py", "kestimator/input_shaper.py",
+      "kestimator/bed_mesh.py", "kestimator/skew_correction.py",
+      "kestimator/config/machine.py"], "kestimator_commands"),
     (KINEMATICS, "kestimator_kinematics"),
 ]
 PREFIX = "kestimator build: "
