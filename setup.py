@@ -4,8 +4,14 @@
 hot-path modules below from the very same .py sources with mypyc (mypy's compiler) when
 this is CPython, mypy can be imported and a C compiler with Python's headers works. In
 every other case (PyPy, no compiler, no headers, a mypyc failure) it installs the pure-Python
-package unchanged. Either way it prints one line saying which (pip shows build output only
-with `-v`; `kestimator --version` says "compiled" or "pure Python" afterwards).
+package unchanged, and so it does with less than BUILD_MEMORY_MIB of memory free. Either way
+it prints one line saying which and why (pip shows build output only with `-v`;
+`kestimator --version` says "compiled" or "pure Python" afterwards).
+
+Memory (a small board runs Klipper beside the install): mypy runs in a child process that
+has exited before gcc starts, the modules are compiled in three groups (three C files, one
+gcc at a time) and gcc's garbage collector is told to keep its heap small. The install's peak,
+summed over every process, is measured by benchmarks/install_memory.py.
 
 KESTIMATOR_BUILD=pure forces the pure package; KESTIMATOR_BUILD=compiled makes any reason
 not to compile an error instead of a fallback. An editable install (`pip install -e .`,
@@ -55,7 +61,7 @@ COMPILED_MODULES = [
 # as a call across groups goes through a table of pointers; the other commands and
 # transforms in the second; the kinematics (called through the kinematics' class) in the third.
 KINEMATICS = [m for m in COMPILED_MODULES if m.startswith("kestimator/kinematics/")]
-GROUPS = [
+GROUPS: list[tuple[list[str], str | None]] = [
     (["kestimator/gcode.py", "kestimator/motion_queuing.py", "kestimator/extruder.py",
       "kestimator/toolhead.py", "kestimator/gcode_move.py", "kestimator/segments.py",
       "kestimator/estimate.py"], "kestimator_core"),
@@ -67,6 +73,10 @@ GROUPS = [
 ]
 PREFIX = "kestimator build: "
 MYPYC_CHILD = "--kestimator-mypyc-child"
+# The install's measured peak, summed over pip, the build, mypy and gcc, is 264 MiB with
+# Debian's Python 3.11 (benchmarks/install_memory.py); below this much free memory the
+# install is the pure package.
+BUILD_MEMORY_MIB = 300
 # gcc's garbage collector tuned for a small board: collect when the heap grows by 10 %
 # past 16 MiB. On this 24 GiB host gcc's defaults (grow 100 % past 128 MiB) let cc1 reach
 # twice the memory for the largest module; the code made is the same (gcc's own docs:
@@ -112,6 +122,23 @@ def _c_compiler_problem() -> str | None:
     return None
 
 
+def _memory_problem() -> str | None:
+    """Why memory is too short to compile (None when there is enough, or it is not known).
+
+    Compiling needs BUILD_MEMORY_MIB free (available RAM plus free swap): on a board that is
+    also running Klipper, the kernel's out-of-memory killer could pick Klipper instead."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            info = {line.split(":")[0]: int(line.split()[1]) for line in f if ":" in line}
+        free_mib = (info["MemAvailable"] + info.get("SwapFree", 0)) // 1024
+    except (OSError, KeyError, ValueError, IndexError):
+        return None
+    if free_mib < BUILD_MEMORY_MIB:
+        return "only %d MiB of memory free (RAM and swap); compiling needs %d MiB" % (
+            free_mib, BUILD_MEMORY_MIB)
+    return None
+
+
 def _pure_reason() -> str | None:
     """Why this build installs the pure package (None: compile)."""
     wanted = os.environ.get("KESTIMATOR_BUILD", "").strip().lower()
@@ -132,7 +159,7 @@ def _pure_reason() -> str | None:
         except ImportError:
             reason = "mypy (which ships mypyc) is not installed"
         else:
-            reason = _c_compiler_problem()
+            reason = _memory_problem() or _c_compiler_problem()
     if reason is not None and wanted == "compiled":
         raise SystemExit(PREFIX + "KESTIMATOR_BUILD=compiled, but " + reason)
     return reason
@@ -174,7 +201,7 @@ def _mypyc_in_child() -> list[object]:
                 why = (lines or ["exit status %d" % proc.returncode])[-1]
             raise RuntimeError(why)
         with open(result, "rb") as f:
-            modules: list[object] = pickle.load(f)
+            modules: list[object] = pickle.load(f)  # noqa: S301 (our own child's)
     for extension in modules:
         extension.extra_compile_args = [  # type: ignore[attr-defined]
             *extension.extra_compile_args, *_COMPILER_FLAGS]  # type: ignore[attr-defined]
