@@ -150,7 +150,8 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert "[analysis]\nenable_auto_analysis: True\n" in added
     assert "enable_estimator_updates: False\n" in added
     assert ("[update_manager kestimator]\ntype: git_repo\npath: %s\norigin: %s\n"
-            "primary_branch: main\nmanaged_services: klipper moonraker\ninstall_script: install.sh\n"
+            "primary_branch: main\nmanaged_services: klipper moonraker\n"
+            "install_script: install.sh\n"
             % (checkout, tmp_path / "origin.git")) in added
     assert "[update_manager]\n" not in added  # the host has one
     backups = list(conf.parent.glob("moonraker.conf.*.kestimator.bak"))
