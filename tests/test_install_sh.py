@@ -295,7 +295,9 @@ def _update_through_moonraker(base: str) -> None:
     git ran during it are done by then (git_deploy.py: pull, dependencies, restart)."""
     _request(base + "/machine/update/refresh?name=kestimator", "POST")
     try:
-        _request(base + "/machine/update/upgrade?name=kestimator", "POST")
+        # The answer comes when the update is done: the build (in git's hook) included.
+        _request(base + "/machine/update/upgrade?name=kestimator", "POST",
+                 timeout=INSTALL_TIMEOUT_S)
     except urllib.error.HTTPError as exc:
         assert (exc.code, exc.reason) == (503, "Service Actions Not Available"), exc
 
