@@ -305,7 +305,7 @@ if [ -n "$hook" ]; then
     fi
 fi
 if [ "$BUILD" != pure ] && [[ "$version_line" == *pure* ]]; then
-    say "The pure-Python build (slower) is installed: compiling failed (see $VENV/pip.log)."
+    say "The pure-Python build (slower) is installed: see the build line above (and $VENV/pip.log)."
 fi
 
 # --- the link Moonraker runs ---------------------------------------------------

@@ -204,3 +204,14 @@ def test_without_a_c_compiler_the_same_build_installs_the_pure_package(
     assert len(lines) == 1 and lines[0].startswith(PURE_LINE), lines
     assert "C compiler" in lines[0]
     assert wheel.name.endswith("-py3-none-any.whl")
+
+
+def test_with_too_little_memory_free_the_build_installs_the_pure_package_and_says_why(
+        tmp_path: Path) -> None:
+    _require_build_tools()
+    wheel, log = _pip_wheel(_copy_sources(tmp_path / "src"), tmp_path / "wheels",
+                            {"KESTIMATOR_BUILD_MEMORY_MIB": str(1 << 40)})
+    lines = [line.strip() for line in log.splitlines() if "kestimator build:" in line]
+    assert len(lines) == 1 and lines[0].startswith(PURE_LINE), lines
+    assert "MiB of memory free (RAM and swap); compiling needs %d MiB" % (1 << 40) in lines[0]
+    assert wheel.name.endswith("-py3-none-any.whl")
