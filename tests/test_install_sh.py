@@ -218,6 +218,7 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert not (checkout / ".venv-host").exists()
     assert _git("status", "--porcelain", cwd=checkout) == ""
     assert not module_link.is_symlink() and not module_link.exists()
+    assert not (checkout / ".git" / "hooks" / "post-merge").exists()
 
 
 def test_install_sh_refuses_root_and_says_why(tmp_path: Path) -> None:
@@ -347,6 +348,8 @@ def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_ver
     assert "Installed: kestimator %s (%s)" % (__version__, kind) in first.stdout
     assert "Tagged v%s" % __version__ in first.stdout
     assert _git("describe", "--tags", cwd=checkout).strip() == "v" + __version__
+    assert _git("config", "remote.origin.tagOpt", cwd=checkout).strip() == "--no-tags"
+    assert (checkout / ".git" / "hooks" / "post-merge").is_file()
     conf = (data / "config" / "moonraker.conf").read_text()
     assert "managed_services: klipper moonraker\n" in conf  # the Klipper module is linked
     assert _worker_build(checkout)[0] == __version__
