@@ -300,7 +300,7 @@ if [ -n "$hook" ]; then
         say "WARNING: $hook is not kestimator's: updates from Moonraker will not rebuild kestimator (run ./install.sh after one)."
     else
         mkdir -p "$(dirname "$hook")"
-        printf '#!/bin/sh\n%s\nexec "%s"\n' "$HOOK_MARK" "$BUILDER" > "$hook"
+        printf '#!/bin/sh\n%s\nexec "%s" --as-installed\n' "$HOOK_MARK" "$BUILDER" > "$hook"
         chmod +x "$hook"
     fi
 fi
