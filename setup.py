@@ -241,7 +241,9 @@ def _ext_modules() -> list[object]:
     return list(modules)
 
 
+# setuptools' PEP 517 backend runs this file as __main__ too; imported (the tests), it only
+# defines the lists above.
 if __name__ == "__main__" and sys.argv[1:2] == [MYPYC_CHILD]:
     _mypyc_child(sys.argv[2])
-else:
+elif __name__ == "__main__":
     setup(ext_modules=_ext_modules(), cmdclass={"build_ext": BuildExtOrPure})
