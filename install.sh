@@ -15,6 +15,8 @@ LAUNCHER="$REPO/plugins/moonraker/klipper_estimator"
 DATA="$HOME/printer_data"
 KLIPPER_DIR="$HOME/klipper"
 MODULE="$REPO/plugins/klipper/kestimator.py"
+BUILDER="$REPO/plugins/moonraker/build-venv"
+HOOK_MARK="# kestimator: build the new commit (install.sh wrote this hook)"
 YES=0
 UNINSTALL=0
 ALLOW_ROOT=0
@@ -356,6 +358,11 @@ uninstall() {
         rm -f "$PROFILE"
         say "$PROFILE removed (it was install.sh's, unchanged)"
     fi
+    hook="$(git -C "$REPO" rev-parse --git-path hooks/post-merge 2>/dev/null || true)"
+    [ -z "$hook" ] || [ "${hook#/}" != "$hook" ] || hook="$REPO/$hook"
+    if [ -n "$hook" ] && [ -f "$hook" ] && grep -qxF "$HOOK_MARK" "$hook"; then
+        rm -f "$hook"
+    fi
     local created
     created=$(sed -n 's/^created_folder=//p' "$STATE" 2>/dev/null || true)
     rm -f "$STATE"
@@ -402,38 +409,26 @@ Install them (sudo apt-get install ${missing[*]}) or run ./install.sh -y, which 
     fi
 fi
 
-if [ ! -x "$VENV/bin/python" ]; then
-    python3 -m venv "$VENV" || die "python3 -m venv $VENV failed"
-fi
-head=$(git -C "$REPO" rev-parse HEAD 2>/dev/null || echo unknown)
-built=$("$VENV/bin/kestimator" --version 2>/dev/null || true)
-# Build again for another commit, a broken venv, or a pure build that can be compiled now.
-if [ "$(cat "$VENV/kestimator-commit" 2>/dev/null || true)" != "$head" ] || [ -z "$built" ] \
-    || { [ "$BUILD" != pure ] && [[ "$built" == *pure* ]]; }; then
-    if [ "$BUILD" = pure ]; then
-        say "Installing kestimator (pure Python) into $VENV..."
-    else
-        say "Building kestimator into $VENV (compiling takes a few minutes on a Raspberry Pi)..."
-    fi
-    pip_args=(install -v --no-cache-dir --force-reinstall --disable-pip-version-check)
-    log="$VENV/pip.log"
-    if [ "$BUILD" = pure ]; then
-        # No mypy to fetch for a pure build: setuptools (with bdist_wheel) in the venv does.
-        "$VENV/bin/python" -m pip install -q --disable-pip-version-check 'setuptools>=70.1' >"$log" 2>&1 \
-            && pip_args+=(--no-build-isolation)
-    fi
-    if ! KESTIMATOR_BUILD="$BUILD" "$VENV/bin/python" -m pip "${pip_args[@]}" "$REPO" >>"$log" 2>&1; then
-        tail -n 20 "$log" >&2
-        die "pip install failed (whole log: $log)"
-    fi
-    grep -m1 'kestimator build: ' "$log" \
-        | sed -e 's/^[[:space:]]*//' -e 's/\(compiled with mypyc\): .*/\1/' | cut -c1-200 || true
-    rm -rf "$REPO/build"
-    printf '%s\n' "$head" > "$VENV/kestimator-commit"
-fi
+# The venv's build (plugins/moonraker/build-venv, also run by git after an update from
+# Moonraker's panel: the post-merge hook below).
+KESTIMATOR_BUILD="$BUILD" "$BUILDER" || die "building kestimator into $VENV failed (see above)"
 version_line=$("$VENV/bin/kestimator" --version)
+# After Moonraker's update manager pulls (git pull), git runs this hook before Moonraker
+# restarts its services: the new commit is built as this one was.
+hook="$(git -C "$REPO" rev-parse --git-path hooks 2>/dev/null || true)"
+if [ -n "$hook" ]; then
+    [ "${hook#/}" != "$hook" ] || hook="$REPO/$hook"
+    hook="$hook/post-merge"
+    if [ -e "$hook" ] && ! grep -qxF "$HOOK_MARK" "$hook"; then
+        say "WARNING: $hook is not kestimator's: updates from Moonraker will not rebuild kestimator (run ./install.sh after one)."
+    else
+        mkdir -p "$(dirname "$hook")"
+        printf '#!/bin/sh\n%s\nexec "%s" --as-installed\n' "$HOOK_MARK" "$BUILDER" > "$hook"
+        chmod +x "$hook"
+    fi
+fi
 if [ "$BUILD" != pure ] && [[ "$version_line" == *pure* ]]; then
-    say "The pure-Python build (slower) is installed: compiling failed (see $VENV/pip.log)."
+    say "The pure-Python build (slower) is installed: see the build line above (and $VENV/pip.log)."
 fi
 
 # --- the link Moonraker runs ---------------------------------------------------
@@ -538,12 +533,17 @@ if ! has_section "update_manager kestimator"; then
     origin=$(git -C "$REPO" remote get-url origin 2>/dev/null || true)
     branch=$(git -C "$REPO" symbolic-ref --short -q HEAD 2>/dev/null || echo main)
     if [ -n "$origin" ]; then
+        # Moonraker restarts these after an update (it refuses updates during a print):
+        # itself for the estimator, Klipper when the Klipper module is linked (the
+        # module and its worker run the checkout's code).
+        services=moonraker
+        [ -d "$EXTRAS" ] && services="klipper moonraker"
         block+="[update_manager kestimator]
 type: git_repo
 path: $REPO
 origin: $origin
 primary_branch: $branch
-managed_services: moonraker
+managed_services: $services
 install_script: install.sh
 "
     else

@@ -66,10 +66,11 @@ def _free_port() -> int:
 
 
 def _request(url: str, method: str = "GET", body: bytes | None = None,
-             headers: dict[str, str] | None = None) -> dict:
+             headers: dict[str, str] | None = None,
+             timeout: float = HTTP_TIMEOUT_S) -> dict:
     request = urllib.request.Request(url, data=body, method=method, headers=headers or {})
     opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
-    with opener.open(request, timeout=HTTP_TIMEOUT_S) as response:
+    with opener.open(request, timeout=timeout) as response:
         return json.loads(response.read())
 
 

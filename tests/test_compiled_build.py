@@ -204,3 +204,28 @@ def test_without_a_c_compiler_the_same_build_installs_the_pure_package(
     assert len(lines) == 1 and lines[0].startswith(PURE_LINE), lines
     assert "C compiler" in lines[0]
     assert wheel.name.endswith("-py3-none-any.whl")
+
+
+def test_with_too_little_memory_free_the_build_installs_the_pure_package_and_says_why(
+        tmp_path: Path) -> None:
+    _require_build_tools()
+    wheel, log = _pip_wheel(_copy_sources(tmp_path / "src"), tmp_path / "wheels",
+                            {"KESTIMATOR_BUILD_MEMORY_MIB": str(1 << 40)})
+    lines = [line.strip() for line in log.splitlines() if "kestimator build:" in line]
+    assert len(lines) == 1 and lines[0].startswith(PURE_LINE), lines
+    assert "MiB of memory free (RAM and swap); compiling needs %d MiB" % (1 << 40) in lines[0]
+    assert wheel.name.endswith("-py3-none-any.whl")
+
+
+def test_every_compiled_module_is_in_exactly_one_mypyc_group() -> None:
+    # A module left out of setup.py's GROUPS would be compiled apart (mypyc's runtime once
+    # more) or not as planned; one in two groups would be two extensions of one name.
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
+    assert spec is not None and spec.loader is not None
+    setup_py = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(setup_py)
+    grouped = [module for modules, _ in setup_py.GROUPS for module in modules]
+    assert sorted(grouped) == sorted(setup_py.COMPILED_MODULES)
+    assert len(set(grouped)) == len(grouped)
+    assert len({name for _, name in setup_py.GROUPS}) == len(setup_py.GROUPS)

@@ -17,6 +17,7 @@ import stat
 import subprocess
 import sys
 import time
+import urllib.error
 import urllib.parse
 from pathlib import Path
 
@@ -150,7 +151,8 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert "[analysis]\nenable_auto_analysis: True\n" in added
     assert "enable_estimator_updates: False\n" in added
     assert ("[update_manager kestimator]\ntype: git_repo\npath: %s\norigin: %s\n"
-            "primary_branch: main\nmanaged_services: moonraker\ninstall_script: install.sh\n"
+            "primary_branch: main\nmanaged_services: klipper moonraker\n"
+            "install_script: install.sh\n"
             % (checkout, tmp_path / "origin.git")) in added
     assert "[update_manager]\n" not in added  # the host has one
     backups = list(conf.parent.glob("moonraker.conf.*.kestimator.bak"))
@@ -217,6 +219,7 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert not (checkout / ".venv-host").exists()
     assert _git("status", "--porcelain", cwd=checkout) == ""
     assert not module_link.is_symlink() and not module_link.exists()
+    assert not (checkout / ".git" / "hooks" / "post-merge").exists()
 
 
 def test_install_sh_refuses_root_and_says_why(tmp_path: Path) -> None:
@@ -590,3 +593,116 @@ def test_install_sh_uninstall_again_after_an_old_uninstall_comments_out_the_sect
     again = _install(checkout, data, "--uninstall", "-y")
     assert again.returncode == 0, again.stdout + again.stderr
     assert printer_cfg.read_bytes() == user_cfg
+
+
+def _update_through_moonraker(base: str) -> None:
+    """What the update panel's button does: refresh, then update kestimator. This host has no
+    systemd (`[machine] provider: none`), so Moonraker's last step, restarting the managed
+    services (Klipper here), answers 503 "Service Actions Not Available"; the pull and what
+    git ran during it are done by then (git_deploy.py: pull, dependencies, restart)."""
+    _request(base + "/machine/update/refresh?name=kestimator", "POST")
+    try:
+        # The answer comes when the update is done: the build (in git's hook) included.
+        _request(base + "/machine/update/upgrade?name=kestimator", "POST",
+                 timeout=INSTALL_TIMEOUT_S)
+    except urllib.error.HTTPError as exc:
+        assert (exc.code, exc.reason) == (503, "Service Actions Not Available"), exc
+
+
+def _worker_build(checkout: Path) -> tuple[str, str]:
+    """The version and file of the kestimator the Klipper module's worker imports: its boot
+    (WORKER_BOOT) run with the venv's Python, printing them instead of serving."""
+    boot = _klipper_module().WORKER_BOOT
+    run = 'runpy.run_module("kestimator.worker", run_name="__main__", alter_sys=True)'
+    assert run in boot
+    probe = boot.replace(run, "import kestimator; print(kestimator.__version__, "
+                              "kestimator.__file__, kestimator.build())")
+    out = subprocess.run([str(checkout / ".venv-host" / "bin" / "python"), "-c", probe,
+                          str(checkout)], capture_output=True, text=True, timeout=60,
+                         cwd="/", check=True).stdout.split(None, 2)
+    return out[0], out[1] + " " + out[2].strip()
+
+
+def _klipper_module():  # type: ignore[no-untyped-def]
+    import importlib.util
+    spec = importlib.util.spec_from_file_location(
+        "kestimator_klipper_module", PROJECT / "plugins" / "klipper" / "kestimator.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_version(
+        moonraker_python: str, tmp_path: Path) -> None:  # noqa: F811
+    """An update from the panel (Moonraker's own git pull) leaves the new commit built in
+    .venv-host (git's post-merge hook runs plugins/moonraker/build-venv before Moonraker
+    restarts anything): Moonraker's estimator and the Klipper module's worker run the new
+    code, the build stays the kind it was, and the panel's version is the project's tag."""
+    compiled = os.environ.get(COMPILED_ENVIRONMENT) == "1"
+    checkout = _checkout(tmp_path)
+    port = _free_port()
+    data, _ = _host(tmp_path / "home", port)
+    env = _environment(data)
+    if compiled:
+        env.pop("KESTIMATOR_BUILD")
+    first = subprocess.run([str(checkout / "install.sh"), "--allow-root", "--no-restart",
+                            "-d", str(data), "-y"], env=env, capture_output=True, text=True,
+                           timeout=INSTALL_TIMEOUT_S, stdin=subprocess.DEVNULL)
+    assert first.returncode == 0, first.stdout + first.stderr
+    kind = "compiled" if compiled else "pure Python"
+    assert "Installed: kestimator %s (%s)" % (__version__, kind) in first.stdout
+    assert "Tagged v%s" % __version__ in first.stdout
+    assert _git("describe", "--tags", cwd=checkout).strip() == "v" + __version__
+    assert _git("config", "remote.origin.tagOpt", cwd=checkout).strip() == "--no-tags"
+    assert (checkout / ".git" / "hooks" / "post-merge").is_file()
+    conf = (data / "config" / "moonraker.conf").read_text()
+    assert "managed_services: klipper moonraker\n" in conf  # the Klipper module is linked
+    assert _worker_build(checkout)[0] == __version__
+
+    # The project's next commit: a new version, pushed to the origin.
+    source = tmp_path / "source"
+    init = source / "kestimator" / "__init__.py"
+    new_version = __version__ + ".1"
+    init.write_text(init.read_text().replace('__version__ = "%s"' % __version__,
+                                             '__version__ = "%s"' % new_version))
+    _git("-c", "user.name=test", "-c", "user.email=test@example.invalid", "commit", "-q",
+         "-am", "version " + new_version, cwd=source)
+    _git("push", "-q", str(tmp_path / "origin.git"), "main", cwd=source)
+    new_commit = _git("rev-parse", "HEAD", cwd=source).strip()
+
+    base = "http://127.0.0.1:%d" % port
+    with _moonraker(moonraker_python, data, port) as process:
+        _wait_ready(base, process, data / "logs" / "stdout.log")
+        before = _update_status(base)
+        assert before["version"] == "v%s-0" % __version__, before  # not v0.0.0-N
+        _update_through_moonraker(base)
+        deadline = time.monotonic() + INSTALL_TIMEOUT_S
+        while (time.monotonic() < deadline and (checkout / ".venv-host" /
+               "kestimator-commit").read_text(errors="replace").strip() != new_commit):
+            time.sleep(0.5)
+        assert _git("rev-parse", "HEAD", cwd=checkout).strip() == new_commit
+        assert (checkout / ".venv-host" / "kestimator-commit").read_text() == new_commit + "\n"
+        _request(base + "/machine/update/refresh?name=kestimator", "POST")
+        after = _update_status(base)
+        log = (data / "logs" / "moonraker.log").read_text(errors="replace")
+        assert after["version"] == "v%s-0" % new_version, (after, log[-3000:])
+    # build-venv ran (its stamp above is written by nothing else), and built as before.
+    pip_log = (checkout / ".venv-host" / "pip.log").read_text(errors="replace")
+    assert "kestimator build: %s" % ("compiled with mypyc" if compiled
+                                      else "pure Python") in pip_log
+    # The estimator Moonraker runs and the worker answer with the new commit's build.
+    link = data / "tools" / "klipper_estimator" / "klipper_estimator_linux"
+    answer = subprocess.run([str(link), "--version"], env=env, capture_output=True,
+                            text=True, timeout=60)
+    assert answer.stdout.startswith("klipper_estimator %s " % new_version), answer.stderr
+    installed = subprocess.run([str(checkout / ".venv-host" / "bin" / "kestimator"),
+                                "--version"], capture_output=True, text=True, timeout=60)
+    assert installed.stdout.strip() == "kestimator %s (%s)" % (new_version, kind)
+    version, where = _worker_build(checkout)
+    assert version == new_version
+    assert ".venv-host" in where and where.endswith(kind)
+    # A commit that is not built yet: the worker runs the checkout's source instead.
+    (checkout / ".venv-host" / "kestimator-commit").write_text("0" * 40 + "\n")
+    version, where = _worker_build(checkout)
+    assert version == new_version and where.startswith(str(checkout / "kestimator"))

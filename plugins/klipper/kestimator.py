@@ -89,10 +89,26 @@ FOLLOWED_COMMANDS = ("SET_VELOCITY_LIMIT", "M204", "SET_PRESSURE_ADVANCE",
                      "SET_INPUT_SHAPER", "SET_RETRACTION")
 # Worker niceness: estimating must never compete with Klipper for the CPU.
 WORKER_NICE = 10
-# `python3 -m kestimator.worker`, with this checkout last on the path: an installed
-# kestimator (install.sh's compiled build) wins, the checkout's source is the fallback.
-WORKER_BOOT = ("import runpy, sys; sys.path.append(sys.argv.pop(1)); "
-               "runpy.run_module('kestimator.worker', run_name='__main__', alter_sys=True)")
+# `python3 -m kestimator.worker`. The build in the checkout's .venv-host (install.sh's,
+# compiled where it could be) runs when it was built from the commit the checkout is on
+# (.venv-host/kestimator-commit, written last by plugins/moonraker/build-venv); else (an
+# update not built yet, or no venv) the checkout's own source: always the checkout's code.
+WORKER_BOOT = """
+import os, runpy, subprocess, sys
+root = sys.argv.pop(1)
+try:
+    with open(os.path.join(root, ".venv-host", "kestimator-commit")) as f:
+        built = f.read().strip()
+    head = subprocess.run(["git", "-C", root, "rev-parse", "HEAD"], capture_output=True,
+                          text=True, timeout=30).stdout.strip()
+except (OSError, subprocess.SubprocessError):
+    built, head = "", "?"
+if built and built == head:
+    sys.path.append(root)
+else:
+    sys.path.insert(0, root)
+runpy.run_module("kestimator.worker", run_name="__main__", alter_sys=True)
+"""
 
 
 def _repo_root() -> str:

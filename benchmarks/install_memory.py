@@ -1,0 +1,167 @@
+"""Peak memory of `pip install` of a fresh clone, summed over the whole process tree.
+
+`/usr/bin/time -v` reports only the largest single process; a build runs pip, the build
+backend (mypy type-checking, mypyc generating C), gcc and cc1 side by side. This script
+clones the checkout's HEAD into a temporary folder (no `build/` left from an earlier
+build), makes a virtualenv with the given Python (default: Debian's own /usr/bin/python3,
+whose build flags cost gcc the most), runs `pip install -v <clone>` in it and samples
+/proc every 50 ms: the RSS of pip and of every process below it, summed. It prints one
+result line (the row for benchmarks/RESULTS.md) and exits 1 if the peak is over --limit.
+
+    python3 benchmarks/install_memory.py [--python /usr/bin/python3] [--limit 300]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent.parent
+PAGE_KIB = os.sysconf("SC_PAGE_SIZE") // 1024
+INTERVAL_S = 0.05
+
+
+def _children() -> dict[int, list[int]]:
+    """Every process's children, from /proc/<pid>/stat (parent pid is field 4)."""
+    tree: dict[int, list[int]] = {}
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open("/proc/%s/stat" % name, "rb") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        # The command name (field 2) is in parentheses and may hold spaces.
+        fields = stat[stat.rfind(b")") + 2:].split()
+        tree.setdefault(int(fields[1]), []).append(int(name))
+    return tree
+
+
+def _rss_kib(pid: int) -> tuple[int, str]:
+    """A process's resident set (KiB) and its command name; (0, "") once it is gone."""
+    try:
+        with open("/proc/%d/statm" % pid, "rb") as f:
+            pages = int(f.read().split()[1])
+        with open("/proc/%d/comm" % pid, encoding="utf-8", errors="replace") as f:
+            return pages * PAGE_KIB, f.read().strip()
+    except (OSError, IndexError, ValueError):
+        return 0, ""
+
+
+class TreeSampler(threading.Thread):
+    """Polls the tree under `root` until stopped; keeps the peak of the summed RSS."""
+
+    def __init__(self, root: int) -> None:
+        super().__init__(daemon=True)
+        self.root = root
+        self.stopped = threading.Event()
+        self.peak_kib = 0
+        self.peak_at_s = 0.0
+        self.peak_members: list[tuple[str, int]] = []
+        self.largest_kib = 0
+        self.largest_name = ""
+        self.samples = 0
+
+    def run(self) -> None:
+        start = time.monotonic()
+        while not self.stopped.is_set():
+            tree = _children()
+            pids, members, total = [self.root], [], 0
+            while pids:
+                pid = pids.pop()
+                kib, name = _rss_kib(pid)
+                if kib:
+                    total += kib
+                    members.append((name, kib))
+                    if kib > self.largest_kib:
+                        self.largest_kib, self.largest_name = kib, name
+                pids.extend(tree.get(pid, ()))
+            self.samples += 1
+            if total > self.peak_kib:
+                self.peak_kib, self.peak_at_s = total, time.monotonic() - start
+                self.peak_members = sorted(members, key=lambda m: -m[1])
+            self.stopped.wait(INTERVAL_S)
+
+
+def _clone(target: Path) -> Path:
+    """A fresh clone of this checkout's HEAD (what a user's `git clone` holds)."""
+    clone = target / "kestimator"
+    subprocess.run(["git", "clone", "-q", "--no-hardlinks", str(HERE), str(clone)],
+                   check=True, timeout=300)
+    return clone
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--python", default="/usr/bin/python3",
+                        help="the Python the venv is made from (default: /usr/bin/python3)")
+    parser.add_argument("--limit", type=float, default=300.0,
+                        help="MiB the process tree's peak must stay under (default: 300)")
+    parser.add_argument("--keep-log", metavar="FILE", help="write pip's output here")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="kestimator-install-mem-") as tmp:
+        root = Path(tmp)
+        clone = _clone(root)
+        venv = root / "venv"
+        subprocess.run([args.python, "-m", "venv", str(venv)], check=True, timeout=300)
+        env = dict(os.environ)
+        for name in ("PYTHONPATH", "VIRTUAL_ENV", "KESTIMATOR_BUILD"):
+            env.pop(name, None)
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        started = time.monotonic()
+        log = open(args.keep_log or os.devnull, "wb")
+        process = subprocess.Popen(
+            [str(venv / "bin" / "python"), "-m", "pip", "install", "-v", "--no-cache-dir",
+             "--disable-pip-version-check", str(clone)],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=tmp)
+        sampler = TreeSampler(process.pid)
+        sampler.start()
+        output = b""
+        assert process.stdout is not None
+        for chunk in iter(lambda: process.stdout.read(65536), b""):  # type: ignore[union-attr]
+            output += chunk
+            log.write(chunk)
+        process.wait()
+        sampler.stopped.set()
+        sampler.join()
+        log.close()
+        wall = time.monotonic() - started
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+        if process.returncode != 0:
+            sys.stderr.write(output.decode(errors="replace")[-4000:])
+            sys.stderr.write("pip install failed (%d)\n" % process.returncode)
+            return 2
+        build = [line.strip() for line in output.decode(errors="replace").splitlines()
+                 if "kestimator build: " in line]
+        version = subprocess.run([str(venv / "bin" / "kestimator"), "--version"],
+                                 capture_output=True, text=True, timeout=60).stdout.strip()
+    peak = sampler.peak_kib / 1024
+    python = subprocess.run([args.python, "-c", "import platform; print("
+                             "platform.python_implementation(), platform.python_version())"],
+                            capture_output=True, text=True, timeout=60).stdout.strip()
+    print("python: %s (%s); %s; build line: %s" % (
+        args.python, python, version, build[0] if build else "none"))
+    print("peak summed RSS %.0f MiB at %.1f s (%s); largest single process %.0f MiB (%s); "
+          "CPU %.1f s, wall %.1f s, %d samples, %s" % (
+              peak, sampler.peak_at_s,
+              ", ".join("%s %.0f" % (n, k / 1024) for n, k in sampler.peak_members[:6]),
+              sampler.largest_kib / 1024, sampler.largest_name, cpu, wall, sampler.samples,
+              platform.machine()))
+    if peak >= args.limit:
+        print("over the limit: %.0f MiB >= %.0f MiB" % (peak, args.limit))
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
