@@ -39,22 +39,25 @@ from kestimator.heaters import PrinterHeaters
 from kestimator.homing_override import HomingOverride
 from kestimator.input_shaper import InputShaper
 from kestimator.klipper_modules import (
-    COMMAND_MODULE,
     HEATER_BED_WAIT,
     loaded_modules,
+    registered_commands,
     silently_ignored,
 )
 from kestimator.limits import Limits
 from kestimator.macros import HOMING_SOURCE
+from kestimator.manual_probe import unregistered_endstop_commands
 from kestimator.preflight import Preflight
 from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
 
-__all__ = ["CommandError", "Interpreter", "MoveError", "ParamError"]
+__all__ = ["CommandError", "Interpreter", "MoveError", "ParamError", "printer_commands"]
 
-# Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
-# we model. Everything else is an unknown command to Klipper: ignored, and counted.
+# Without the printer's config: the commands Klipper knows with a typical printer.cfg that
+# take no time and change nothing we model. Everything else is an unknown command to
+# Klipper: ignored, and counted. With the config, kestimator.klipper_modules says which
+# commands Klipper registers.
 NO_TIME_COMMANDS: Final = frozenset((
     "M73", "M104", "M140", "M105", "M106", "M107", "M110", "M112", "M114", "M115", "M117",
     "M118", "M119", "M21", "G21", "ECHO", "STATUS", "HELP", "GET_POSITION", "QUERY_ENDSTOPS",
@@ -69,10 +72,6 @@ KIND_MACRO = "macro"
 KIND_EXPANDED_MACRO = "expanded_macro"
 # A no-time command of a module the printer's config has (EXCLUDE_OBJECT_START, M117, ...).
 KIND_MODULE = "module"
-# With the printer's config known: what Klipper knows whatever its sections (gcode.py,
-# the default modules toolhead.py loads, extruder.py); module commands come from
-# kestimator.klipper_modules.
-ALWAYS_KNOWN_COMMANDS = NO_TIME_COMMANDS - frozenset(COMMAND_MODULE) - frozenset(("M300",))
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
 TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
@@ -90,6 +89,16 @@ WarnFn = Callable[[str, "str | None"], None]
 # add_time(seconds, name, source): time with the toolhead at rest that the file cannot show.
 AddTimeFn = Callable[[float, str, str], None]
 Handler = Callable[[Command], None]
+
+
+def printer_commands(limits: Limits) -> frozenset[str] | None:
+    """The commands Klipper holds once ready on this printer (its [gcode_macro]s aside), or
+    None when its config is not known."""
+    if not limits.configured_sections:
+        return None
+    modules = loaded_modules(limits.configured_sections, limits.kinematics)
+    return registered_commands(modules) - unregistered_endstop_commands(limits.machine,
+                                                                         limits.kinematics)
 
 
 class Interpreter:
@@ -114,8 +123,11 @@ class Interpreter:
         self.command_kinds: dict[str, dict[str, int]] = {}
         self.macros = dict(limits.gcode_macros)
         # The modules the printer's config loads; None when no config is known.
-        self.modules = (loaded_modules(limits.configured_sections)
+        self.modules = (loaded_modules(limits.configured_sections, limits.kinematics)
                         if limits.configured_sections else None)
+        # The commands Klipper registers with them, and those it has whatever the sections.
+        self.registered = printer_commands(limits) or frozenset()
+        self._registered_anyway = registered_commands(loaded_modules((), limits.kinematics))
         # Where commands Klipper skips are recorded (kestimator.preflight), if anywhere.
         self.preflight: Preflight | None = None
         self._running_macros: set[str] = set()
@@ -305,13 +317,11 @@ class Interpreter:
         """Klipper knows this no-time command (on this printer, when its config is known)."""
         if self.modules is None:
             return name in NO_TIME_COMMANDS
-        module = COMMAND_MODULE.get(name)
-        if module is not None:
-            if module in self.modules:
-                self._count(KIND_MODULE, name)
-                return True
+        if name not in self.registered:
             return False
-        return name in ALWAYS_KNOWN_COMMANDS
+        if name not in self._registered_anyway:
+            self._count(KIND_MODULE, name)
+        return True
 
     def _silent(self, name: str, cmd: Command) -> bool:
         """cmd_default skips it without a word (only decidable with the printer's config)."""
