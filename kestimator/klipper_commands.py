@@ -67,6 +67,7 @@ MODULE_COMMANDS: Final[dict[str, tuple[str, ...]]] = {
     "homing_override": ("G28",),
     "idle_timeout": ("SET_IDLE_TIMEOUT",),
     "input_shaper": ("SET_INPUT_SHAPER",),
+    "kestimator": ("KESTIMATOR_STATUS",),
     "kinematics/cartesian": ("SET_STEPPER_ENABLE", "STEPPER_BUZZ",),
     "kinematics/corexy": ("SET_STEPPER_ENABLE", "STEPPER_BUZZ",),
     "kinematics/corexz": ("SET_STEPPER_ENABLE", "STEPPER_BUZZ",),

@@ -54,9 +54,10 @@ OPTION_CONDITIONAL = {("klippy/linuxtest.cfg", "QUERY_ADC")}
 
 
 def config_text(name: str) -> str:
-    """A probed config's text, as Klipper's tree holds it."""
+    """A probed config's text, as Klipper's tree holds it (with what the probe added)."""
     klipper, _ = require_klipper()
-    return Path(tool.config_path(klipper, name)).read_text(errors="replace")
+    path, extra = tool.config_path(klipper, name)
+    return Path(path).read_text(errors="replace") + extra
 
 
 def printer_limits(text: str) -> Limits:

@@ -62,8 +62,11 @@ path: %(dir)s
 [save_variables]
 filename: %(dir)s/variables.cfg
 """
-# Sections named in ADDED_SECTIONS whose second word is a command name (not Klipper's).
-ADDED_MACROS = ("KESTIMATOR_PROBE_MACRO",)
+# The project's own Klipper module, probed on one shipped config (its worker is not
+# started: batch mode ends before it would be used).
+PROJECT_MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
+PROJECT_MODULE_PROBE = ("config/printer-creality-ender3-v2-2020.cfg",
+                        "\n[kestimator]\npython: /bin/false\n")
 
 # Files among those that are no printer config Klipper can start with: example-extras.cfg
 # is a catalogue of sections (no [mcu] serial), the delta calibration test configs are
@@ -123,8 +126,10 @@ def mcu_names(cfg_text: str) -> list[str]:
     return re.findall(r"^\[mcu\s+([^\]\s]+)\s*\]", cfg_text, re.MULTILINE)
 
 
-def probe(cfg: str, add_sections: bool, timeout: float = 120.0) -> dict[str, Any]:
-    """Run Klipper in batch mode on `cfg` (plus ADDED_SECTIONS): what it registered."""
+def probe(cfg: str, add_sections: bool, timeout: float = 120.0, extra: str = ""
+          ) -> dict[str, Any]:
+    """Run Klipper in batch mode on `cfg` (plus ADDED_SECTIONS, and `extra`): what it
+    registered."""
     paths = oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (.ci/klipper-setup builds it)")
@@ -134,6 +139,7 @@ def probe(cfg: str, add_sections: bool, timeout: float = 120.0) -> dict[str, Any
             text = f.read()
         if add_sections:
             text += "\n" + ADDED_SECTIONS % {"dir": tmp}
+        text += extra
         conf = os.path.join(tmp, "printer.cfg")
         with open(conf, "w") as f:
             f.write(text)
@@ -175,7 +181,7 @@ def _in_klipper(out: str, klippy_dir: str, argv: list[str]) -> None:
     loading: list[str] = []
     owners: dict[str, set[str]] = {}
     loads: dict[str, set[str]] = {}
-    in_toolhead = []
+    in_toolhead: list[bool] = []
 
     def module_of(section: str) -> str:
         return section.split()[0]
@@ -199,6 +205,20 @@ def _in_klipper(out: str, klippy_dir: str, argv: list[str]) -> None:
 
     orig_load = klippy.Printer.load_object
 
+    def load_project_module(self: Any, config: Any, section: str) -> Any:
+        # The project's own Klipper module ([kestimator], plugins/klipper/), loaded as
+        # klippy's load_object loads an extras file a user linked.
+        import importlib.util
+        if section in self.objects:
+            return self.objects[section]
+        spec = importlib.util.spec_from_file_location("extras.kestimator", PROJECT_MODULE)
+        assert spec is not None and spec.loader is not None
+        mod = importlib.util.module_from_spec(spec)
+        sys.modules["extras.kestimator"] = mod
+        spec.loader.exec_module(mod)
+        self.objects[section] = mod.load_config(config.getsection(section))
+        return self.objects[section]
+
     def load_object(self: Any, config: Any, section: str, *args: Any) -> Any:
         # Who loads it: the module being loaded, else the Klipper file that asks (a
         # kinematics, the extruder), else the config's sections or toolhead.py's defaults.
@@ -207,7 +227,10 @@ def _in_klipper(out: str, klippy_dir: str, argv: list[str]) -> None:
             parent = "<config>"
         loading.append(section)
         try:
-            obj = orig_load(self, config, section, *args)
+            if section == "kestimator":
+                obj = load_project_module(self, config, section)
+            else:
+                obj = orig_load(self, config, section, *args)
         finally:
             loading.pop()
         if obj is not None and module_of(section) != parent:
@@ -283,19 +306,29 @@ def shipped_configs(klipper: str) -> list[str]:
     return found
 
 
-def config_path(klipper: str, name: str) -> str:
-    """The file of a config `probe_all` names ("config/x.cfg", "klippy/x.cfg")."""
-    return os.path.join(klipper, "test" if name.startswith("klippy/") else "", name)
+def config_path(klipper: str, name: str) -> tuple[str, str]:
+    """The file of a config `probe_all` names ("config/x.cfg", "klippy/x.cfg",
+    "kestimator:config/x.cfg"), and the text added to it beyond ADDED_SECTIONS."""
+    extra = ""
+    if name.startswith("kestimator:"):
+        name = name[len("kestimator:"):]
+        extra = PROJECT_MODULE_PROBE[1]
+    return os.path.join(klipper, "test" if name.startswith("klippy/") else "", name), extra
 
 
 def probe_all(configs: list[str]) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
-    """Each config's probe (with ADDED_SECTIONS), and why the others did not get ready."""
+    """Each config's probe (with ADDED_SECTIONS; one also with [kestimator], named
+    "kestimator:" + its name), and why the others did not get ready."""
     done: dict[str, dict[str, Any]] = {}
     failed: dict[str, str] = {}
-    for cfg in configs:
-        name = os.path.relpath(cfg, os.path.dirname(os.path.dirname(cfg)))
+    runs = [(os.path.relpath(cfg, os.path.dirname(os.path.dirname(cfg))), cfg, "")
+            for cfg in configs]
+    for name, cfg, _ in list(runs):
+        if name == PROJECT_MODULE_PROBE[0]:
+            runs.append(("kestimator:" + name, cfg, PROJECT_MODULE_PROBE[1]))
+    for name, cfg, extra in runs:
         try:
-            done[name] = probe(cfg, True)
+            done[name] = probe(cfg, True, extra=extra)
         except (RuntimeError, subprocess.TimeoutExpired) as exc:
             failed[name] = str(exc).strip().splitlines()[-1][:200]
     return done, failed
