@@ -20,7 +20,7 @@ from itertools import chain, islice
 from typing import Final
 
 from kestimator.durations import MAX_PRINT_S
-from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError
+from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError, PrintEndsError
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
     Command,
@@ -354,6 +354,7 @@ class Timeline:
         self.macros = macros if macros is not None else MacroTimes()
         if self.macros.macros:
             self.interp.on_unknown = self._unknown_command
+        self.interp.on_unshown = self._unshown_command
         self.timed_parts: dict[tuple[str, str], TimedPart] = {}
         # Where the last added time ended (0: none yet).
         self._rest_until = 0.0
@@ -497,6 +498,14 @@ class Timeline:
         if timed is not None:
             self.add_time(timed.seconds, name, timed.source)
 
+    def _unshown_command(self, name: str) -> bool:
+        """A command whose time the file cannot show: timed if the table has it."""
+        timed = self.macros.time_of(name)
+        if timed is None:
+            return False
+        self.add_time(timed.seconds, name, timed.source)
+        return True
+
     def _warn_here(self, message: str, key: str | None = None) -> None:
         self.warn(message, self.lineno, key)
 
@@ -616,8 +625,11 @@ class Timeline:
     def _command_error(self, stripped: str, exc: Exception, key: str) -> None:
         """Klipper answers this line with an error: a warning, and the pre-flight's stop."""
         message = klipper_error_text(stripped, exc)
-        self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
-                  self.lineno, key)
+        if isinstance(exc, PrintEndsError):
+            self.warn("'%s': %s" % (stripped, message), self.lineno, key)
+        else:
+            self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
+                      self.lineno, key)
         stop = self.preflight.command_error(self.lineno, message.replace("\n", " "))
         if stop is not None:
             # A bound method, not a closure with `stop` as default: mypy for Python 3.9

@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import Final
 
 from kestimator.bed_mesh import BedMesh
-from kestimator.errors import CommandError, MoveError, ParamError
+from kestimator.errors import CommandError, MoveError, ParamError, PrintEndsError
 from kestimator.exclude_object import ExcludeObject
 from kestimator.extruder import PrinterExtruders
 from kestimator.firmware_retraction import FirmwareRetraction
@@ -72,6 +72,20 @@ KIND_MACRO = "macro"
 KIND_EXPANDED_MACRO = "expanded_macro"
 # A no-time command of a module the printer's config has (EXCLUDE_OBJECT_START, M117, ...).
 KIND_MODULE = "module"
+# Commands Klipper runs that take time the file cannot show: they probe, calibrate or
+# measure. Counted as 0 s, and said, unless the profile's [macros] table times them, as
+# for macros (a learned start time holds those before the first extrusion).
+UNSHOWN_TIME_COMMANDS: Final = frozenset((
+    "PROBE", "PROBE_ACCURACY", "PROBE_CALIBRATE", "BED_MESH_CALIBRATE", "Z_TILT_ADJUST",
+    "QUAD_GANTRY_LEVEL", "PID_CALIBRATE", "SCREWS_TILT_CALCULATE", "BED_TILT_CALIBRATE",
+    "DELTA_CALIBRATE", "SHAPER_CALIBRATE", "TEST_RESONANCES",
+))
+# What SAVE_CONFIG may do to a print (configfile.py cmd_SAVE_CONFIG: with settings left to
+# save it writes them and restarts Klipper; with none it returns at once).
+SAVE_CONFIG_MAY_STOP: Final = (
+    "SAVE_CONFIG restarts Klipper, ending the print, when a command before it (a "
+    "calibration, BED_MESH_CALIBRATE saving its mesh, a macro) left settings to save; "
+    "with none it does nothing")
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
 TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
@@ -114,6 +128,9 @@ class Interpreter:
                                                  toolhead.add_time(seconds))
         # Called with the name of every command Klipper does not know (a macro, maybe).
         self.on_unknown: Callable[[str], None] | None = None
+        # Called with the name of a command that takes time the file cannot show
+        # (UNSHOWN_TIME_COMMANDS); True when it was timed.
+        self.on_unshown: Callable[[str], bool] | None = None
         self.homing_time = homing_time
         self.heat_time = heat_time
         self.ignored: dict[str, int] = {}
@@ -175,6 +192,11 @@ class Interpreter:
             self._register_heater_commands(heaters, self.modules)
         for name in ("M18", "M84"):
             self.register_command(name, self.cmd_M84)
+        for name, handler in (("M112", self.cmd_M112), ("RESTART", self.cmd_RESTART),
+                              ("FIRMWARE_RESTART", self.cmd_RESTART),
+                              ("SAVE_CONFIG", self.cmd_SAVE_CONFIG)):
+            if name not in self.macros:
+                self.register_command(name, handler)
         if limits.arcs_enabled:
             arcs = ArcSupport(gcode_move, limits.arc_resolution)
             for name in ("G2", "G3", "G17", "G18", "G19"):
@@ -278,6 +300,9 @@ class Interpreter:
     # Dispatch
     def execute(self, cmd: Command) -> None:
         """Run one command; raises CommandError (state already reset) if Klipper would."""
+        if cmd.name in UNSHOWN_TIME_COMMANDS and cmd.name in self.registered and \
+                cmd.name not in self.macros:
+            self._unshown(cmd.name)
         handler = self.gcode_handlers.get(cmd.name)
         if handler is None:
             # "M117 12%" reaches Klipper as the command "M117 12%": only M117, M118 and
@@ -298,6 +323,18 @@ class Interpreter:
         except (CommandError, MoveError):
             self.gcode_move.reset_last_position()
             raise
+
+    def _unshown(self, name: str) -> None:
+        """A command whose time the file cannot show: timed by `on_unshown`, or said (by
+        its own handler, if it has one: bed_mesh's BED_MESH_CALIBRATE)."""
+        if self.on_unshown is not None and self.on_unshown(name):
+            return
+        if name in self.gcode_handlers:
+            return
+        self.warn("%s takes time the file cannot show (it probes, calibrates or measures): "
+                  "counted as 0 s unless the profile's [macros] table times it (a start "
+                  "time `learn` found holds it when it runs before the first extrusion)"
+                  % name, "unshown:" + name)
 
     def _unknown(self, name: str) -> None:
         """Count a command Klipper does not know (cmd_default's "Unknown command")."""
@@ -429,6 +466,22 @@ class Interpreter:
         """M109/M190: set a temperature and, when S is not 0, wait for it."""
         if get_float(cmd.params, "S", 0.0):
             self.heaters.wait(cmd.name)
+
+    # gcode.py GCodeDispatch.cmd_M112 (Klipper's emergency stop: a shutdown)
+    def cmd_M112(self, cmd: Command) -> None:
+        """Klipper shuts down: the print ends here, with Klipper's message."""
+        raise CommandError("Shutdown due to M112 command")
+
+    # gcode.py GCodeDispatch.cmd_RESTART / cmd_FIRMWARE_RESTART (request_restart)
+    def cmd_RESTART(self, cmd: Command) -> None:
+        """Klipper restarts once every move before has finished: the print ends here."""
+        raise PrintEndsError("%s restarts Klipper: the print ends here" % cmd.name)
+
+    # configfile.py PrinterConfig.cmd_SAVE_CONFIG
+    def cmd_SAVE_CONFIG(self, cmd: Command) -> None:
+        """A restart if settings were left to save, which the file may not show."""
+        if self.preflight is not None:
+            self.preflight.may_stop(self.gcode_move.tag, SAVE_CONFIG_MAY_STOP)
 
     # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:
