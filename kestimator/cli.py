@@ -196,8 +196,9 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="write the result here and leave FILE untouched")
     inj.add_argument("--no-layer-info", dest="layer_info", action="store_false",
                      help="do not add SET_PRINT_STATS_INFO TOTAL_LAYER/CURRENT_LAYER lines "
-                          "(added where the file sets no layer numbers, so Mainsail, Fluidd "
-                          "and KlipperScreen show the layer)")
+                          "(added where the file sets no layer numbers and the printer knows "
+                          "the command, so Mainsail, Fluidd and KlipperScreen show the "
+                          "layer)")
     _add_limit_options(inj)
     output = inj.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true",

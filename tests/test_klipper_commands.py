@@ -27,7 +27,7 @@ from kestimator.limits import Limits
 from .conftest import PROJECT, require_klipper
 
 sys.path.insert(0, str(PROJECT / "tools"))
-import klipper_commands as tool  # noqa: E402
+import klipper_commands as tool  # type: ignore[import-not-found]  # noqa: E402
 
 # Names no Klipper module registers (a Marlin M-code, RepRapFirmware's, a typo'd command).
 NEVER_REGISTERED = ("M600", "M486", "M900", "G29", "BED_MESH_CALIBRATES", "SET_Z_FADE")
