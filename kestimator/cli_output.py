@@ -314,6 +314,7 @@ def parts_to_json(est: Estimate) -> dict[str, Any]:
                      "covered_by_learned": p.covered}
                     for p in est.timed_parts],
         "untimed_macros": dict(est.untimed_macros),
+        "untimed_waits": dict(est.untimed_waits),
     }
 
 
@@ -437,6 +438,22 @@ def untimed_summary(doc: dict[str, Any]) -> str | None:
         else "their time is")
 
 
+def untimed_waits_summary(doc: dict[str, Any]) -> str | None:
+    """`2 heater waits and 1 homing count as 0 s: ...`, said once, or None."""
+    waits = (doc.get("parts") or {}).get("untimed_waits") or {}
+    parts = []
+    for kind, one, many in (("heater_waits", "heater wait", "heater waits"),
+                            ("homings", "homing (G28)", "homings (G28)")):
+        count = int(waits.get(kind, 0))
+        if count:
+            parts.append("%d %s" % (count, one if count == 1 else many))
+    if not parts:
+        return None
+    return ("%s count%s as 0 s unless timed: --heat-time / --homing-time or the profile "
+            "give their time, `kestimator learn` the start's" % (
+                " and ".join(parts), "s" if len(parts) == 1 and parts[0][:2] == "1 " else ""))
+
+
 def untimed_detail(doc: dict[str, Any]) -> list[str]:
     """One line per kind naming each untimed command and how often it ran (--verbose)."""
     groups = doc.get("untimed_commands") or {}
@@ -486,8 +503,10 @@ def filament_text(doc: dict[str, Any]) -> str:
 def excluded_text(doc: dict[str, Any]) -> str:
     """Which objects `--exclude` cancelled, and where."""
     excluded = doc["excluded"]
-    return "%s, cancelled before line %d (EXCLUDE_OBJECT)" % (
-        ", ".join(excluded["names"]), excluded["line"])
+    saved = excluded.get("saved_s")
+    return "%s, cancelled before line %d (EXCLUDE_OBJECT)%s" % (
+        ", ".join(excluded["names"]), excluded["line"],
+        "" if saved is None else ": saves %s" % format_duration(max(0.0, float(saved))))
 
 
 def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
@@ -554,6 +573,9 @@ def summary_tail_lines(doc: dict[str, Any], verbose: bool = False) -> list[str]:
             lines.extend("  Not counted, " + text for text in untimed_detail(doc))
         else:
             lines.append("  " + summary)
+    waits = untimed_waits_summary(doc)
+    if waits is not None:
+        lines.append("  " + waits)
     for warning in shown_warnings(doc, verbose):
         lines.append("  warning: " + warning)
     if doc["warnings_dropped"]:

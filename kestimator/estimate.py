@@ -126,6 +126,9 @@ class Estimate:
     timed_parts: list[TimedPart] = dataclasses.field(default_factory=list)
     # Commands that are no Klipper command and have no time (macros whose time is unknown).
     untimed_macros: dict[str, int] = dataclasses.field(default_factory=dict)
+    # Heater waits ("heater_waits") and G28 lines ("homings") counted as 0 s: no time was
+    # given for them, and no learned start time holds them. Empty when there are none.
+    untimed_waits: dict[str, int] = dataclasses.field(default_factory=dict)
     # When the first move that extrudes starts (print_stats starts print_duration there).
     first_extrusion_t: float | None = None
     # The print's end sampled finer than sample_lines/sample_times once a long print made
@@ -498,6 +501,15 @@ class Timeline:
         if timed is not None:
             self.add_time(timed.seconds, name, timed.source)
 
+    def _untimed_waits(self) -> dict[str, int]:
+        """The heater waits and homings that count as 0 s (none when a learned start time
+        holds the start, where they are)."""
+        if self.macros.before_first_extrusion is not None:
+            return {}
+        counts = {"heater_waits": self.interp.heaters.untimed_waits,
+                  "homings": self.interp.untimed_homings}
+        return {kind: count for kind, count in counts.items() if count}
+
     def _unshown_command(self, name: str) -> bool:
         """A command whose time the file cannot show: timed if the table has it."""
         timed = self.macros.time_of(name)
@@ -724,6 +736,7 @@ class Timeline:
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
+            untimed_waits=self._untimed_waits(),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
             tail_lines=array("q", [line for line, _ in self.samples.tail]),

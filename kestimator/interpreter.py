@@ -178,6 +178,8 @@ class Interpreter:
         # The G28 a line runs: the module's that took it over, with the homing time.
         self._home_G28 = self.gcode_handlers["G28"]
         self._homing_depth = 0
+        # G28 lines that took no time (no homing time given).
+        self.untimed_homings = 0
         self.register_command("G28", self._cmd_G28_timed)
         self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
         self.heaters = heaters = PrinterHeaters(limits, toolhead, extruders, heat_time,
@@ -438,6 +440,8 @@ class Interpreter:
             self._homing_depth -= 1
         if self._homing_depth == 0 and self.homing_time > 0.0:
             self.add_time(self.homing_time, "G28", HOMING_SOURCE)
+        elif self._homing_depth == 0:
+            self.untimed_homings += 1
 
     # force_move.py ForceMove.cmd_SET_KINEMATIC_POSITION
     def cmd_SET_KINEMATIC_POSITION(self, cmd: Command) -> None:
