@@ -2,7 +2,8 @@
 
 Owns the data: `python3 tools/klipper_commands.py table` wrote it from what real Klipper
 (84104bbbd, batch mode) held once ready on the 233 printer configs it ships and its own
-test configs, each with the sections every Mainsail/Fluidd setup adds. Do not edit it:
+test configs, each with the sections every Mainsail/Fluidd setup adds, and on modules no
+shipped config has (the tool's EXTRA_PROBES). Do not edit it:
 run the tool again; `tests/test_klipper_commands.py` holds it to Klipper. What the names
 mean to a config's sections is `kestimator.klipper_modules`'.
 """
@@ -28,6 +29,7 @@ DEFAULT_MODULES: Final = (
 MODULE_COMMANDS: Final[dict[str, tuple[str, ...]]] = {
     "adxl345": ("ACCELEROMETER_DEBUG_READ", "ACCELEROMETER_DEBUG_WRITE",
                 "ACCELEROMETER_MEASURE", "ACCELEROMETER_QUERY",),
+    "angle": ("ANGLE_DEBUG_READ", "ANGLE_DEBUG_WRITE",),
     "axis_twist_compensation": ("AXIS_TWIST_COMPENSATION_CALIBRATE",),
     "bed_mesh": ("BED_MESH_CALIBRATE", "BED_MESH_CLEAR", "BED_MESH_MAP", "BED_MESH_OFFSET",
                  "BED_MESH_OUTPUT", "BED_MESH_PROFILE",),
@@ -61,6 +63,12 @@ MODULE_COMMANDS: Final[dict[str, tuple[str, ...]]] = {
     "gcode_move": ("G0", "G1", "G20", "G21", "G90", "G91", "G92", "GET_POSITION", "M114",
                    "M220", "M221", "M82", "M83", "RESTORE_GCODE_STATE", "SAVE_GCODE_STATE",
                    "SET_GCODE_OFFSET",),
+    "hall_filament_width_sensor": ("DISABLE_FILAMENT_WIDTH_LOG",
+                                   "DISABLE_FILAMENT_WIDTH_SENSOR",
+                                   "ENABLE_FILAMENT_WIDTH_LOG",
+                                   "ENABLE_FILAMENT_WIDTH_SENSOR", "QUERY_FILAMENT_SENSOR",
+                                   "QUERY_FILAMENT_WIDTH", "QUERY_RAW_FILAMENT_WIDTH",
+                                   "RESET_FILAMENT_WIDTH_SENSOR", "SET_FILAMENT_SENSOR",),
     "heater_bed": ("M140", "M190", "SET_HEATER_TEMPERATURE", "TEMPERATURE_WAIT",),
     "heaters": ("M105", "TURN_OFF_HEATERS",),
     "homing": ("G28",),
@@ -110,10 +118,13 @@ MODULE_COMMANDS: Final[dict[str, tuple[str, ...]]] = {
     "screws_tilt_adjust": ("SCREWS_TILT_CALCULATE",),
     "sdcard_loop": ("SDCARD_LOOP_BEGIN", "SDCARD_LOOP_DESIST", "SDCARD_LOOP_END",),
     "servo": ("SET_SERVO",),
+    "skew_correction": ("CALC_MEASURED_SKEW", "GET_CURRENT_SKEW", "SET_SKEW", "SKEW_PROFILE",),
     "smart_effector": ("PROBE", "PROBE_ACCURACY", "PROBE_CALIBRATE", "QUERY_PROBE",
                        "RESET_SMART_EFFECTOR", "SET_SMART_EFFECTOR", "Z_OFFSET_APPLY_PROBE",),
     "stepper_enable": ("M18", "M84",),
     "temperature_fan": ("SET_TEMPERATURE_FAN_TARGET", "TEMPERATURE_WAIT",),
+    "temperature_probe": ("TEMPERATURE_PROBE_CALIBRATE", "TEMPERATURE_PROBE_ENABLE",
+                          "TEMPERATURE_WAIT",),
     "temperature_sensor": ("TEMPERATURE_WAIT",),
     "tmc2130": ("DUMP_TMC", "INIT_TMC", "SET_TMC_CURRENT", "SET_TMC_FIELD",),
     "tmc2208": ("DUMP_TMC", "INIT_TMC", "SET_TMC_CURRENT", "SET_TMC_FIELD",),
@@ -121,9 +132,13 @@ MODULE_COMMANDS: Final[dict[str, tuple[str, ...]]] = {
     "tmc2240": ("DUMP_TMC", "INIT_TMC", "SET_TMC_CURRENT", "SET_TMC_FIELD",),
     "tmc2660": ("DUMP_TMC", "INIT_TMC", "SET_TMC_CURRENT", "SET_TMC_FIELD",),
     "tmc5160": ("DUMP_TMC", "INIT_TMC", "SET_TMC_CURRENT", "SET_TMC_FIELD",),
+    "tsl1401cl_filament_width_sensor": ("DISABLE_FILAMENT_WIDTH_SENSOR",
+                                        "ENABLE_FILAMENT_WIDTH_SENSOR",
+                                        "QUERY_FILAMENT_WIDTH", "RESET_FILAMENT_WIDTH_SENSOR",),
     "tuning_tower": ("TUNING_TOWER",),
     "virtual_sdcard": ("M20", "M21", "M23", "M24", "M25", "M26", "M27", "M28", "M29", "M30",
                        "SDCARD_PRINT_FILE", "SDCARD_RESET_FILE",),
+    "z_thermal_adjust": ("SET_Z_THERMAL_ADJUST", "TEMPERATURE_WAIT",),
     "z_tilt": ("Z_TILT_ADJUST",),
 }
 # Module -> the modules it loads (`Printer.load_object`).
@@ -149,6 +164,7 @@ MODULE_LOADS: Final[dict[str, tuple[str, ...]]] = {
     "force_move": ("motion_queuing",),
     "gcode_arcs": ("gcode_move",),
     "gcode_button": ("buttons", "gcode_macro",),
+    "hall_filament_width_sensor": ("gcode_macro", "pause_resume",),
     "heater_bed": ("error_mcu", "heaters", "pid_calibrate", "query_adc", "verify_heater",),
     "heater_fan": ("heaters", "motion_queuing",),
     "homing_heaters": ("heaters",),
@@ -196,6 +212,7 @@ MODULE_LOADS: Final[dict[str, tuple[str, ...]]] = {
     "temperature_fan": ("error_mcu", "heaters", "motion_queuing", "query_adc",),
     "temperature_host": ("heaters",),
     "temperature_mcu": ("heaters",),
+    "temperature_probe": ("error_mcu", "heaters", "query_adc",),
     "temperature_sensor": ("error_mcu", "heaters", "query_adc",),
     "thermistor": ("heaters",),
     "tmc2130": ("stepper_enable",),
@@ -206,4 +223,5 @@ MODULE_LOADS: Final[dict[str, tuple[str, ...]]] = {
     "tmc5160": ("stepper_enable",),
     "tuning_tower": ("gcode_move",),
     "virtual_sdcard": ("aio_executor", "gcode_macro", "print_stats",),
+    "z_thermal_adjust": ("error_mcu", "heaters", "query_adc",),
 }

@@ -62,11 +62,52 @@ path: %(dir)s
 [save_variables]
 filename: %(dir)s/variables.cfg
 """
-# The project's own Klipper module, probed on one shipped config (its worker is not
-# started: batch mode ends before it would be used).
+# Probes beyond the shipped configs, each on PROBE_BASE with its sections added: modules
+# that register commands but that no config Klipper ships has (angle.py without a stepper,
+# as its calibration needs NumPy; load_cell, palette2 and ldc1612 alone are left out: NumPy,
+# a serial device, a probe's part), and the project's own Klipper module, [kestimator]
+# (plugins/klipper/; its worker is not started: batch mode ends before it would be used).
 PROJECT_MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
-PROJECT_MODULE_PROBE = ("config/printer-creality-ender3-v2-2020.cfg",
-                        "\n[kestimator]\npython: /bin/false\n")
+PROBE_BASE = "config/printer-creality-ender3-v2-2020.cfg"
+EXTRA_PROBES = {
+    "kestimator": "\n[kestimator]\npython: /bin/false\n",
+    "extras-1": """
+
+[z_thermal_adjust]
+temp_coeff: 0.01
+sensor_type: EPCOS 100K B57560G104F
+sensor_pin: PC12
+min_temp: 0
+max_temp: 70
+
+[hall_filament_width_sensor]
+adc1: PC10
+adc2: PC11
+default_nominal_filament_diameter: 1.75
+measurement_delay: 70
+
+[angle my_angle]
+sensor_type: tle5012b
+cs_pin: PD12
+
+[skew_correction]
+""",
+    "extras-2": """
+[tsl1401cl_filament_width_sensor]
+pin: PC10
+default_nominal_filament_diameter: 1.75
+measurement_delay: 70
+max_difference: 0.2
+
+[temperature_probe my_probe]
+sensor_type: EPCOS 100K B57560G104F
+sensor_pin: PC11
+
+[probe]
+pin: PC12
+z_offset: 1
+""",
+}
 
 # Files among those that are no printer config Klipper can start with: example-extras.cfg
 # is a catalogue of sections (no [mcu] serial), the delta calibration test configs are
@@ -307,25 +348,26 @@ def shipped_configs(klipper: str) -> list[str]:
 
 
 def config_path(klipper: str, name: str) -> tuple[str, str]:
-    """The file of a config `probe_all` names ("config/x.cfg", "klippy/x.cfg",
-    "kestimator:config/x.cfg"), and the text added to it beyond ADDED_SECTIONS."""
+    """The file of a config `probe_all` names ("config/x.cfg", "klippy/x.cfg", or
+    "PROBE:config/x.cfg" for EXTRA_PROBES), and the text added to it beyond
+    ADDED_SECTIONS."""
     extra = ""
-    if name.startswith("kestimator:"):
-        name = name[len("kestimator:"):]
-        extra = PROJECT_MODULE_PROBE[1]
+    if ":" in name:
+        probe, name = name.split(":", 1)
+        extra = EXTRA_PROBES[probe]
     return os.path.join(klipper, "test" if name.startswith("klippy/") else "", name), extra
 
 
 def probe_all(configs: list[str]) -> tuple[dict[str, dict[str, Any]], dict[str, str]]:
-    """Each config's probe (with ADDED_SECTIONS; one also with [kestimator], named
-    "kestimator:" + its name), and why the others did not get ready."""
+    """Each config's probe (with ADDED_SECTIONS; PROBE_BASE also with each of
+    EXTRA_PROBES, named "PROBE:" + its name), and why the others did not get ready."""
     done: dict[str, dict[str, Any]] = {}
     failed: dict[str, str] = {}
     runs = [(os.path.relpath(cfg, os.path.dirname(os.path.dirname(cfg))), cfg, "")
             for cfg in configs]
     for name, cfg, _ in list(runs):
-        if name == PROJECT_MODULE_PROBE[0]:
-            runs.append(("kestimator:" + name, cfg, PROJECT_MODULE_PROBE[1]))
+        if name == PROBE_BASE:
+            runs += [(probe + ":" + name, cfg, text) for probe, text in EXTRA_PROBES.items()]
     for name, cfg, extra in runs:
         try:
             done[name] = probe(cfg, True, extra=extra)
@@ -405,8 +447,9 @@ def table_source(table: dict[str, Any], configs: list[str]) -> str:
            "Klipper",
            "(84104bbbd, batch mode) held once ready on the %d printer configs it ships and its "
            "own" % len(configs),
-           "test configs, each with the sections every Mainsail/Fluidd setup adds. Do not "
-           "edit it:",
+           "test configs, each with the sections every Mainsail/Fluidd setup adds, and on "
+           "modules no",
+           "shipped config has (the tool's EXTRA_PROBES). Do not edit it:",
            "run the tool again; `tests/test_klipper_commands.py` holds it to Klipper. What "
            "the names",
            "mean to a config's sections is `kestimator.klipper_modules`'.",
