@@ -24,6 +24,8 @@ from kestimator.durations import format_duration
 from kestimator.errors import fixed
 from kestimator.estimate import KIND_UNKNOWN, Estimate
 from kestimator.interpreter import KIND_MACRO
+from kestimator.klipper_commands import CORE_COMMANDS
+from kestimator.klipper_commands import MODULE_COMMANDS as KLIPPER_MODULE_COMMANDS
 from kestimator.limits import Limits, json_value
 from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
@@ -366,19 +368,10 @@ def shown_warnings(doc: dict[str, Any], verbose: bool = False) -> list[str]:
             and (verbose or _PER_COMMAND_WARNING_RE.search(w) is None)]
 
 
-# Commands of Klipper's optional modules (extras) a print file often holds: known to a printer
-# that configures the module; kestimator counts no time for them.
-MODULE_COMMANDS = frozenset((
-    "EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT",
-    "SET_PRINT_STATS_INFO", "BED_MESH_CALIBRATE", "BED_MESH_PROFILE", "BED_MESH_CLEAR",
-    "BED_MESH_OFFSET", "QUAD_GANTRY_LEVEL", "Z_TILT_ADJUST", "SCREWS_TILT_CALCULATE",
-    "PROBE", "PROBE_CALIBRATE", "SAVE_GCODE_STATE", "RESTORE_GCODE_STATE", "SET_GCODE_OFFSET",
-    "SET_SKEW", "SKEW_PROFILE", "SET_FAN_SPEED", "SET_LED", "SET_PIN", "SET_SERVO",
-    "SET_FILAMENT_SENSOR", "SET_TMC_CURRENT", "SET_STEPPER_ENABLE", "SET_KINEMATIC_POSITION",
-    "SET_HEATER_TEMPERATURE", "TEMPERATURE_WAIT", "M486", "PAUSE", "RESUME", "CANCEL_PRINT",
-    "SDCARD_RESET_FILE", "SET_Z_FADE", "SET_TEMPERATURE_FAN_TARGET", "SET_DISPLAY_GROUP",
-    "ACTIVATE_EXTRUDER", "SET_PRESSURE_ADVANCE", "SET_INPUT_SHAPER", "FIRMWARE_RESTART",
-))
+# Commands of Klipper's optional modules (extras, a kinematics' own): known to a printer
+# that configures the module (kestimator.klipper_commands, taken from Klipper itself).
+MODULE_COMMANDS = frozenset(name for names in KLIPPER_MODULE_COMMANDS.values()
+                            for name in names) - CORE_COMMANDS
 # Kinds of untimed commands, in the order the summary names them: (kind, one, many).
 UNTIMED_KINDS = (("macro", "macro", "macros"),
                  ("module", "module command", "module commands"),
