@@ -161,11 +161,16 @@ class Interpreter:
             self.register_command(name, getattr(helper, "cmd_" + name))
         self.extruders = extruders = PrinterExtruders(
             limits, toolhead, gcode_move._handle_activate_extruder)
-        self.register_command("ACTIVATE_EXTRUDER", extruders.cmd_ACTIVATE_EXTRUDER)
-        self.register_command("SET_PRESSURE_ADVANCE", extruders.cmd_SET_PRESSURE_ADVANCE)
-        self.register_command("SET_EXTRUDER_ROTATION_DISTANCE",
-                              extruders.cmd_SET_E_ROTATION_DISTANCE)
-        self.register_command("SYNC_EXTRUDER_MOTION", extruders.cmd_SYNC_EXTRUDER_MOTION)
+        # The extruders' commands (an [extruder] or [extruder_stepper] registers them) and
+        # stepper_enable's (every kinematics but "none" loads it): only where Klipper has them.
+        for name, handler in (
+                ("ACTIVATE_EXTRUDER", extruders.cmd_ACTIVATE_EXTRUDER),
+                ("SET_PRESSURE_ADVANCE", extruders.cmd_SET_PRESSURE_ADVANCE),
+                ("SET_EXTRUDER_ROTATION_DISTANCE", extruders.cmd_SET_E_ROTATION_DISTANCE),
+                ("SYNC_EXTRUDER_MOTION", extruders.cmd_SYNC_EXTRUDER_MOTION),
+                ("M18", self.cmd_M84), ("M84", self.cmd_M84)):
+            if self.modules is None or name in self.registered:
+                self.register_command(name, handler)
         self.input_shaper = InputShaper(limits, toolhead)
         if limits.input_shaper_enabled:
             self.register_command("SET_INPUT_SHAPER", self.input_shaper.cmd_SET_INPUT_SHAPER)
@@ -192,8 +197,6 @@ class Interpreter:
             self.register_command("TEMPERATURE_WAIT", heaters.cmd_TEMPERATURE_WAIT)
         else:
             self._register_heater_commands(heaters, self.modules)
-        for name in ("M18", "M84"):
-            self.register_command(name, self.cmd_M84)
         for name, handler in (("M112", self.cmd_M112), ("RESTART", self.cmd_RESTART),
                               ("FIRMWARE_RESTART", self.cmd_RESTART),
                               ("SAVE_CONFIG", self.cmd_SAVE_CONFIG)):
