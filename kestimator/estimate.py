@@ -357,7 +357,7 @@ class Timeline:
         self.macros = macros if macros is not None else MacroTimes()
         if self.macros.macros:
             self.interp.on_unknown = self._unknown_command
-        self.interp.on_unshown = self._unshown_command
+        self.interp.on_unshown = self._unknown_command
         self.timed_parts: dict[tuple[str, str], TimedPart] = {}
         # Where the last added time ended (0: none yet).
         self._rest_until = 0.0
@@ -495,28 +495,13 @@ class Timeline:
         part.seconds = extra
         return total + extra
 
-    def _unknown_command(self, name: str) -> None:
-        """A command Klipper does not know: a macro, timed if the table has it."""
+    def _unknown_command(self, name: str) -> bool:
+        """A command Klipper does not know (a macro), or one whose time the file cannot
+        show: timed if the table has it (True then)."""
         timed = self.macros.time_of(name)
         if timed is not None:
             self.add_time(timed.seconds, name, timed.source)
-
-    def _untimed_waits(self) -> dict[str, int]:
-        """The heater waits and homings that count as 0 s (none when a learned start time
-        holds the start, where they are)."""
-        if self.macros.before_first_extrusion is not None:
-            return {}
-        counts = {"heater_waits": self.interp.heaters.untimed_waits,
-                  "homings": self.interp.untimed_homings}
-        return {kind: count for kind, count in counts.items() if count}
-
-    def _unshown_command(self, name: str) -> bool:
-        """A command whose time the file cannot show: timed if the table has it."""
-        timed = self.macros.time_of(name)
-        if timed is None:
-            return False
-        self.add_time(timed.seconds, name, timed.source)
-        return True
+        return timed is not None
 
     def _warn_here(self, message: str, key: str | None = None) -> None:
         self.warn(message, self.lineno, key)
@@ -736,7 +721,7 @@ class Timeline:
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
-            untimed_waits=self._untimed_waits(),
+            untimed_waits=untimed_waits(interp, self.macros),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
             tail_lines=array("q", [line for line, _ in self.samples.tail]),
@@ -852,6 +837,16 @@ def _too_long_added(path: str, line: int, name: str, seconds: float,
 def _too_long_wait(path: str, line: int, text: str, until: float) -> KestimatorError:
     return KestimatorError(OVER_A_YEAR + "'%s' waits until %.3g s" % (text[:80], until),
                            path, line)
+
+
+def untimed_waits(interp: Interpreter, macros: MacroTimes) -> dict[str, int]:
+    """The heater waits and homings that counted as 0 s (none when a learned start time
+    holds the start, where they are)."""
+    if macros.before_first_extrusion is not None:
+        return {}
+    counts = {"heater_waits": interp.heaters.untimed_waits,
+              "homings": interp.untimed_homings}
+    return {kind: count for kind, count in counts.items() if count}
 
 
 def klipper_error_text(command_line: str, exc: Exception) -> str:

@@ -127,7 +127,7 @@ class Interpreter:
         self.add_time: AddTimeFn = add_time or (lambda seconds, name, source:
                                                  toolhead.add_time(seconds))
         # Called with the name of every command Klipper does not know (a macro, maybe).
-        self.on_unknown: Callable[[str], None] | None = None
+        self.on_unknown: Callable[[str], object] | None = None
         # Called with the name of a command that takes time the file cannot show
         # (UNSHOWN_TIME_COMMANDS); True when it was timed.
         self.on_unshown: Callable[[str], bool] | None = None
