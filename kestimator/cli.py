@@ -99,7 +99,8 @@ EPILOG = """examples:
   kestimator report print.gcode -o report.html
 
 exit status: 0 success, 1 the file or settings could not be used (one line on stderr
-names file and line), 2 a wrong command line, 3 a bug in kestimator.
+names file and line), 2 a wrong command line, 3 a bug in kestimator, 4 (inject and check)
+Klipper will stop this print (the pre-flight's stop).
 Output is drawn with rich on a terminal when it is installed; set KESTIMATOR_RICH=0 for
 plain text or KESTIMATOR_RICH=1 to force rich. --debug shows tracebacks.
 """
@@ -196,8 +197,9 @@ def _build_parser() -> argparse.ArgumentParser:
                      help="write the result here and leave FILE untouched")
     inj.add_argument("--no-layer-info", dest="layer_info", action="store_false",
                      help="do not add SET_PRINT_STATS_INFO TOTAL_LAYER/CURRENT_LAYER lines "
-                          "(added where the file sets no layer numbers, so Mainsail, Fluidd "
-                          "and KlipperScreen show the layer)")
+                          "(added where the file sets no layer numbers and the printer knows "
+                          "the command, so Mainsail, Fluidd and KlipperScreen show the "
+                          "layer)")
     _add_limit_options(inj)
     output = inj.add_mutually_exclusive_group()
     output.add_argument("--json", action="store_true",
@@ -285,6 +287,9 @@ As a PrusaSlicer/SuperSlicer/OrcaSlicer post-processing script, the whole line i
 (Moonraker's answer is cached, so the hook works with the printer off; or --printer-cfg
 with a path, quoted if it has a space; with a profile that names the printer, just
 `kestimator inject`.)
+
+Exit status: 0 success, 1 the file or settings could not be used, 2 a wrong command line,
+3 a bug in kestimator, 4 Klipper will stop this print (the times are still written).
 """
 
 
@@ -488,6 +493,12 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     doc = estimate_to_json(est, slicer, resolved.summary, warnings,
                            limits_guessed=resolved.guessed, source=args.file)
     if getattr(args, "excluded", None) is not None:
+        # The time the cancellation saves: a second pass, without it.
+        with _progress(args, "timing without the cancellation") as progress:
+            whole = estimate_lines(iter_lines(args.file, progress), resolved.limits,
+                                   args.shown, homing_time=args.homing_time,
+                                   heat_time=args.heat_time, macros=args.macros)
+        args.excluded["saved_s"] = round(whole.total_s - est.total_s, 6)
         doc["excluded"] = args.excluded
     if args.json:
         _write_json(doc)

@@ -24,6 +24,8 @@ from kestimator.durations import format_duration
 from kestimator.errors import fixed
 from kestimator.estimate import KIND_UNKNOWN, Estimate
 from kestimator.interpreter import KIND_MACRO
+from kestimator.klipper_commands import CORE_COMMANDS
+from kestimator.klipper_commands import MODULE_COMMANDS as KLIPPER_MODULE_COMMANDS
 from kestimator.limits import Limits, json_value
 from kestimator.preflight import summary_lines
 from kestimator.slicers import SlicerInfo, read_file_ends
@@ -314,6 +316,7 @@ def parts_to_json(est: Estimate) -> dict[str, Any]:
                      "covered_by_learned": p.covered}
                     for p in est.timed_parts],
         "untimed_macros": dict(est.untimed_macros),
+        "untimed_waits": dict(est.untimed_waits),
     }
 
 
@@ -365,19 +368,10 @@ def shown_warnings(doc: dict[str, Any], verbose: bool = False) -> list[str]:
             and (verbose or _PER_COMMAND_WARNING_RE.search(w) is None)]
 
 
-# Commands of Klipper's optional modules (extras) a print file often holds: known to a printer
-# that configures the module; kestimator counts no time for them.
-MODULE_COMMANDS = frozenset((
-    "EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT",
-    "SET_PRINT_STATS_INFO", "BED_MESH_CALIBRATE", "BED_MESH_PROFILE", "BED_MESH_CLEAR",
-    "BED_MESH_OFFSET", "QUAD_GANTRY_LEVEL", "Z_TILT_ADJUST", "SCREWS_TILT_CALCULATE",
-    "PROBE", "PROBE_CALIBRATE", "SAVE_GCODE_STATE", "RESTORE_GCODE_STATE", "SET_GCODE_OFFSET",
-    "SET_SKEW", "SKEW_PROFILE", "SET_FAN_SPEED", "SET_LED", "SET_PIN", "SET_SERVO",
-    "SET_FILAMENT_SENSOR", "SET_TMC_CURRENT", "SET_STEPPER_ENABLE", "SET_KINEMATIC_POSITION",
-    "SET_HEATER_TEMPERATURE", "TEMPERATURE_WAIT", "M486", "PAUSE", "RESUME", "CANCEL_PRINT",
-    "SDCARD_RESET_FILE", "SET_Z_FADE", "SET_TEMPERATURE_FAN_TARGET", "SET_DISPLAY_GROUP",
-    "ACTIVATE_EXTRUDER", "SET_PRESSURE_ADVANCE", "SET_INPUT_SHAPER", "FIRMWARE_RESTART",
-))
+# Commands of Klipper's optional modules (extras, a kinematics' own): known to a printer
+# that configures the module (kestimator.klipper_commands, taken from Klipper itself).
+MODULE_COMMANDS = frozenset(name for names in KLIPPER_MODULE_COMMANDS.values()
+                            for name in names) - CORE_COMMANDS
 # Kinds of untimed commands, in the order the summary names them: (kind, one, many).
 UNTIMED_KINDS = (("macro", "macro", "macros"),
                  ("module", "module command", "module commands"),
@@ -437,6 +431,22 @@ def untimed_summary(doc: dict[str, Any]) -> str | None:
         else "their time is")
 
 
+def untimed_waits_summary(doc: dict[str, Any]) -> str | None:
+    """`2 heater waits and 1 homing count as 0 s: ...`, said once, or None."""
+    waits = (doc.get("parts") or {}).get("untimed_waits") or {}
+    parts = []
+    for kind, one, many in (("heater_waits", "heater wait", "heater waits"),
+                            ("homings", "homing (G28)", "homings (G28)")):
+        count = int(waits.get(kind, 0))
+        if count:
+            parts.append("%d %s" % (count, one if count == 1 else many))
+    if not parts:
+        return None
+    return ("%s count%s as 0 s unless timed: --heat-time / --homing-time or the profile "
+            "give their time, `kestimator learn` the start's" % (
+                " and ".join(parts), "s" if len(parts) == 1 and parts[0][:2] == "1 " else ""))
+
+
 def untimed_detail(doc: dict[str, Any]) -> list[str]:
     """One line per kind naming each untimed command and how often it ran (--verbose)."""
     groups = doc.get("untimed_commands") or {}
@@ -486,8 +496,10 @@ def filament_text(doc: dict[str, Any]) -> str:
 def excluded_text(doc: dict[str, Any]) -> str:
     """Which objects `--exclude` cancelled, and where."""
     excluded = doc["excluded"]
-    return "%s, cancelled before line %d (EXCLUDE_OBJECT)" % (
-        ", ".join(excluded["names"]), excluded["line"])
+    saved = excluded.get("saved_s")
+    return "%s, cancelled before line %d (EXCLUDE_OBJECT)%s" % (
+        ", ".join(excluded["names"]), excluded["line"],
+        "" if saved is None else ": saves %s" % format_duration(max(0.0, float(saved))))
 
 
 def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
@@ -554,6 +566,9 @@ def summary_tail_lines(doc: dict[str, Any], verbose: bool = False) -> list[str]:
             lines.extend("  Not counted, " + text for text in untimed_detail(doc))
         else:
             lines.append("  " + summary)
+    waits = untimed_waits_summary(doc)
+    if waits is not None:
+        lines.append("  " + waits)
     for warning in shown_warnings(doc, verbose):
         lines.append("  warning: " + warning)
     if doc["warnings_dropped"]:

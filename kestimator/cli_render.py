@@ -30,6 +30,7 @@ from kestimator.cli_output import (
     slicer_label,
     untimed_detail,
     untimed_summary,
+    untimed_waits_summary,
 )
 from kestimator.config.resolve import GUESS_WARNING_START
 from kestimator.durations import format_duration
@@ -225,6 +226,9 @@ def print_estimate_rich(doc: dict[str, Any], console: Any, layers: bool = False,
                 console.print(Text("Not counted, " + text, style="dim"))
         else:
             console.print(Text(summary, style="dim"))
+    waits = untimed_waits_summary(doc)
+    if waits is not None:
+        console.print(Text(waits, style="dim"))
     for warning in shown_warnings(doc, verbose):
         console.print(Text.assemble(("warning: ", "bold yellow"), warning))
     if doc["warnings_dropped"]:

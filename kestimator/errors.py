@@ -40,6 +40,11 @@ class ParamError(CommandError):
     "Error on '<command line>': <this text>"."""
 
 
+class PrintEndsError(CommandError):
+    """A command after which Klipper runs no more of the file, without an error of its own:
+    RESTART and FIRMWARE_RESTART restart Klipper (gcode.py `request_restart`)."""
+
+
 class MoveError(Exception):
     """Klipper would reject this move (`Move.move_error`; the G-code layer adds file and
     line)."""

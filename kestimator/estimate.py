@@ -20,7 +20,7 @@ from itertools import chain, islice
 from typing import Final
 
 from kestimator.durations import MAX_PRINT_S
-from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError
+from kestimator.errors import CommandError, KestimatorError, MoveError, ParamError, PrintEndsError
 from kestimator.gcode import (
     SCAN_PLAIN_MOVES,
     Command,
@@ -126,6 +126,9 @@ class Estimate:
     timed_parts: list[TimedPart] = dataclasses.field(default_factory=list)
     # Commands that are no Klipper command and have no time (macros whose time is unknown).
     untimed_macros: dict[str, int] = dataclasses.field(default_factory=dict)
+    # Heater waits ("heater_waits") and G28 lines ("homings") counted as 0 s: no time was
+    # given for them, and no learned start time holds them. Empty when there are none.
+    untimed_waits: dict[str, int] = dataclasses.field(default_factory=dict)
     # When the first move that extrudes starts (print_stats starts print_duration there).
     first_extrusion_t: float | None = None
     # The print's end sampled finer than sample_lines/sample_times once a long print made
@@ -354,6 +357,7 @@ class Timeline:
         self.macros = macros if macros is not None else MacroTimes()
         if self.macros.macros:
             self.interp.on_unknown = self._unknown_command
+        self.interp.on_unshown = self._unknown_command
         self.timed_parts: dict[tuple[str, str], TimedPart] = {}
         # Where the last added time ended (0: none yet).
         self._rest_until = 0.0
@@ -491,11 +495,13 @@ class Timeline:
         part.seconds = extra
         return total + extra
 
-    def _unknown_command(self, name: str) -> None:
-        """A command Klipper does not know: a macro, timed if the table has it."""
+    def _unknown_command(self, name: str) -> bool:
+        """A command Klipper does not know (a macro), or one whose time the file cannot
+        show: timed if the table has it (True then)."""
         timed = self.macros.time_of(name)
         if timed is not None:
             self.add_time(timed.seconds, name, timed.source)
+        return timed is not None
 
     def _warn_here(self, message: str, key: str | None = None) -> None:
         self.warn(message, self.lineno, key)
@@ -616,8 +622,11 @@ class Timeline:
     def _command_error(self, stripped: str, exc: Exception, key: str) -> None:
         """Klipper answers this line with an error: a warning, and the pre-flight's stop."""
         message = klipper_error_text(stripped, exc)
-        self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
-                  self.lineno, key)
+        if isinstance(exc, PrintEndsError):
+            self.warn("'%s': %s" % (stripped, message), self.lineno, key)
+        else:
+            self.warn("Klipper rejects '%s': %s" % (stripped, message.split("\n")[0]),
+                      self.lineno, key)
         stop = self.preflight.command_error(self.lineno, message.replace("\n", " "))
         if stop is not None:
             # A bound method, not a closure with `stop` as default: mypy for Python 3.9
@@ -712,6 +721,7 @@ class Timeline:
             timed_parts=sorted(self.timed_parts.values(),
                                key=lambda p: (-p.seconds, p.name, p.source)),
             untimed_macros=untimed, first_extrusion_t=self.first_extrusion_t,
+            untimed_waits=untimed_waits(interp, self.macros),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
             tail_lines=array("q", [line for line, _ in self.samples.tail]),
@@ -827,6 +837,16 @@ def _too_long_added(path: str, line: int, name: str, seconds: float,
 def _too_long_wait(path: str, line: int, text: str, until: float) -> KestimatorError:
     return KestimatorError(OVER_A_YEAR + "'%s' waits until %.3g s" % (text[:80], until),
                            path, line)
+
+
+def untimed_waits(interp: Interpreter, macros: MacroTimes) -> dict[str, int]:
+    """The heater waits and homings that counted as 0 s (none when a learned start time
+    holds the start, where they are)."""
+    if macros.before_first_extrusion is not None:
+        return {}
+    counts = {"heater_waits": interp.heaters.untimed_waits,
+              "homings": interp.untimed_homings}
+    return {kind: count for kind, count in counts.items() if count}
 
 
 def klipper_error_text(command_line: str, exc: Exception) -> str:

@@ -82,6 +82,8 @@ class PrinterHeaters:
         self.toolhead = toolhead
         self.extruders = extruders
         self.heat_time = heat_time
+        # Heater waits that took no time (no heat time given).
+        self.untimed_waits = 0
         self.add_time = add_time
         sections = limits.configured_sections
         # Heaters by their lower-case short name (SET_HEATER_TEMPERATURE's HEATER=); Klipper
@@ -125,6 +127,8 @@ class PrinterHeaters:
         self.toolhead.wait_heater()
         if self.heat_time > 0.0:
             self.add_time(self.heat_time, name, HEAT_SOURCE)
+        else:
+            self.untimed_waits += 1
 
     def macro_ran(self, name: str, template: str) -> None:
         """A [gcode_macro] ran whose commands are not run here (a template). Its text sets

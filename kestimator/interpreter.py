@@ -28,7 +28,7 @@ from collections.abc import Callable
 from typing import Final
 
 from kestimator.bed_mesh import BedMesh
-from kestimator.errors import CommandError, MoveError, ParamError
+from kestimator.errors import CommandError, MoveError, ParamError, PrintEndsError
 from kestimator.exclude_object import ExcludeObject
 from kestimator.extruder import PrinterExtruders
 from kestimator.firmware_retraction import FirmwareRetraction
@@ -39,22 +39,25 @@ from kestimator.heaters import PrinterHeaters
 from kestimator.homing_override import HomingOverride
 from kestimator.input_shaper import InputShaper
 from kestimator.klipper_modules import (
-    COMMAND_MODULE,
     HEATER_BED_WAIT,
     loaded_modules,
+    registered_commands,
     silently_ignored,
 )
 from kestimator.limits import Limits
 from kestimator.macros import HOMING_SOURCE
+from kestimator.manual_probe import unregistered_endstop_commands
 from kestimator.preflight import Preflight
 from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
 
-__all__ = ["CommandError", "Interpreter", "MoveError", "ParamError"]
+__all__ = ["CommandError", "Interpreter", "MoveError", "ParamError", "printer_commands"]
 
-# Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
-# we model. Everything else is an unknown command to Klipper: ignored, and counted.
+# Without the printer's config: the commands Klipper knows with a typical printer.cfg that
+# take no time and change nothing we model. Everything else is an unknown command to
+# Klipper: ignored, and counted. With the config, kestimator.klipper_modules says which
+# commands Klipper registers.
 NO_TIME_COMMANDS: Final = frozenset((
     "M73", "M104", "M140", "M105", "M106", "M107", "M110", "M112", "M114", "M115", "M117",
     "M118", "M119", "M21", "G21", "ECHO", "STATUS", "HELP", "GET_POSITION", "QUERY_ENDSTOPS",
@@ -69,10 +72,20 @@ KIND_MACRO = "macro"
 KIND_EXPANDED_MACRO = "expanded_macro"
 # A no-time command of a module the printer's config has (EXCLUDE_OBJECT_START, M117, ...).
 KIND_MODULE = "module"
-# With the printer's config known: what Klipper knows whatever its sections (gcode.py,
-# the default modules toolhead.py loads, extruder.py); module commands come from
-# kestimator.klipper_modules.
-ALWAYS_KNOWN_COMMANDS = NO_TIME_COMMANDS - frozenset(COMMAND_MODULE) - frozenset(("M300",))
+# Commands Klipper runs that take time the file cannot show: they probe, calibrate or
+# measure. Counted as 0 s, and said, unless the profile's [macros] table times them, as
+# for macros (a learned start time holds those before the first extrusion).
+UNSHOWN_TIME_COMMANDS: Final = frozenset((
+    "PROBE", "PROBE_ACCURACY", "PROBE_CALIBRATE", "BED_MESH_CALIBRATE", "Z_TILT_ADJUST",
+    "QUAD_GANTRY_LEVEL", "PID_CALIBRATE", "SCREWS_TILT_CALCULATE", "BED_TILT_CALIBRATE",
+    "DELTA_CALIBRATE", "SHAPER_CALIBRATE", "TEST_RESONANCES",
+))
+# What SAVE_CONFIG may do to a print (configfile.py cmd_SAVE_CONFIG: with settings left to
+# save it writes them and restarts Klipper; with none it returns at once).
+SAVE_CONFIG_MAY_STOP: Final = (
+    "SAVE_CONFIG restarts Klipper, ending the print, when a command before it (a "
+    "calibration, BED_MESH_CALIBRATE saving its mesh, a macro) left settings to save; "
+    "with none it does nothing")
 # Commands whose text argument may hold digits and spaces ("M117 12% done").
 TEXT_COMMANDS: Final = frozenset(("M117", "M118", "M23"))
 
@@ -92,6 +105,16 @@ AddTimeFn = Callable[[float, str, str], None]
 Handler = Callable[[Command], None]
 
 
+def printer_commands(limits: Limits) -> frozenset[str] | None:
+    """The commands Klipper holds once ready on this printer (its [gcode_macro]s aside), or
+    None when its config is not known."""
+    if not limits.configured_sections:
+        return None
+    modules = loaded_modules(limits.configured_sections, limits.kinematics)
+    return registered_commands(modules) - unregistered_endstop_commands(limits.machine,
+                                                                         limits.kinematics)
+
+
 class Interpreter:
     """Runs commands against a ToolHead through the printer's objects."""
 
@@ -104,7 +127,10 @@ class Interpreter:
         self.add_time: AddTimeFn = add_time or (lambda seconds, name, source:
                                                  toolhead.add_time(seconds))
         # Called with the name of every command Klipper does not know (a macro, maybe).
-        self.on_unknown: Callable[[str], None] | None = None
+        self.on_unknown: Callable[[str], object] | None = None
+        # Called with the name of a command that takes time the file cannot show
+        # (UNSHOWN_TIME_COMMANDS); True when it was timed.
+        self.on_unshown: Callable[[str], bool] | None = None
         self.homing_time = homing_time
         self.heat_time = heat_time
         self.ignored: dict[str, int] = {}
@@ -114,8 +140,11 @@ class Interpreter:
         self.command_kinds: dict[str, dict[str, int]] = {}
         self.macros = dict(limits.gcode_macros)
         # The modules the printer's config loads; None when no config is known.
-        self.modules = (loaded_modules(limits.configured_sections)
+        self.modules = (loaded_modules(limits.configured_sections, limits.kinematics)
                         if limits.configured_sections else None)
+        # The commands Klipper registers with them, and those it has whatever the sections.
+        self.registered = printer_commands(limits) or frozenset()
+        self._registered_anyway = registered_commands(loaded_modules((), limits.kinematics))
         # Where commands Klipper skips are recorded (kestimator.preflight), if anywhere.
         self.preflight: Preflight | None = None
         self._running_macros: set[str] = set()
@@ -132,11 +161,16 @@ class Interpreter:
             self.register_command(name, getattr(helper, "cmd_" + name))
         self.extruders = extruders = PrinterExtruders(
             limits, toolhead, gcode_move._handle_activate_extruder)
-        self.register_command("ACTIVATE_EXTRUDER", extruders.cmd_ACTIVATE_EXTRUDER)
-        self.register_command("SET_PRESSURE_ADVANCE", extruders.cmd_SET_PRESSURE_ADVANCE)
-        self.register_command("SET_EXTRUDER_ROTATION_DISTANCE",
-                              extruders.cmd_SET_E_ROTATION_DISTANCE)
-        self.register_command("SYNC_EXTRUDER_MOTION", extruders.cmd_SYNC_EXTRUDER_MOTION)
+        # The extruders' commands (an [extruder] or [extruder_stepper] registers them) and
+        # stepper_enable's (every kinematics but "none" loads it): only where Klipper has them.
+        for name, handler in (
+                ("ACTIVATE_EXTRUDER", extruders.cmd_ACTIVATE_EXTRUDER),
+                ("SET_PRESSURE_ADVANCE", extruders.cmd_SET_PRESSURE_ADVANCE),
+                ("SET_EXTRUDER_ROTATION_DISTANCE", extruders.cmd_SET_E_ROTATION_DISTANCE),
+                ("SYNC_EXTRUDER_MOTION", extruders.cmd_SYNC_EXTRUDER_MOTION),
+                ("M18", self.cmd_M84), ("M84", self.cmd_M84)):
+            if self.modules is None or name in self.registered:
+                self.register_command(name, handler)
         self.input_shaper = InputShaper(limits, toolhead)
         if limits.input_shaper_enabled:
             self.register_command("SET_INPUT_SHAPER", self.input_shaper.cmd_SET_INPUT_SHAPER)
@@ -149,6 +183,8 @@ class Interpreter:
         # The G28 a line runs: the module's that took it over, with the homing time.
         self._home_G28 = self.gcode_handlers["G28"]
         self._homing_depth = 0
+        # G28 lines that took no time (no homing time given).
+        self.untimed_homings = 0
         self.register_command("G28", self._cmd_G28_timed)
         self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
         self.heaters = heaters = PrinterHeaters(limits, toolhead, extruders, heat_time,
@@ -161,8 +197,11 @@ class Interpreter:
             self.register_command("TEMPERATURE_WAIT", heaters.cmd_TEMPERATURE_WAIT)
         else:
             self._register_heater_commands(heaters, self.modules)
-        for name in ("M18", "M84"):
-            self.register_command(name, self.cmd_M84)
+        for name, handler in (("M112", self.cmd_M112), ("RESTART", self.cmd_RESTART),
+                              ("FIRMWARE_RESTART", self.cmd_RESTART),
+                              ("SAVE_CONFIG", self.cmd_SAVE_CONFIG)):
+            if name not in self.macros:
+                self.register_command(name, handler)
         if limits.arcs_enabled:
             arcs = ArcSupport(gcode_move, limits.arc_resolution)
             for name in ("G2", "G3", "G17", "G18", "G19"):
@@ -266,6 +305,9 @@ class Interpreter:
     # Dispatch
     def execute(self, cmd: Command) -> None:
         """Run one command; raises CommandError (state already reset) if Klipper would."""
+        if cmd.name in UNSHOWN_TIME_COMMANDS and cmd.name in self.registered and \
+                cmd.name not in self.macros:
+            self._unshown(cmd.name)
         handler = self.gcode_handlers.get(cmd.name)
         if handler is None:
             # "M117 12%" reaches Klipper as the command "M117 12%": only M117, M118 and
@@ -287,6 +329,18 @@ class Interpreter:
             self.gcode_move.reset_last_position()
             raise
 
+    def _unshown(self, name: str) -> None:
+        """A command whose time the file cannot show: timed by `on_unshown`, or said (by
+        its own handler, if it has one: bed_mesh's BED_MESH_CALIBRATE)."""
+        if self.on_unshown is not None and self.on_unshown(name):
+            return
+        if name in self.gcode_handlers:
+            return
+        self.warn("%s takes time the file cannot show (it probes, calibrates or measures): "
+                  "counted as 0 s unless the profile's [macros] table times it (a start "
+                  "time `learn` found holds it when it runs before the first extrusion)"
+                  % name, "unshown:" + name)
+
     def _unknown(self, name: str) -> None:
         """Count a command Klipper does not know (cmd_default's "Unknown command")."""
         ignored = self.ignored
@@ -305,13 +359,11 @@ class Interpreter:
         """Klipper knows this no-time command (on this printer, when its config is known)."""
         if self.modules is None:
             return name in NO_TIME_COMMANDS
-        module = COMMAND_MODULE.get(name)
-        if module is not None:
-            if module in self.modules:
-                self._count(KIND_MODULE, name)
-                return True
+        if name not in self.registered:
             return False
-        return name in ALWAYS_KNOWN_COMMANDS
+        if name not in self._registered_anyway:
+            self._count(KIND_MODULE, name)
+        return True
 
     def _silent(self, name: str, cmd: Command) -> bool:
         """cmd_default skips it without a word (only decidable with the printer's config)."""
@@ -391,6 +443,8 @@ class Interpreter:
             self._homing_depth -= 1
         if self._homing_depth == 0 and self.homing_time > 0.0:
             self.add_time(self.homing_time, "G28", HOMING_SOURCE)
+        elif self._homing_depth == 0:
+            self.untimed_homings += 1
 
     # force_move.py ForceMove.cmd_SET_KINEMATIC_POSITION
     def cmd_SET_KINEMATIC_POSITION(self, cmd: Command) -> None:
@@ -419,6 +473,22 @@ class Interpreter:
         """M109/M190: set a temperature and, when S is not 0, wait for it."""
         if get_float(cmd.params, "S", 0.0):
             self.heaters.wait(cmd.name)
+
+    # gcode.py GCodeDispatch.cmd_M112 (Klipper's emergency stop: a shutdown)
+    def cmd_M112(self, cmd: Command) -> None:
+        """Klipper shuts down: the print ends here, with Klipper's message."""
+        raise CommandError("Shutdown due to M112 command")
+
+    # gcode.py GCodeDispatch.cmd_RESTART / cmd_FIRMWARE_RESTART (request_restart)
+    def cmd_RESTART(self, cmd: Command) -> None:
+        """Klipper restarts once every move before has finished: the print ends here."""
+        raise PrintEndsError("%s restarts Klipper: the print ends here" % cmd.name)
+
+    # configfile.py PrinterConfig.cmd_SAVE_CONFIG
+    def cmd_SAVE_CONFIG(self, cmd: Command) -> None:
+        """A restart if settings were left to save, which the file may not show."""
+        if self.preflight is not None:
+            self.preflight.may_stop(self.gcode_move.tag, SAVE_CONFIG_MAY_STOP)
 
     # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:

@@ -1,49 +1,52 @@
 """Which commands a Klipper printer knows, from the sections of its config.
 
-Owns the table of the G-code commands that Klipper's modules register (mainline Klipper
-84104bbbd, `klippy/extras/*.py` `register_command`) for the modules whose commands take no
-motion time, which modules load which others (`load_object`), and `klippy/gcode.py`
+Owns what the table of `kestimator.klipper_commands` (every command real Klipper 84104bbbd
+registers, by module, derived from Klipper itself) means for one printer: which modules a
+config's sections load as klippy loads them (a section "name x" loads `extras/name.py`, an
+[extruderN] the extruder, the kinematics its own helpers, each module what it
+`load_object`s, toolhead.py its defaults), the commands those register, and `klippy/gcode.py`
 `cmd_default`'s silent cases (commands it neither runs nor reports when no module has them).
 Commands that move or wait are the interpreter's (`kestimator.interpreter`).
 """
 
 from __future__ import annotations
 
-# Module (config section) -> the no-time commands it registers.
-MODULE_COMMANDS: dict[str, tuple[str, ...]] = {
-    "display_status": ("M73", "M117", "SET_DISPLAY_TEXT"),
-    "respond": ("M118", "RESPOND"),
-    "fan": ("M106", "M107"),
-    "heater_bed": ("M140",),
-    "exclude_object": ("EXCLUDE_OBJECT", "EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
-                       "EXCLUDE_OBJECT_END"),
-    "print_stats": ("SET_PRINT_STATS_INFO",),
-    "virtual_sdcard": ("M20", "M21", "M23", "M24", "M25", "M26", "M27",
-                       "SDCARD_RESET_FILE", "SDCARD_PRINT_FILE"),
-    "pause_resume": ("PAUSE", "RESUME", "CLEAR_PAUSE", "CANCEL_PRINT"),
-    "save_variables": ("SAVE_VARIABLE",),
-    "firmware_retraction": ("GET_RETRACTION",),
-    "fan_generic": ("SET_FAN_SPEED",),
-}
-# Modules a module loads itself (display loads display_status, virtual_sdcard print_stats,
-# a filament sensor pause_resume).
-MODULE_LOADS: dict[str, tuple[str, ...]] = {
-    "display": ("display_status",),
-    "virtual_sdcard": ("print_stats",),
-    "filament_switch_sensor": ("pause_resume",),
-    "filament_motion_sensor": ("pause_resume",),
-}
-# The module of each command in MODULE_COMMANDS.
-COMMAND_MODULE = {command: module for module, commands in MODULE_COMMANDS.items()
-                  for command in commands}
+import re
+
+from kestimator.klipper_commands import (
+    CORE_COMMANDS,
+    DEFAULT_MODULES,
+    MODULE_COMMANDS,
+    MODULE_LOADS,
+)
+
+__all__ = ["CORE_COMMANDS", "HEATER_BED_WAIT", "MODULE_COMMANDS", "loaded_modules",
+           "registered_commands", "section_module", "silently_ignored"]
+
 # M190 needs [heater_bed] too, but it waits: the interpreter runs it.
 HEATER_BED_WAIT = "M190"
+# [extruder], [extruder1], ...: kinematics/extruder.py's objects.
+_EXTRUDER_SECTION = re.compile(r"extruder\d*$")
 
 
-def loaded_modules(sections: tuple[str, ...]) -> frozenset[str]:
-    """Every module a config with these sections loads (a section "name x" loads "name")."""
+def section_module(section: str) -> str:
+    """The module a config section loads ("tmc2209 stepper_x" -> "tmc2209")."""
+    words = section.split()
+    if not words:
+        return ""
+    name = words[0].lower()
+    return "extruder" if _EXTRUDER_SECTION.match(name) else name
+
+
+def loaded_modules(sections: tuple[str, ...], kinematics: str | None = None
+                   ) -> frozenset[str]:
+    """Every module a config with these sections loads (with its kinematics, when given:
+    "kinematics/NAME"), as klippy loads them."""
     loaded = set()
-    pending = [section.split()[0] for section in sections if section.strip()]
+    pending = [section_module(section) for section in sections if section.strip()]
+    pending += DEFAULT_MODULES
+    if kinematics:
+        pending.append("kinematics/" + kinematics)
     while pending:
         module = pending.pop()
         if module in loaded:
@@ -51,6 +54,15 @@ def loaded_modules(sections: tuple[str, ...]) -> frozenset[str]:
         loaded.add(module)
         pending.extend(MODULE_LOADS.get(module, ()))
     return frozenset(loaded)
+
+
+def registered_commands(modules: frozenset[str]) -> frozenset[str]:
+    """The commands Klipper holds once ready with these modules loaded (not counting the
+    config's [gcode_macro]s)."""
+    known = set(CORE_COMMANDS)
+    for module in modules:
+        known.update(MODULE_COMMANDS.get(module, ()))
+    return frozenset(known)
 
 
 def silently_ignored(name: str, params: dict[str, str]) -> bool:

@@ -82,6 +82,7 @@ from kestimator.files import (
     same_file,
     write_atomically,
 )
+from kestimator.interpreter import printer_commands
 from kestimator.limits import Limits, json_value
 from kestimator.macros import MacroTimes
 from kestimator.progress_table import (
@@ -834,6 +835,13 @@ def check_gcode_file(path: str) -> os.stat_result:
 PlanResult = tuple[InjectPlan, Estimate, SlicerInfo, "float | None"]
 
 
+def knows_layer_info(limits: Limits) -> bool:
+    """Whether the printer knows SET_PRINT_STATS_INFO ([print_stats], which
+    [virtual_sdcard] loads), or its config is not known."""
+    known = printer_commands(limits)
+    return known is None or LAYER_INFO_COMMAND.decode() in known
+
+
 def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                limits_source: str, homing_time: float = 0.0, heat_time: float = 0.0,
                path: str = "<input>", macros: MacroTimes | None = None,
@@ -859,9 +867,11 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
         # first extrusion.
         adapter.moonraker_time_comment(slicer, FileEnds.from_bytes(head, tail),
                                        est.total_s - est.parts.before_first_extrusion_s),
-        # Layer numbers only where the file sets none itself (its first and last MiB).
+        # Layer numbers only where the file sets none itself (its first and last MiB), and
+        # only for a printer that knows the command (or one whose config is not known).
         layer_info=layer_info and _FOREIGN_LAYER_INFO_RE.search(head) is None
-        and _FOREIGN_LAYER_INFO_RE.search(tail) is None, table=table)
+        and _FOREIGN_LAYER_INFO_RE.search(tail) is None and knows_layer_info(limits),
+        table=table)
     if plan.table is not None:
         plan = dataclasses.replace(plan, table_settings=table_settings(
             limits, homing_time, heat_time, macros),

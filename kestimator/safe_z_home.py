@@ -20,21 +20,10 @@ from collections.abc import Callable
 from kestimator.config.machine import MachineConfig, Section
 from kestimator.errors import CommandError, KestimatorError
 from kestimator.gcode import Command
+from kestimator.manual_probe import lookup_z_endstop_config
 from kestimator.toolhead import ToolHead
 
 Handler = Callable[[Command], None]
-
-
-def lookup_z_endstop_config(config: MachineConfig) -> Section | None:
-    """manual_probe's: [stepper_z], or the [carriage ...] whose axis is z."""
-    stepper_z = config.section("stepper_z")
-    if stepper_z is not None:
-        return stepper_z
-    for cconfig in config.get_prefix_sections("carriage "):
-        carriage_name = cconfig.get_name().split()[-1].strip()
-        if cconfig.get("axis", carriage_name) == "z":
-            return cconfig
-    return None
 
 
 def g28_command(params: dict[str, str]) -> Command:

@@ -41,7 +41,7 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")
 PARTS_FIELDS = ("motion_s", "added_s", "before_first_extrusion_s", "print_duration_s",
-                "total_s", "first_extrusion_t", "sources", "untimed_macros")
+                "total_s", "first_extrusion_t", "sources", "untimed_macros", "untimed_waits")
 FILAMENT_FIELDS = ("extruded_mm", "diameter_mm", "volume_cm3", "density_g_cm3", "weight_g",
                    "slicer_mm", "slicer_g")
 
@@ -160,8 +160,12 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     torus = estimate_text(capsys, TORUS)
     assert "Difference   : " in torus
     assert "  Pre-flight: 2 commands skipped" in torus
-    # Macros are one grouped line at the end, not a warning each.
-    assert torus.endswith("\n  2 macros: their time is not counted (--verbose lists them)\n")
+    # Macros are one grouped line at the end, not a warning each; then, once, the heater
+    # waits and homing that count as 0 s (issue 36).
+    assert torus.endswith("\n  2 macros: their time is not counted (--verbose lists them)\n"
+                          "  2 heater waits count as 0 s unless timed: --heat-time / "
+                          "--homing-time or the profile give their time, `kestimator learn` "
+                          "the start's\n")
     assert "is not a Klipper command" not in torus
 
 
@@ -324,3 +328,41 @@ def test_progress_callbacks_count_every_byte_once_per_pass(
 
 def _strip_ansi(text: str) -> str:
     return re.sub(r"\x1b\[[0-9;]*m", "", text)
+
+
+# Issue 36, item 4: small things a new user meets.
+
+
+def test_help_names_every_exit_status_including_klipper_stops() -> None:
+    for args in (["--help"], ["inject", "--help"]):
+        proc = run(*args)
+        assert proc.returncode == 0
+        assert re.search(r"\b4 [^.]{0,30}Klipper\s+will\s+stop\s+this\s+print", proc.stdout), args
+
+
+def test_at_without_exclude_is_a_usage_error(tmp_path: Path) -> None:
+    gcode = tmp_path / "p.gcode"
+    gcode.write_text("G28\nG1 X10 Y10 F3000\n")
+    proc = run("estimate", str(gcode), "--at", "2")
+    assert proc.returncode == 2
+    assert proc.stderr.strip().endswith("--at needs --exclude (the objects to cancel at that "
+                                        "line)")
+
+
+def test_the_summary_says_once_that_heater_waits_and_homing_count_as_0_s(
+        capsys: pytest.CaptureFixture[str], tmp_path: Path) -> None:
+    gcode = tmp_path / "p.gcode"
+    gcode.write_text("G28\nM190 S60\nM109 S200\nM83\nG1 X10 Y10 F3000\nG1 X20 E1\nG28 X\n"
+                     "M109 S210\n")
+    out = estimate_text(capsys, gcode)
+    said = [line for line in out.splitlines() if "count as 0 s" in line]
+    assert said == ["  3 heater waits and 2 homings (G28) count as 0 s unless timed: "
+                    "--heat-time / --homing-time or the profile give their time, "
+                    "`kestimator learn` the start's"]
+    doc = estimate_json(capsys, gcode)
+    assert doc["parts"]["untimed_waits"] == {"heater_waits": 3, "homings": 2}
+    # Timed, nothing is said.
+    out = estimate_text(capsys, gcode, "--heat-time", "30", "--homing-time", "10")
+    assert "count as 0 s" not in out and "counts as 0 s" not in out
+    assert estimate_json(capsys, gcode, "--heat-time", "30", "--homing-time", "10")[
+        "parts"]["untimed_waits"] == {}

@@ -98,7 +98,12 @@ def test_estimate_exclude_at_takes_klippers_time(name: str, tmp_path: Path,
     case = CASES[name]
     assert _within(doc["total_s"], case["total_s"]), (doc["total_s"], case["total_s"])
     _check_layers({layer["line"]: layer["t"] for layer in doc["layers"]}, case, events)
+    saved = doc["excluded"].pop("saved_s")
     assert doc["excluded"] == {"names": [n.upper() for n in names.split(",")], "line": at}
+    # What the cancellation saves: the whole file's time without it, less this one.
+    whole = estimate_file(path, limits_from_printer_cfg(runs.CFG)[0])
+    assert saved == pytest.approx(round(whole.total_s, 6) - doc["total_s"], abs=2e-6)
+    assert saved > 0
 
 
 def test_the_only_object_excluded_at_its_start_leaves_seconds(tmp_path: Path) -> None:

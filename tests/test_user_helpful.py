@@ -41,13 +41,24 @@ def run(*args: str, env: dict[str, str] | None = None,
                           capture_output=True, text=True, timeout=300, cwd=cwd)
 
 
-# Layer numbers through SET_PRINT_STATS_INFO
+# Layer numbers through SET_PRINT_STATS_INFO: written for a printer that knows the
+# command (its [virtual_sdcard] loads [print_stats]), which the corpus printer.cfg lacks.
+
+
+@pytest.fixture
+def sdcard_cfg(tmp_path: Path) -> Path:
+    """The corpus printer.cfg with the [virtual_sdcard] every Mainsail/Fluidd setup has."""
+    cfg = tmp_path / "sdcard" / "printer.cfg"
+    cfg.parent.mkdir()
+    cfg.write_text(CORPUS_CFG.read_text() + "\n[virtual_sdcard]\npath: %s\n" % tmp_path)
+    return cfg
 
 
 @pytest.mark.parametrize("source", [NUT, CURA], ids=["prusaslicer", "cura"])
 def test_inject_adds_total_layer_before_the_first_layer_and_current_layer_at_each(
-        tmp_path: Path, corpus_root: Path, source: Path) -> None:
-    limits, _ = limits_from_printer_cfg(CORPUS_CFG)
+        tmp_path: Path, corpus_root: Path, source: Path,
+        sdcard_cfg: Path) -> None:
+    limits, _ = limits_from_printer_cfg(sdcard_cfg)
     out = tmp_path / "out.gcode"
     result = inject_file(source, limits, output=str(out), table=False)
     data = out.read_bytes()
@@ -78,8 +89,8 @@ def test_inject_adds_total_layer_before_the_first_layer_and_current_layer_at_eac
 
 
 def test_a_file_that_sets_layer_numbers_itself_gets_none_added(
-        tmp_path: Path, corpus_root: Path) -> None:
-    limits, _ = limits_from_printer_cfg(CORPUS_CFG)
+        tmp_path: Path, corpus_root: Path, sdcard_cfg: Path) -> None:
+    limits, _ = limits_from_printer_cfg(sdcard_cfg)
     out = tmp_path / "orca.gcode"
     inject_file(ORCA, limits, output=str(out))
     assert b"; kestimator\n" not in out.read_bytes().replace(b"\r", b"")
@@ -87,14 +98,15 @@ def test_a_file_that_sets_layer_numbers_itself_gets_none_added(
         ORCA.read_bytes().count(b"SET_PRINT_STATS_INFO")
 
 
-def test_no_layer_info_switch_on_the_command_line(tmp_path: Path, corpus_root: Path) -> None:
+def test_no_layer_info_switch_on_the_command_line(tmp_path: Path, corpus_root: Path,
+                                                  sdcard_cfg: Path) -> None:
     out = tmp_path / "out.gcode"
-    proc = run("inject", str(NUT), "-o", str(out), "--printer-cfg", str(CORPUS_CFG),
+    proc = run("inject", str(NUT), "-o", str(out), "--printer-cfg", str(sdcard_cfg),
                "--no-layer-info")
     assert proc.returncode == 0 and proc.stderr == ""
     assert b"SET_PRINT_STATS_INFO" not in out.read_bytes()
     assert run("inject", str(NUT), "-o", str(out), "--printer-cfg",
-               str(CORPUS_CFG)).returncode == 0
+               str(sdcard_cfg)).returncode == 0
     assert out.read_bytes().count(b"SET_PRINT_STATS_INFO") == 28
 
 

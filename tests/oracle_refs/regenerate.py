@@ -37,7 +37,11 @@ PREFLIGHT = (
     ("preflight_heater_" + name, "snippets/heater_%s.gcode" % name, "heaters.cfg", 1, None)
     for name in ("m104_over", "m109_over", "m140_over", "m190_over", "generic_over",
                  "t1_over", "t1_under", "negative", "t2_missing", "unknown_heater",
-                 "wait_unknown_sensor", "wait_max_below_min", "in_range"))
+                 "wait_unknown_sensor", "wait_max_below_min", "in_range")) + (
+    # Commands that end the print (issue 36): M112 is Klipper's emergency stop; SAVE_CONFIG
+    # with no settings left to save does nothing (configfile.py returns at once).
+    ("preflight_m112", "snippets/m112.gcode", "heaters.cfg", 1, None),
+    ("preflight_save_config", "snippets/save_config.gcode", "heaters.cfg", 1, None))
 
 # Cold extrusion: batch mode lets every extruder extrude (heaters.py sets `can_extrude` for
 # file output), so these come from a copy of the same Klipper whose heaters.py line 39 lacks
