@@ -250,9 +250,8 @@ def test_install_sh_is_shellcheck_clean() -> None:
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None:
-    """Without gcc and without -y it says which apt packages to install and changes nothing."""
-    data, conf_before = _host(tmp_path / "home", 7125)
+def _path_without(tmp_path: Path, left_out: tuple[str, ...]) -> Path:
+    """A folder of links to every program on PATH but `left_out` (the first of each name)."""
     programs = tmp_path / "bin"
     programs.mkdir()
     for folder in os.environ.get("PATH", "").split(os.pathsep):
@@ -260,8 +259,15 @@ def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None
             continue
         for name in os.listdir(folder):
             target = programs / name
-            if name != "gcc" and not target.exists() and not target.is_symlink():
+            if name not in left_out and not os.path.lexists(target):
                 target.symlink_to(os.path.join(folder, name))
+    return programs
+
+
+def test_install_sh_names_missing_apt_packages_and_stops(tmp_path: Path) -> None:
+    """Without gcc and without -y it says which apt packages to install and changes nothing."""
+    data, conf_before = _host(tmp_path / "home", 7125)
+    programs = _path_without(tmp_path, ("gcc",))
     env = dict(_environment(data), PATH=str(programs))
     env.pop("KESTIMATOR_BUILD")
     proc = subprocess.run([str(PROJECT / "install.sh"), "--allow-root", "--no-restart",
@@ -475,15 +481,7 @@ def test_install_sh_refuses_a_read_only_moonraker_conf_before_changing_anything(
 def _fake_systemctl(tmp_path: Path, present: bool) -> dict[str, str]:
     """A PATH whose systemctl fails as in a container without systemd (and records its
     arguments), or that has no systemctl at all."""
-    programs = tmp_path / "bin"
-    programs.mkdir()
-    for folder in os.environ.get("PATH", "").split(os.pathsep):
-        if not os.path.isdir(folder):
-            continue
-        for name in os.listdir(folder):
-            target = programs / name
-            if name not in ("systemctl", "sudo") and not os.path.lexists(target):
-                target.symlink_to(os.path.join(folder, name))
+    programs = _path_without(tmp_path, ("systemctl", "sudo"))
     if present:
         fake = programs / "systemctl"
         fake.write_text('#!/bin/sh\necho "$@" >> "%s"\necho "System has not been booted with '
