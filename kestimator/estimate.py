@@ -16,6 +16,7 @@ import os
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from functools import partial
 from itertools import chain, islice
 from typing import Final
 
@@ -202,10 +203,19 @@ def _line_batches(path: str | os.PathLike[str],
 def split_line_batches(read: Callable[[int], bytes], path: str,
                        progress: ProgressCallback | None) -> Iterator[list[bytes]]:
     """The lines `read` gives, block by block: a list of lines per block (see iter_lines)."""
+    for parts, _ in line_batches_at(read, path, progress):
+        yield parts
+
+
+def line_batches_at(read: Callable[[int], bytes], path: str,
+                    progress: ProgressCallback | None = None, lineno: int = 0,
+                    offset: int = 0) -> Iterator[tuple[list[bytes], int]]:
+    """split_line_batches' lists, each with the byte offset of the line that follows it
+    (-1 where that is not known: after the rest of an over-long line was skipped). `read`
+    starts at byte `offset` of the file, at the start of line `lineno` + 1."""
     # A line that fits in a block is split out by C code; only a line that spans blocks
     # (its start is `rest`) can be over MAX_LINE_BYTES (READ_BLOCK_BYTES <= that bound).
     rest = b""
-    lineno = 0  # lines yielded so far
     done = 0
     next_report = PROGRESS_EVERY_BYTES
     skipping: bytes | None = None  # the start of an over-long line whose rest is skipped
@@ -222,7 +232,7 @@ def split_line_batches(read: Callable[[int], bytes], path: str,
             if nl < 0:
                 continue
             lineno += 1
-            yield [over_long_line(skipping, lineno, path)]
+            yield [over_long_line(skipping, lineno, path)], -1
             skipping = None
             block = block[nl + 1:]
         parts = block.split(b"\n")
@@ -234,14 +244,14 @@ def split_line_batches(read: Callable[[int], bytes], path: str,
         rest = parts.pop()
         if parts:
             lineno += len(parts)
-            yield parts
+            yield parts, offset + done - len(rest)
         if len(rest) > MAX_LINE_BYTES:
             skipping = rest[:MAX_LINE_BYTES]
             rest = b""
     if skipping is not None:
-        yield [over_long_line(skipping, lineno + 1, path)]
+        yield [over_long_line(skipping, lineno + 1, path)], -1
     elif rest:
-        yield [rest]
+        yield [rest], offset + done
     if progress is not None:
         progress(done)
 
@@ -520,10 +530,8 @@ class Timeline:
             return
         index = len(store)
         store.append(lineno, 0.0)
-
-        def resolve(t: float) -> None:
-            store.set_time(index, t)
-        self.toolhead.register_lookahead_callback(resolve)
+        # A partial, not a closure: the worker pickles the planner (kestimator.resume).
+        self.toolhead.register_lookahead_callback(partial(store.set_time, index))
 
     # Per line
     def feed(self, raw: bytes) -> None:
@@ -859,8 +867,15 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
                         macros=macros, note=note, events=events)
+    return run_timeline(timeline, partial(timeline.feed_lines, lines))
+
+
+def run_timeline(timeline: Timeline, feed: Callable[[], None]) -> Estimate:
+    """`feed()` (which feeds `timeline` its lines), then the estimate, checked, with the
+    errors of estimate_lines. kestimator.resume feeds a timeline restored mid-file so."""
+    path = timeline.path
     try:
-        timeline.feed_lines(lines)
+        feed()
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a

@@ -66,6 +66,7 @@ import math
 import os
 import sys
 import time
+from collections.abc import Sequence
 from typing import IO, TYPE_CHECKING, Any
 
 from kestimator.progress_table import (
@@ -84,7 +85,9 @@ from kestimator.progress_table import (
 
 if TYPE_CHECKING:
     from kestimator.config.resolve import ResolvedLimits
+    from kestimator.estimate import Estimate, Event
     from kestimator.macros import MacroTimes
+    from kestimator.resume import Resumable
 
 # A request line longer than this is refused without being parsed (memory stays bounded).
 MAX_REQUEST_BYTES = 1 << 20
@@ -260,7 +263,6 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
     """Estimate `path` as `kestimator estimate --printer-cfg CONFIG` would, with `events`
     (byte offset, command) run at their lines; the table with the file's offsets. `printer`:
     the settings already resolved for `config` (`resolve_printer`), else resolved here."""
-    from kestimator.estimate import estimate_lines, iter_lines
     from kestimator.rewrite import check_gcode_file
 
     lines: list[int] = []
@@ -272,10 +274,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
         printer = resolve_printer(path, config)
     resolved, macros = printer.resolved, printer.macros
     warnings = list(resolved.warnings) + list(macros.warnings)
-    est = estimate_lines(iter_lines(path), resolved.limits, path,
-                         homing_time=printer.homing_time, heat_time=printer.heat_time,
-                         sample=True, macros=macros,
-                         events=list(zip(lines, (text for _, text in events))))
+    est = estimate_resuming(path, printer, list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
     selection = select(est, precision=WORKER_PRECISION)
     if selection.objects_left_out:
@@ -287,6 +286,38 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
         offsets = line_offsets(f.read, selection.wanted_lines())
     return ProgressTable.from_selection(selection, offsets.get, size,
                                         printer.settings), warnings
+
+
+# The checkpoints of the file estimated last (kestimator.resume): one file at a time.
+_resumable: Resumable | None = None
+
+
+def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estimate:
+    """The estimate of `path` for `printer` with `events` (line, command), going on from
+    the checkpoints of the last estimate when they are of this very file (device, inode,
+    size, times) for these very settings, and keeping them for the next."""
+    global _resumable
+    from kestimator.estimate import Timeline
+    from kestimator.resume import Resumable
+
+    st = os.stat(path)
+    resolved, macros = printer.resolved, printer.macros
+    key = (path, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
+           resolved.limits, macros, printer.homing_time, printer.heat_time)
+    if _resumable is None or _resumable.key != key:
+        _resumable = None  # the old checkpoints go before new ones are taken
+        _resumable = Resumable(key, st.st_size)
+    resumable = _resumable
+
+    def new_timeline(ordered: Sequence[Event]) -> Timeline:
+        return Timeline(resolved.limits, path, homing_time=printer.homing_time,
+                        heat_time=printer.heat_time, sample=True, macros=macros,
+                        events=ordered)
+    try:
+        return resumable.estimate(path, new_timeline, events)
+    except BaseException:
+        _resumable = None  # what a failed pass left is not kept
+        raise
 
 
 def handle(line: bytes) -> dict[str, Any]:

@@ -1,0 +1,199 @@
+"""Estimates that go on from saved planner states: the worker's answer after a change.
+
+Owns the checkpoints of one file's estimate: while a pass runs, the whole planner (the
+`Timeline` and everything it holds: toolhead with its look-ahead queue, gcode_move,
+extruders, macros and variables, firmware retraction, input shaper, exclude_object, the
+per-feature, per-object and per-layer sums, progress samples, warnings, pending look-ahead
+callbacks) is pickled between two blocks of lines, about every 1/MAX_CHECKPOINTS of the
+file. A later estimate of the same file whose events (`estimate.Event`: commands typed at
+some line) agree with the saved run's up to a checkpoint loads that checkpoint and reads
+the file on from its byte offset, so a change at fraction f of the file costs at most
+1 - f of a pass plus one checkpoint's spacing; the estimate is bit for bit the one a whole
+pass gives (the planner's floats are pickled exactly; tests/test_resume.py compares the
+answers' bytes on every corpus file).
+
+Memory stays bounded whatever the file: at most MAX_CHECKPOINTS + 1 checkpoints, and no
+more than MAX_CHECKPOINT_BYTES in all (past it no more are taken in that pass: later
+changes replay from the last one). A checkpoint is the planner's pickle without its
+growing arrays (samples, layer and mark times: `GROWING`), which are kept once, as what
+changed since the previous checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import pickle
+from array import array
+from collections.abc import Callable, Iterator, Sequence
+from typing import Final
+
+from kestimator.estimate import (
+    Estimate,
+    Event,
+    EventRunner,
+    Timeline,
+    line_batches_at,
+    run_timeline,
+)
+
+MAX_CHECKPOINTS: Final = 50
+# Checkpoints are never closer than this many bytes of the file (a small file has fewer).
+MIN_SPACING_BYTES: Final = 1 << 14
+# All checkpoints of a file together hold at most this many bytes.
+MAX_CHECKPOINT_BYTES: Final = 64 << 20
+# The timeline's arrays that grow with the file, kept outside the pickles: (attribute of
+# the timeline or "" for the timeline itself, attribute of that holding the array).
+GROWING: Final = (("samples", "lines"), ("samples", "times"), ("layers", "lines"),
+                  ("layers", "times"), ("marks", "lines"), ("marks", "times"),
+                  ("", "noted_lines"))
+
+
+def _owner(timeline: Timeline, name: str) -> object:
+    return getattr(timeline, name) if name else timeline
+
+
+def _common_prefix(a: array, b: array) -> int:
+    """How many leading items `a` and `b` share, bit for bit."""
+    x, y = a.tobytes(), b.tobytes()
+    n = min(len(x), len(y))
+    if x[:n] == y[:n]:
+        return n // a.itemsize
+    lo, hi = 0, n  # x[:lo] == y[:lo], x[:hi] != y[:hi]
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if x[:mid] == y[:mid]:
+            lo = mid
+        else:
+            hi = mid
+    return lo // a.itemsize
+
+
+@dataclasses.dataclass
+class Checkpoint:
+    """The planner after line `lineno`, whose successor starts at byte `offset`."""
+
+    lineno: int
+    offset: int
+    # How many of the run's events (in line order) had run.
+    ran: int
+    blob: bytes
+    # Per GROWING array: (items kept from the previous checkpoint's, the items after them).
+    deltas: list[tuple[int, array]]
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.blob) + sum(len(tail) * tail.itemsize for _, tail in self.deltas)
+
+
+class Resumable:
+    """One file's checkpoints, and estimates of that file that go on from them.
+
+    `key` says what the checkpoints hold for (the file's identity and the settings);
+    `size` is the file's size in bytes."""
+
+    def __init__(self, key: object, size: int) -> None:
+        self.key = key
+        self.spacing = max(MIN_SPACING_BYTES, size // MAX_CHECKPOINTS)
+        self.checkpoints: list[Checkpoint] = []
+        # The events of the run the checkpoints come from, in line order.
+        self.events: list[Event] = []
+        # The GROWING arrays as at the last checkpoint.
+        self._last: list[array] = []
+        self.nbytes = 0
+        # Where the last estimate started: the checkpoint's line (0: the file's start).
+        self.resumed_at = 0
+
+    def usable(self, events: Sequence[Event]) -> int:
+        """The index of the last checkpoint valid for `events` (in line order), or -1:
+        every event run before it is the saved run's, and no other is due by then."""
+        found = -1
+        for i, checkpoint in enumerate(self.checkpoints):
+            ran = checkpoint.ran
+            if list(events[:ran]) != self.events[:ran]:
+                break
+            if len(events) > ran and events[ran][0] <= checkpoint.lineno + 1:
+                break
+            found = i
+        return found
+
+    def estimate(self, path: str, new_timeline: Callable[[Sequence[Event]], Timeline],
+                 events: Sequence[Event]) -> Estimate:
+        """The estimate of `path` with `events`, from the last usable checkpoint (or from
+        `new_timeline(events)` at the file's start), taking checkpoints as it goes."""
+        ordered = sorted(events, key=lambda event: event[0])
+        index = self.usable(ordered)
+        if index >= 0:
+            checkpoint = self.checkpoints[index]
+            timeline = self._restore(index, ordered)
+            lineno, offset = checkpoint.lineno, checkpoint.offset
+            del self.checkpoints[index + 1:]
+        else:
+            timeline = new_timeline(ordered)
+            lineno = offset = 0
+            self.checkpoints = []
+            self._last = [array(getattr(_owner(timeline, owner), name).typecode)
+                          for owner, name in GROWING]
+        self.nbytes = sum(c.nbytes for c in self.checkpoints)
+        self.events = ordered
+        self.resumed_at = lineno
+
+        def feed() -> None:
+            with open(path, "rb", buffering=0) as f:
+                f.seek(offset)
+                self._feed(timeline, line_batches_at(f.read, path, None, lineno, offset),
+                           offset)
+        return run_timeline(timeline, feed)
+
+    def _feed(self, timeline: Timeline, batches: Iterator[tuple[list[bytes], int]],
+              offset: int) -> None:
+        due = offset + self.spacing
+        for lines, after in batches:
+            timeline.feed_lines(lines)
+            if after >= due and after >= 0 and self.nbytes < MAX_CHECKPOINT_BYTES:
+                self._save(timeline, after)
+                due = after + self.spacing
+
+    def _save(self, timeline: Timeline, offset: int) -> None:
+        """A checkpoint of `timeline` after its last line, the next one at `offset`."""
+        growing = []
+        for owner, name in GROWING:
+            holder = _owner(timeline, owner)
+            values = getattr(holder, name)
+            growing.append(values)
+            setattr(holder, name, array(values.typecode))
+        try:
+            blob = pickle.dumps(timeline, protocol=pickle.HIGHEST_PROTOCOL)
+        finally:
+            for (owner, name), values in zip(GROWING, growing):
+                setattr(_owner(timeline, owner), name, values)
+        deltas = []
+        for i, values in enumerate(growing):
+            kept = _common_prefix(self._last[i], values)
+            deltas.append((kept, values[kept:]))
+            self._last[i] = array(values.typecode, values)
+        runner = timeline.events
+        checkpoint = Checkpoint(timeline.lineno, offset,
+                                runner.next if runner is not None else 0, blob, deltas)
+        self.checkpoints.append(checkpoint)
+        self.nbytes += checkpoint.nbytes
+
+    def _restore(self, index: int, events: list[Event]) -> Timeline:
+        """The timeline of checkpoint `index`, to go on with `events`."""
+        checkpoint = self.checkpoints[index]
+        timeline: Timeline = pickle.loads(checkpoint.blob)
+        self._last = []
+        for i, (owner, name) in enumerate(GROWING):
+            values = array(getattr(_owner(timeline, owner), name).typecode)
+            for earlier in self.checkpoints[:index + 1]:
+                kept, tail = earlier.deltas[i]
+                del values[kept:]
+                values.extend(tail)
+            self._last.append(values)
+            setattr(_owner(timeline, owner), name, array(values.typecode, values))
+        if events:
+            runner = EventRunner(timeline, events)
+            runner.next = checkpoint.ran
+            timeline.events = runner
+        else:
+            timeline.events = None
+        return timeline
