@@ -919,14 +919,30 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
         pos = 0
         while k < len(lines) and lines[k] <= last:
             target = lines[k]
-            while line < target:
-                pos = block.index(b"\n", pos) + 1
-                line += 1
+            pos = _after_newlines(block, pos, target - line)
+            line = target
             result[target] = base + pos
             k += 1
         line = last
         base += len(block)
     return result
+
+
+def _after_newlines(block: bytes, pos: int, n: int) -> int:
+    """The position just after the `n`-th LF at or after `pos` in `block` (which has that
+    many). Long stretches are skipped by counting (C speed), not one LF at a time."""
+    span = 64 * n  # bytes per line guessed; halved while a span holds too many LFs
+    while n > 8:
+        count = block.count(b"\n", pos, pos + span)
+        if count < n:
+            pos += span
+            n -= count
+            span *= 2
+        else:
+            span //= 2
+    for _ in range(n):
+        pos = block.index(b"\n", pos) + 1
+    return pos
 
 
 def lines_at_offsets(read: Callable[[int], bytes], offsets: Sequence[int],

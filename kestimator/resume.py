@@ -102,6 +102,9 @@ class Resumable:
         self.nbytes = 0
         # Where the last estimate started: the checkpoint's line (0: the file's start).
         self.resumed_at = 0
+        # Whether the planner's pickle is still to be checked once; whether it cannot be.
+        self.probe = True
+        self.disabled = False
 
     def usable(self, events: Sequence[Event]) -> int:
         """The index of the last checkpoint valid for `events` (in line order), or -1:
@@ -149,7 +152,8 @@ class Resumable:
         due = offset + self.spacing
         for lines, after in batches:
             timeline.feed_lines(lines)
-            if after >= due and after >= 0 and self.nbytes < MAX_CHECKPOINT_BYTES:
+            if (after >= due and after >= 0 and self.nbytes < MAX_CHECKPOINT_BYTES
+                    and not self.disabled):
                 self._save(timeline, after)
                 due = after + self.spacing
 
@@ -163,6 +167,15 @@ class Resumable:
             setattr(holder, name, array(values.typecode))
         try:
             blob = pickle.dumps(timeline, protocol=pickle.HIGHEST_PROTOCOL)
+            if self.probe:
+                # Once per file: that the planner loads again. A build whose classes do not
+                # (mypyc's native classes without serializable=True cannot be created
+                # without their __init__'s arguments) takes no checkpoints: whole passes.
+                self.probe = False
+                pickle.loads(blob)
+        except (pickle.PickleError, TypeError, AttributeError):
+            self.disabled = True
+            return
         finally:
             for (owner, name), values in zip(GROWING, growing):
                 setattr(_owner(timeline, owner), name, values)
