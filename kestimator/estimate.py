@@ -45,6 +45,11 @@ from kestimator.segments import OBJECT_COMMANDS, Segments
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # Comment markers that start a layer.
 LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
 # Comment markers that name the feature (extrusion role) of the moves that follow.
@@ -270,6 +275,7 @@ def over_long_line(head: bytes, lineno: int, path: str) -> bytes:
                           "command line that long" % (MAX_LINE_BYTES >> 20), path, lineno)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Warnings:
     """The warnings of one file, each naming file and line: the first MAX_WARNINGS kept, the
     rest counted; repeats of the same key are counted on the first ("N more like it")."""
@@ -303,6 +309,7 @@ class Warnings:
                 for w, n in zip(self.kept, self.repeats)]
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ProgressSamples:
     """Where the print is at times through it: the move on line lines[i] ends at times[i],
     spaced at least `spacing` apart (at most MAX_SAMPLES kept: when full, every other one
@@ -343,6 +350,7 @@ class ProgressSamples:
         self.tail = deque(((line, function(t)) for line, t in self.tail), maxlen=TAIL_SAMPLES)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
@@ -751,6 +759,7 @@ def parse_add_time(words: list[str]) -> tuple[float, str] | str:
     return seconds, ADD_TIME_MARKER + (" " + label if label else "")
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class EventRunner:
     """Runs a Timeline's events (`Event`) right before their lines."""
 

@@ -52,6 +52,11 @@ from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 __all__ = ["CommandError", "Interpreter", "MoveError", "ParamError"]
 
 # Commands Klipper knows (with a typical printer.cfg) that take no time and change nothing
@@ -93,6 +98,7 @@ AddTimeFn = Callable[[float, str, str], None]
 Handler = Callable[[Command], None]
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Interpreter:
     """Runs commands against a ToolHead through the printer's objects."""
 
