@@ -916,10 +916,11 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
         if not block:
             break
         last = line + block.count(b"\n")  # the line that holds the block's end
+        line_bytes = len(block) / max(1, last - line)
         pos = 0
         while k < len(lines) and lines[k] <= last:
             target = lines[k]
-            pos = _after_newlines(block, pos, target - line)
+            pos = _after_newlines(block, pos, target - line, line_bytes)
             line = target
             result[target] = base + pos
             k += 1
@@ -928,16 +929,17 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
     return result
 
 
-def _after_newlines(block: bytes, pos: int, n: int) -> int:
+def _after_newlines(block: bytes, pos: int, n: int, line_bytes: float) -> int:
     """The position just after the `n`-th LF at or after `pos` in `block` (which has that
-    many). Long stretches are skipped by counting (C speed), not one LF at a time."""
-    span = 64 * n  # bytes per line guessed; halved while a span holds too many LFs
-    while n > 8:
+    many), its lines `line_bytes` long on average. Most of the way is skipped by counting
+    LFs in a stretch guessed a little short (C speed), the last few found one by one."""
+    span = int(n * line_bytes * 0.8)
+    while n > 16:
         count = block.count(b"\n", pos, pos + span)
         if count < n:
             pos += span
             n -= count
-            span *= 2
+            span = int(n * line_bytes * 0.8)
         else:
             span //= 2
     for _ in range(n):
