@@ -16,7 +16,9 @@ Memory stays bounded whatever the file: at most MAX_CHECKPOINTS + 1 checkpoints,
 more than MAX_CHECKPOINT_BYTES in all (past it no more are taken in that pass: later
 changes replay from the last one). A checkpoint is the planner's pickle without its
 growing arrays (samples, layer and mark times: `GROWING`), which are kept once, as what
-changed since the previous checkpoint.
+changed since the previous checkpoint (plus one copy of them as at the last checkpoint, to
+find what changed: the estimate's own size again). For the 40 MB corpus file: 49
+checkpoints, 9.4 MiB.
 """
 
 from __future__ import annotations
