@@ -876,19 +876,29 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
                         macros=macros, note=note, events=events)
-    return run_timeline(timeline, partial(timeline.feed_lines, lines))
+    return run_timeline(timeline, partial(_fed, timeline, lines))
 
 
-def run_timeline(timeline: Timeline, feed: Callable[[], None]) -> Estimate:
-    """`feed()` (which feeds `timeline` its lines), then the estimate, checked, with the
-    errors of estimate_lines. kestimator.resume feeds a timeline restored mid-file so."""
+def _fed(timeline: Timeline, lines: Iterable[bytes]) -> Timeline:
+    timeline.feed_lines(lines)
+    return timeline
+
+
+def run_timeline(timeline: Timeline, feed: Callable[[], Timeline],
+                 live: Callable[[], Timeline] | None = None) -> Estimate:
+    """`feed()`, which feeds `timeline` its lines and returns the timeline it ended with,
+    then that one's estimate, checked, with the errors of estimate_lines. kestimator.resume
+    feeds a timeline restored mid-file so, and goes on with copies of it: `live()` is the
+    one running (an error names its line)."""
     path = timeline.path
     try:
-        feed()
+        timeline = feed()
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a
         # velocity so small its square is 0); Klipper would shut down, we name the line.
+        if live is not None:
+            timeline = live()
         raise KestimatorError("the planner cannot compute a time at or before this line "
                               "(%s: %s)" % (type(exc).__name__, exc), path,
                               timeline.lineno or None) from None

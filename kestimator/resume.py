@@ -4,30 +4,33 @@ Owns the checkpoints of one file's estimate: while a pass runs, the whole planne
 `Timeline` and everything it holds: toolhead with its look-ahead queue, gcode_move,
 extruders, macros and variables, firmware retraction, input shaper, exclude_object, the
 per-feature, per-object and per-layer sums, progress samples, warnings, pending look-ahead
-callbacks) is pickled between two blocks of lines, about every 1/MAX_CHECKPOINTS of the
-file. A later estimate of the same file whose events (`estimate.Event`: commands typed at
-some line) agree with the saved run's up to a checkpoint loads that checkpoint and reads
-the file on from its byte offset, so a change at fraction f of the file costs at most
-1 - f of a pass plus one checkpoint's spacing; the estimate is bit for bit the one a whole
-pass gives (the planner's floats are pickled exactly; tests/test_resume.py compares the
-answers' bytes on every corpus file).
+callbacks) is pickled between two blocks of lines, the gap to the next checkpoint GAP_RATIO
+of what is left of the file (at least MIN_GAP_RATIO of the file): denser towards the end,
+where a change leaves less to replay. A later estimate of the same file whose events
+(`estimate.Event`: commands typed at some line) agree with the saved run's up to a
+checkpoint loads that checkpoint and reads the file on from its byte offset, so a change at
+fraction f of the file costs at most (1 - f) / (1 - GAP_RATIO) of a pass (or 1 - f +
+MIN_GAP_RATIO near the end) and the answer's constant; the estimate is bit for bit the one
+a whole pass gives (the planner's floats are pickled exactly; tests/test_resume.py compares
+the answers' bytes on every corpus file).
 
-Memory stays bounded whatever the file: at most MAX_CHECKPOINTS + 1 checkpoints, and no
+Memory stays bounded whatever the file: at most MAX_CHECKPOINTS checkpoints (about 65 for
+any large file: 45 while the gaps shrink to MIN_GAP_RATIO, 20 in the last tenth), and no
 more than MAX_CHECKPOINT_BYTES in all (past it no more are taken in that pass: later
-changes replay from the last one). A checkpoint is the planner's pickle without its
-growing arrays (samples, layer and mark times: `GROWING`), which are kept once, as what
-changed since the previous checkpoint (plus one copy of them as at the last checkpoint, to
-find what changed: the estimate's own size again). For the 40 MB corpus file: 49
-checkpoints, 9.4 MiB.
+changes replay from the last one). A checkpoint is the planner's pickle without its growing
+arrays (samples, layer and mark times: `GROWING`), which are kept once, as what changed
+since the previous checkpoint (plus one copy of them as at the last checkpoint, to find
+what changed: the estimate's own size again).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import io
 import pickle
 from array import array
 from collections.abc import Callable, Iterator, Sequence
-from typing import Final
+from typing import Any, Final
 
 from kestimator.estimate import (
     Estimate,
@@ -38,9 +41,12 @@ from kestimator.estimate import (
     run_timeline,
 )
 
-MAX_CHECKPOINTS: Final = 50
-# Checkpoints are never closer than this many bytes of the file (a small file has fewer).
-MIN_SPACING_BYTES: Final = 1 << 14
+# The gap after a checkpoint: this share of the rest of the file, at least MIN_GAP_RATIO of
+# the file and MIN_GAP_BYTES (a small file has fewer checkpoints).
+GAP_RATIO: Final = 0.05
+MIN_GAP_RATIO: Final = 0.005
+MIN_GAP_BYTES: Final = 1 << 14
+MAX_CHECKPOINTS: Final = 100
 # All checkpoints of a file together hold at most this many bytes.
 MAX_CHECKPOINT_BYTES: Final = 64 << 20
 # The timeline's arrays that grow with the file, kept outside the pickles: (attribute of
@@ -70,6 +76,49 @@ def _common_prefix(a: array, b: array) -> int:
     return lo // a.itemsize
 
 
+def _has_dict(obj: object) -> bool:
+    """Whether instances of `obj`'s class have a __dict__ (read without making one)."""
+    return getattr(type(obj), "__dictoffset__", 0) != 0
+
+
+def _new(cls: Any) -> object:
+    """An instance of `cls` not yet initialised (its attributes come from `_set_attributes`)."""
+    return cls.__new__(cls)
+
+
+def _set_attributes(obj: object, state: dict[str, object]) -> None:
+    """Set a loaded object's attributes one by one (frozen dataclasses too): on CPython
+    3.11 and 3.12 it keeps them inline, as an object built by its __init__ does."""
+    for name, value in state.items():
+        object.__setattr__(obj, name, value)
+
+
+class _Pickler(pickle.Pickler):
+    """Pickles kestimator's plain classes so that loading sets their attributes one by one
+    (`_set_attributes`), not through their __dict__; everything else as pickle does."""
+
+    def reducer_override(self, obj: object) -> Any:
+        cls = type(obj)
+        if (not _has_dict(obj) or not cls.__module__.startswith("kestimator.")
+                or isinstance(obj, BaseException)
+                or cls.__reduce_ex__ is not object.__reduce_ex__
+                or cls.__reduce__ is not object.__reduce__
+                or getattr(cls, "__getstate__", None) is not _OBJECT_GETSTATE
+                or hasattr(cls, "__setstate__")):
+            return NotImplemented
+        return (_new, (cls,), obj.__dict__, None, None, _set_attributes)
+
+
+# object.__getstate__ (Python 3.11 and later; None before).
+_OBJECT_GETSTATE = getattr(object, "__getstate__", None)
+
+
+def _dumps(timeline: Timeline) -> bytes:
+    out = io.BytesIO()
+    _Pickler(out, protocol=pickle.HIGHEST_PROTOCOL).dump(timeline)
+    return out.getvalue()
+
+
 @dataclasses.dataclass
 class Checkpoint:
     """The planner after line `lineno`, whose successor starts at byte `offset`."""
@@ -95,7 +144,8 @@ class Resumable:
 
     def __init__(self, key: object, size: int) -> None:
         self.key = key
-        self.spacing = max(MIN_SPACING_BYTES, size // MAX_CHECKPOINTS)
+        self.size = size
+        self.min_gap = max(MIN_GAP_BYTES, int(size * MIN_GAP_RATIO))
         self.checkpoints: list[Checkpoint] = []
         # The events of the run the checkpoints come from, in line order.
         self.events: list[Event] = []
@@ -142,45 +192,68 @@ class Resumable:
         self.events = ordered
         self.resumed_at = lineno
 
-        def feed() -> None:
+        self.live = timeline
+
+        def feed() -> Timeline:
             with open(path, "rb", buffering=0) as f:
                 f.seek(offset)
-                self._feed(timeline, line_batches_at(f.read, path, None, lineno, offset),
-                           offset)
-        return run_timeline(timeline, feed)
+                self._feed(line_batches_at(f.read, path, None, lineno, offset), offset)
+            return self.live
+        return run_timeline(timeline, feed, self._live)
 
-    def _feed(self, timeline: Timeline, batches: Iterator[tuple[list[bytes], int]],
-              offset: int) -> None:
-        due = offset + self.spacing
+    def _live(self) -> Timeline:
+        return self.live
+
+    def _feed(self, batches: Iterator[tuple[list[bytes], int]], offset: int) -> None:
+        """Feed `self.live` the batches, taking checkpoints as due (and, in the pure build,
+        going on with the checkpoint's copy: see `_save`)."""
+        due = offset + self.gap(offset)
         for lines, after in batches:
-            timeline.feed_lines(lines)
-            if (after >= due and after >= 0 and self.nbytes < MAX_CHECKPOINT_BYTES
-                    and not self.disabled):
-                self._save(timeline, after)
-                due = after + self.spacing
+            self.live.feed_lines(lines)
+            if (due <= after < self.size and self.nbytes < MAX_CHECKPOINT_BYTES
+                    and len(self.checkpoints) < MAX_CHECKPOINTS and not self.disabled):
+                self._save(self.live, after)
+                due = after + self.gap(after)
+
+    def gap(self, offset: int) -> int:
+        """Bytes from a checkpoint at `offset` to the next."""
+        return max(self.min_gap, int((self.size - offset) * GAP_RATIO))
 
     def _save(self, timeline: Timeline, offset: int) -> None:
-        """A checkpoint of `timeline` after its last line, the next one at `offset`."""
+        """A checkpoint of `timeline` after its last line, the next one at `offset`.
+
+        Pickling reads each object's __dict__, and on CPython 3.11 and 3.12 an object whose
+        __dict__ was read keeps a real dict for life: its attributes are slower to read
+        (a pass taking checkpoints cost 23 % more). So where the planner's objects have a
+        __dict__ (the pure build), the pass goes on with the checkpoint's copy, whose
+        objects were built attribute by attribute (`_set_attributes`); compiled classes
+        have no __dict__ and go on as they are."""
         growing = []
         for owner, name in GROWING:
             holder = _owner(timeline, owner)
             values = getattr(holder, name)
             growing.append(values)
             setattr(holder, name, array(values.typecode))
+        copy: Timeline | None = None
         try:
-            blob = pickle.dumps(timeline, protocol=pickle.HIGHEST_PROTOCOL)
-            if self.probe:
-                # Once per file: that the planner loads again. A build whose classes do not
-                # (mypyc's native classes without serializable=True cannot be created
-                # without their __init__'s arguments) takes no checkpoints: whole passes.
+            blob = _dumps(timeline)
+            if self.probe or _has_dict(timeline):
+                # That the planner loads again (once per file where the copy is not used).
+                # A build whose classes do not (mypyc's native classes without
+                # serializable=True cannot be created without their __init__'s arguments)
+                # takes no checkpoints: whole passes.
                 self.probe = False
-                pickle.loads(blob)
+                copy = pickle.loads(blob)
         except (pickle.PickleError, TypeError, AttributeError):
             self.disabled = True
             return
         finally:
             for (owner, name), values in zip(GROWING, growing):
                 setattr(_owner(timeline, owner), name, values)
+        if copy is not None and _has_dict(timeline):
+            for (owner, name), values in zip(GROWING, growing):
+                setattr(_owner(copy, owner), name, values)
+            self.live = copy
         deltas = []
         for i, values in enumerate(growing):
             kept = _common_prefix(self._last[i], values)

@@ -40,11 +40,15 @@ def _answer(path: Path, events: list[list[Any]]) -> str:
 
 
 def _whole_pass(path: Path, events: list[list[Any]]) -> str:
-    """The answer of a worker that has no checkpoints (the checkpoints are kept aside)."""
+    """The answer of a worker that has no checkpoints and takes none (its planner is never
+    pickled: the checkpoints are kept aside)."""
     kept, worker._resumable = worker._resumable, None
+    limit = resume.MAX_CHECKPOINT_BYTES
+    resume.MAX_CHECKPOINT_BYTES = 0
     try:
         return _answer(path, events)
     finally:
+        resume.MAX_CHECKPOINT_BYTES = limit
         worker._resumable = kept
 
 
@@ -71,7 +75,7 @@ def _check_resumed_answers_match_whole_passes(path: Path) -> None:
         if worker._resumable is not None and worker._resumable.resumed_at:
             resumed_any = True
         assert resumed == _whole_pass(path, events), (path.name, events)
-    if doc["ok"] and path.stat().st_size >= 8 * resume.MIN_SPACING_BYTES:
+    if doc["ok"] and path.stat().st_size >= 8 * resume.MIN_GAP_BYTES:
         assert resumed_any, "no answer went on from a checkpoint"
 
 
@@ -88,7 +92,7 @@ def test_resumed_answer_bytes_equal_whole_pass_big_file(corpus_root: Path,
     size = path.stat().st_size
     resumable = worker._resumable
     assert resumable is not None
-    assert len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS + 1
+    assert len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
     assert resumable.nbytes <= resume.MAX_CHECKPOINT_BYTES + max(
         c.nbytes for c in resumable.checkpoints)
     events: list[list[Any]] = [[int(size * 0.5), "M220 S150"]]
@@ -105,13 +109,16 @@ def test_change_at_the_end_goes_on_from_the_last_checkpoint(corpus_root: Path) -
     _answer(path, [])
     resumable = worker._resumable
     assert resumable is not None
-    last = resumable.checkpoints[-1]
+    before, last = resumable.checkpoints[-2:]
     size = path.stat().st_size
-    _answer(path, [[size - 1, "M220 S150"]])
-    assert resumable.resumed_at == last.lineno
-    # Spaced about 1/MAX_CHECKPOINTS of the file apart, the last within a spacing of the end.
-    assert size - last.offset <= 2 * resumable.spacing
-    assert len(resumable.checkpoints) >= resume.MAX_CHECKPOINTS // 2
+    _answer(path, [[(before.offset + last.offset) // 2, "M220 S150"]])
+    assert resumable.resumed_at == before.lineno
+    # Each gap GAP_RATIO of the rest (at least min_gap); the last within a gap of the end.
+    offsets = [0] + [c.offset for c in resumable.checkpoints]
+    for before, after in zip(offsets, offsets[1:]):
+        assert resumable.gap(before) <= after - before <= resumable.gap(before) + (3 << 14)
+    assert size - last.offset <= resumable.min_gap + (3 << 14)
+    assert 40 <= len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
 
 
 def test_checkpoints_are_dropped_when_the_file_changes(corpus_root: Path,
