@@ -36,8 +36,8 @@ of the planner (kestimator.resume) for the file estimated last: the next estimat
 very file (device, inode, size, modification and change times) for the very same settings
 (a change during the print: the events so far and a new one) goes on from the last
 checkpoint before the first event that differs, so it reads only the file from there on
-(about 2 % of the file more), and its answer is byte for byte a whole pass's. The
-checkpoints take at most resume.MAX_CHECKPOINT_BYTES (64 MiB; 9.4 MiB for the 40 MB
+(at most 5 % of the rest more), and its answer is byte for byte a whole pass's. The
+checkpoints take at most resume.MAX_CHECKPOINT_BYTES (64 MiB; 11.3 MiB for the 40 MB
 corpus file) and are dropped when another file or other settings are estimated. Every
 request gets an answer
 (no error ends the process); end of input ends it with status 0. Only the standard library
