@@ -273,13 +273,10 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
     the settings already resolved for `config` (`resolve_printer`), else resolved here."""
     from kestimator.rewrite import check_gcode_file
 
-    lines: list[int] = []
-    if events:
-        with open(path, "rb") as f:
-            lines = lines_at_offsets(f.read, [offset for offset, _ in events])
     check_gcode_file(path)
     if printer is None:
         printer = resolve_printer(path, config)
+    lines = event_lines(path, [offset for offset, _ in events])
     resolved, macros = printer.resolved, printer.macros
     warnings = list(resolved.warnings) + list(macros.warnings)
     est = estimate_resuming(path, printer, list(zip(lines, (text for _, text in events))))
@@ -300,6 +297,32 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
 _resumable: Resumable | None = None
 
 
+def _file_id(path: str, st: os.stat_result) -> tuple[object, ...]:
+    """What says a file is still the one checkpoints were taken of."""
+    return (path, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+
+
+def event_lines(path: str, offsets: list[int]) -> list[int]:
+    """The line each byte offset falls on (`lines_at_offsets`), counted from the last
+    checkpoint of this very file at or before the first offset (a checkpoint knows its line
+    and the byte offset of the next) rather than from the file's start."""
+    if not offsets:
+        return []
+    line0 = offset0 = 0
+    resumable = _resumable
+    if resumable is not None and isinstance(resumable.key, tuple):
+        file_id = _file_id(path, os.stat(path))
+        if resumable.key[:len(file_id)] == file_id:
+            first = min(offsets)
+            for checkpoint in resumable.checkpoints:
+                if checkpoint.offset <= first:
+                    line0, offset0 = checkpoint.lineno, checkpoint.offset
+    with open(path, "rb") as f:
+        f.seek(offset0)
+        relative = lines_at_offsets(f.read, [offset - offset0 for offset in offsets])
+    return [line0 + line for line in relative]
+
+
 def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estimate:
     """The estimate of `path` for `printer` with `events` (line, command), going on from
     the checkpoints of the last estimate when they are of this very file (device, inode,
@@ -310,8 +333,8 @@ def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estim
 
     st = os.stat(path)
     resolved, macros = printer.resolved, printer.macros
-    key = (path, st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns,
-           resolved.limits, macros, printer.homing_time, printer.heat_time)
+    key = _file_id(path, st) + (resolved.limits, macros, printer.homing_time,
+                                printer.heat_time)
     if _resumable is None or _resumable.key != key:
         _resumable = None  # the old checkpoints go before new ones are taken
         _resumable = Resumable(key, st.st_size)
