@@ -15,6 +15,12 @@ shared host falls on all of them alike; each ratio is to the copy of the same ru
     python benchmarks/bench.py [--python PYTHON] [--build pure|compiled|both] [--repeat N]
                                [--env KEY=VALUE ...] [--no-concat] [--no-record] [--note TEXT]
 
+In the same run: klipper_estimator's `estimate` and `post-process` (the build in
+../shared/peers, when there), with each build's CPU as a ratio to theirs; and, on the 1x
+file, the CPU of the worker's answers (`ANSWER_SRC`) for each build: the first answer with
+and without checkpoints, the Klipper module's requests after changes at 10 %, 50 % and
+90 % of the file, and a whole pass (a second table in RESULTS.md; `--no-answers` skips it).
+
 Before any run, the measured packages' bytecode is compiled (`compileall`, as `pip install`
 does for an installed package), so no measured run compiles source: with
 PYTHONDONTWRITEBYTECODE set, a checkout would otherwise be compiled afresh in every run
