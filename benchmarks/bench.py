@@ -15,6 +15,12 @@ shared host falls on all of them alike; each ratio is to the copy of the same ru
     python benchmarks/bench.py [--python PYTHON] [--build pure|compiled|both] [--repeat N]
                                [--env KEY=VALUE ...] [--no-concat] [--no-record] [--note TEXT]
 
+In the same run: klipper_estimator's `estimate` and `post-process` (the build in
+../shared/peers, when there), with each build's CPU as a ratio to theirs; and, on the 1x
+file, the CPU of the worker's answers (`ANSWER_SRC`) for each build: the first answer with
+and without checkpoints, the Klipper module's requests after changes at 10 %, 50 % and
+90 % of the file, and a whole pass (a second table in RESULTS.md; `--no-answers` skips it).
+
 Before any run, the measured packages' bytecode is compiled (`compileall`, as `pip install`
 does for an installed package), so no measured run compiles source: with
 PYTHONDONTWRITEBYTECODE set, a checkout would otherwise be compiled afresh in every run
@@ -45,6 +51,10 @@ DEFAULT_FILE = os.path.join(ROOT, "..", "shared", "corpus", "gcode", "prusaslice
                             "ps25_bunny120_fast_fwretract_large.gcode")
 RESULTS = os.path.join(HERE, "RESULTS.md")
 CONCAT_COPIES = 4
+PEERS = os.path.join(ROOT, "..", "shared", "peers")
+PEER = os.path.join(PEERS, "klipper_estimator")
+PEER_CONFIG = os.path.join(PEERS, "klipper_estimator_corpus.json")
+CORPUS_CFG = os.path.join(ROOT, "..", "shared", "corpus", "printer.cfg")
 MIB = 1024 * 1024
 
 # The baseline: the cheapest honest pure-Python pass over the same lines.
@@ -53,6 +63,45 @@ import sys
 with open(sys.argv[1], "rb") as inp, open(sys.argv[2], "wb") as out:
     for line in inp:
         out.write(line)
+"""
+# The worker's answers after changes at 10 %, 50 % and 90 % of the file (issue 37), CPU
+# seconds of each, in one process: the first answer (one pass, taking checkpoints), the same
+# without checkpoints, then the Klipper module's requests through a print (each holds every
+# change so far), and a whole pass with the last request's changes for comparison.
+ANSWER_SRC = """
+import json, os, sys, time
+from kestimator import resume, worker
+path, config = sys.argv[1], sys.argv[2]
+size = os.path.getsize(path)
+def ask(events):
+    request = worker._checked({"id": 1, "file": path, "config": config, "events": events,
+                               "use_table": False})
+    t0 = time.process_time()
+    doc = worker.answer(request)
+    cpu = time.process_time() - t0
+    assert doc["ok"], doc
+    doc.pop("elapsed_s")
+    return cpu, json.dumps(doc, sort_keys=True)
+out = {}
+limit = resume.MAX_CHECKPOINT_BYTES
+resume.MAX_CHECKPOINT_BYTES = 0
+worker._resumable = None
+out["pass_no_checkpoints"] = ask([])[0]
+resume.MAX_CHECKPOINT_BYTES = limit
+worker._resumable = None
+out["first"] = ask([])[0]
+out["checkpoint_mib"] = worker._resumable.nbytes / 1048576.0
+out["checkpoints"] = len(worker._resumable.checkpoints)
+events = []
+for fraction, command in ((0.1, "M220 S150"), (0.5, "SET_VELOCITY_LIMIT ACCEL=1500"),
+                          (0.9, "M220 S70")):
+    events.append([int(size * fraction), command])
+    out["change_%d" % round(fraction * 100)], last = ask(list(events))
+worker._resumable = None
+out["whole_pass"], whole = ask(list(events))
+if whole != last:
+    sys.exit("the resumed answer differs from the whole pass's")
+print(json.dumps(out))
 """
 WRAP_SRC = """
 import resource, subprocess, sys, time
@@ -147,10 +196,20 @@ def bench_case(python: str, path: str, tmpdir: str, repeat: int,
                                                        "--json"], False)
         runs["inject compiled"] = (compiled_python, ["-m", "kestimator", "inject", path, "-o",
                                                      out, "-q"], False)
+    peer_file = os.path.join(tmpdir, "peer.gcode")
+    if os.access(PEER, os.X_OK):
+        # klipper_estimator, in the same run: its estimate, and its post-process (which
+        # rewrites the file in place: a fresh copy before each run, not measured).
+        runs["klipper_estimator estimate"] = (PEER, ["--config_file", PEER_CONFIG, "estimate",
+                                                     "-f", "json", path], False)
+        runs["klipper_estimator post-process"] = (PEER, ["--config_file", PEER_CONFIG,
+                                                         "post-process", peer_file], False)
     res: dict[str, object] = {"size_mb": size_mb}
     best: dict[str, tuple[float, float, float]] = {}
     for _ in range(repeat):
         for name, (run_python, argv, checkout) in runs.items():
+            if name.endswith("post-process"):
+                shutil.copyfile(path, peer_file)
             wall, rss, cpu = measure(run_python, argv, stdout_path, extra_env, checkout)
             prev = best.get(name)
             peak = rss if prev is None else max(rss, prev[1])
@@ -185,7 +244,8 @@ def for_build(res: dict[str, object], build: str) -> dict[str, object]:
 def report(label: str, res: dict[str, object]) -> list[str]:
     copy_t = res["copy"][0]  # type: ignore[index]
     rows = []
-    for name in ("copy", "estimate", "inject", "estimate compiled", "inject compiled"):
+    for name in ("copy", "estimate", "inject", "estimate compiled", "inject compiled",
+                 "klipper_estimator estimate", "klipper_estimator post-process"):
         if name not in res:
             continue
         wall, rss, cpu = res[name]  # type: ignore[misc]
@@ -194,9 +254,85 @@ def report(label: str, res: dict[str, object]) -> list[str]:
     lines = ["%s: %.1f MB, %d moves, total_s %r" % (label, res["size_mb"], res["n_moves"],
                                                    res["total_s"])]
     for name, wall, mps, mbs, ratio, rss, cpu in rows:
-        lines.append("  %-17s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
-                     "  (CPU %.2f s)" % (name, wall, mps, mbs, ratio, rss, cpu))
+        lines.append("  %-30s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
+                     "  (CPU %.2f s, %.2fx copy's CPU)" % (name, wall, mps, mbs, ratio, rss,
+                                                          cpu, cpu / res["copy"][2]))  # type: ignore[index]
+    for ours, theirs in (("estimate compiled", "klipper_estimator estimate"),
+                         ("inject compiled", "klipper_estimator post-process")):
+        if ours in res and theirs in res:
+            lines.append("  CPU %s / %s: %.2f" % (ours, theirs, res[ours][2]  # type: ignore[index]
+                                                  / res[theirs][2]))  # type: ignore[index]
     return lines
+
+
+def answer_times(python: str, path: str, repeat: int, checkout: bool,
+                 extra_env: dict[str, str] | None = None) -> dict[str, float]:
+    """CPU seconds of the worker's answers (ANSWER_SRC), the least of `repeat` processes."""
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if checkout:
+        env["PYTHONPATH"] = ROOT
+    env.update(extra_env or {})
+    best: dict[str, float] = {}
+    for _ in range(repeat):
+        with tempfile.TemporaryDirectory(prefix="kestimator-home-") as home:
+            # A new user's home: no profile, no learned times.
+            env.update(HOME=home, XDG_CONFIG_HOME=os.path.join(home, "config"),
+                       XDG_CACHE_HOME=os.path.join(home, "cache"))
+            out = subprocess.run([python, "-c", ANSWER_SRC, path, os.path.abspath(CORPUS_CFG)],
+                                 stdout=subprocess.PIPE, env=env, check=True, cwd=HERE)
+        for key, value in json.loads(out.stdout).items():
+            best[key] = value if key not in best else min(best[key], value)
+    return best
+
+
+def answer_report(build: str, times: dict[str, float]) -> list[str]:
+    whole = times["whole_pass"]
+    lines = ["  answers, %s: first %.2f s CPU (%.2f s without checkpoints: +%.0f %%), %d "
+             "checkpoints %.1f MiB; whole pass %.2f s" % (
+                 build, times["first"], times["pass_no_checkpoints"],
+                 100.0 * (times["first"] / times["pass_no_checkpoints"] - 1.0),
+                 times["checkpoints"], times["checkpoint_mib"], whole)]
+    for pct in (10, 50, 90):
+        t = times["change_%d" % pct]
+        lines.append("    change at %d %%: %.2f s CPU = %.0f %% of a whole pass"
+                     % (pct, t, 100.0 * t / whole))
+    return lines
+
+
+def answer_row(python: str, build: str, times: dict[str, float], note: str) -> str:
+    whole = times["whole_pass"]
+    return ("| %s | %s | %.2f | %.2f | %.2f | %s | %d / %.1f | %s |" % (
+        datetime.date.today().isoformat(),
+        python_name(python) + (" compiled" if build == "compiled" else ""),
+        whole, times["first"], times["pass_no_checkpoints"],
+        " / ".join("%.2f (%.0f %%)" % (times["change_%d" % p], 100.0 * times["change_%d" % p]
+                                       / whole) for p in (10, 50, 90)),
+        times["checkpoints"], times["checkpoint_mib"], note))
+
+
+ANSWERS_HEAD = ("\n## The worker's answer after a change (issue 37)\n\n"
+                "CPU seconds of the worker's answers on the 1x file, the least of the runs: "
+                "a whole pass with the three changes; the first answer (one pass taking "
+                "checkpoints) and the same pass without them; the answers to the Klipper "
+                "module's requests after changes at 10 %, 50 % and 90 % of the file (each "
+                "holding the changes before it), with their share of a whole pass.\n\n"
+                "| date | python | whole pass s | first answer s | without checkpoints s "
+                "| change at 10 / 50 / 90 % s | checkpoints / MiB | note |\n"
+                "|---|---|---|---|---|---|---|---|\n")
+
+
+def append_answer_rows(rows: list[str]) -> None:
+    with open(RESULTS, encoding="utf-8") as f:
+        text = f.read()
+    if ANSWERS_HEAD not in text:
+        text = text.rstrip("\n") + "\n" + ANSWERS_HEAD
+    start = text.index(ANSWERS_HEAD) + len(ANSWERS_HEAD)
+    end = start
+    while text.startswith("|", end):
+        end = text.index("\n", end) + 1
+    with open(RESULTS, "w", encoding="utf-8") as f:
+        f.write(text[:end] + "".join(row + "\n" for row in rows) + text[end:])
 
 
 def md_row(label: str, python: str, res: dict[str, object], note: str,
@@ -258,6 +394,8 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=1)
     parser.add_argument("--no-concat", action="store_true")
     parser.add_argument("--no-record", action="store_true")
+    parser.add_argument("--no-answers", action="store_true",
+                        help="skip the worker's answers after a change")
     parser.add_argument("--note", default="")
     parser.add_argument("--env", action="append", default=[], metavar="KEY=VALUE",
                         help="set for every measured run (repeatable)")
@@ -284,17 +422,29 @@ def main() -> int:
                     with open(path, "rb") as inp:
                         shutil.copyfileobj(inp, out, 1 << 20)
             cases.append(("%dx" % CONCAT_COPIES, big))
+        answer_rows = []
         for label, case_path in cases:
             res = bench_case(args.python, case_path, tmpdir, args.repeat, extra_env,
                              compiled_python)
             print("\n".join(report(label, res)), flush=True)
             for one in builds:
                 rows.append(md_row(label, args.python, for_build(res, one), note, one))
+            if label != "1x" or args.no_answers:
+                continue
+            for one in builds:
+                one_python = compiled_python if one == "compiled" else args.python
+                assert one_python is not None
+                times = answer_times(one_python, case_path, args.repeat, one == "pure",
+                                     extra_env)
+                print("\n".join(answer_report(one, times)), flush=True)
+                answer_rows.append(answer_row(args.python, one, times, note))
     load = max(load, os.getloadavg()[0])
     print("host:", platform.node(), platform.processor() or platform.machine(),
           "load average (1 min) up to %.1f" % load)
     if not args.no_record:
         append_rows([row.replace(" |\n", " |") for row in rows])
+        if answer_rows:
+            append_answer_rows(answer_rows)
     return 0
 
 

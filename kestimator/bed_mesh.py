@@ -24,6 +24,11 @@ from kestimator.errors import CommandError, KestimatorError
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.gcode_move import GCodeMove, MoveTransform, WarnFn
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 PROFILE_VERSION: Final = 1
 # A saved profile's mesh parameters and their types (upstream's PROFILE_OPTIONS).
 _INT_OPTIONS: Final = ("x_count", "y_count", "mesh_x_pps", "mesh_y_pps")
@@ -59,6 +64,7 @@ def lerp(t: float, v0: float, v1: float) -> float:
     return (1. - t) * v0 + t * v1
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class MeshParams:
     """A profile's mesh parameters (upstream's mesh_params dict)."""
 
@@ -77,6 +83,7 @@ class MeshParams:
         self.tension = tension
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Profile:
     """A stored profile: the probed points (rows of Y, each a row of X) and parameters."""
 
@@ -85,6 +92,7 @@ class Profile:
         self.params = params
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class MoveSplitter:
     """Splits a move where the mesh's Z offset changes (upstream's MoveSplitter)."""
 
@@ -168,6 +176,7 @@ class MoveSplitter:
         return self.current_pos
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ZMesh:
     """A mesh built from probed points (upstream's ZMesh)."""
 
@@ -452,6 +461,7 @@ def _read_profile(section: Section) -> Profile | None:
     return Profile(points, params)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class BedMesh:
     """[bed_mesh]: the move transform and its commands (upstream's BedMesh, with its
     ProfileManager's profiles)."""

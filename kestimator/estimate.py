@@ -16,6 +16,7 @@ import os
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from functools import partial
 from itertools import chain, islice
 from typing import Final
 
@@ -43,6 +44,11 @@ from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.segments import OBJECT_COMMANDS, Segments
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
+
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
 # Comment markers that start a layer.
 LAYER_MARKERS: Final = (";LAYER_CHANGE", ";LAYER:", "; CHANGE_LAYER")
@@ -205,10 +211,19 @@ def _line_batches(path: str | os.PathLike[str],
 def split_line_batches(read: Callable[[int], bytes], path: str,
                        progress: ProgressCallback | None) -> Iterator[list[bytes]]:
     """The lines `read` gives, block by block: a list of lines per block (see iter_lines)."""
+    for parts, _ in line_batches_at(read, path, progress):
+        yield parts
+
+
+def line_batches_at(read: Callable[[int], bytes], path: str,
+                    progress: ProgressCallback | None = None, lineno: int = 0,
+                    offset: int = 0) -> Iterator[tuple[list[bytes], int]]:
+    """split_line_batches' lists, each with the byte offset of the line that follows it
+    (-1 where that is not known: after the rest of an over-long line was skipped). `read`
+    starts at byte `offset` of the file, at the start of line `lineno` + 1."""
     # A line that fits in a block is split out by C code; only a line that spans blocks
     # (its start is `rest`) can be over MAX_LINE_BYTES (READ_BLOCK_BYTES <= that bound).
     rest = b""
-    lineno = 0  # lines yielded so far
     done = 0
     next_report = PROGRESS_EVERY_BYTES
     skipping: bytes | None = None  # the start of an over-long line whose rest is skipped
@@ -225,7 +240,7 @@ def split_line_batches(read: Callable[[int], bytes], path: str,
             if nl < 0:
                 continue
             lineno += 1
-            yield [over_long_line(skipping, lineno, path)]
+            yield [over_long_line(skipping, lineno, path)], -1
             skipping = None
             block = block[nl + 1:]
         parts = block.split(b"\n")
@@ -237,14 +252,14 @@ def split_line_batches(read: Callable[[int], bytes], path: str,
         rest = parts.pop()
         if parts:
             lineno += len(parts)
-            yield parts
+            yield parts, offset + done - len(rest)
         if len(rest) > MAX_LINE_BYTES:
             skipping = rest[:MAX_LINE_BYTES]
             rest = b""
     if skipping is not None:
-        yield [over_long_line(skipping, lineno + 1, path)]
+        yield [over_long_line(skipping, lineno + 1, path)], -1
     elif rest:
-        yield [rest]
+        yield [rest], offset + done
     if progress is not None:
         progress(done)
 
@@ -263,6 +278,7 @@ def over_long_line(head: bytes, lineno: int, path: str) -> bytes:
                           "command line that long" % (MAX_LINE_BYTES >> 20), path, lineno)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Warnings:
     """The warnings of one file, each naming file and line: the first MAX_WARNINGS kept, the
     rest counted; repeats of the same key are counted on the first ("N more like it")."""
@@ -296,6 +312,7 @@ class Warnings:
                 for w, n in zip(self.kept, self.repeats)]
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ProgressSamples:
     """Where the print is at times through it: the move on line lines[i] ends at times[i],
     spaced at least `spacing` apart (at most MAX_SAMPLES kept: when full, every other one
@@ -336,6 +353,7 @@ class ProgressSamples:
         self.tail = deque(((line, function(t)) for line, t in self.tail), maxlen=TAIL_SAMPLES)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Timeline:
     """Drives the interpreter over lines and records times at the lines asked for."""
 
@@ -526,10 +544,8 @@ class Timeline:
             return
         index = len(store)
         store.append(lineno, 0.0)
-
-        def resolve(t: float) -> None:
-            store.set_time(index, t)
-        self.toolhead.register_lookahead_callback(resolve)
+        # A partial, not a closure: the worker pickles the planner (kestimator.resume).
+        self.toolhead.register_lookahead_callback(partial(store.set_time, index))
 
     # Per line
     def feed(self, raw: bytes) -> None:
@@ -753,6 +769,7 @@ def parse_add_time(words: list[str]) -> tuple[float, str] | str:
     return seconds, ADD_TIME_MARKER + (" " + label if label else "")
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class EventRunner:
     """Runs a Timeline's events (`Event`) right before their lines."""
 
@@ -879,12 +896,29 @@ def estimate_lines(lines: Iterable[bytes], limits: Limits, path: str = "<input>"
     timeline = Timeline(limits, path, homing_time=homing_time, heat_time=heat_time,
                         sample=sample, mark_prefixes=mark_prefixes, observer=observer,
                         macros=macros, note=note, events=events)
+    return run_timeline(timeline, partial(_fed, timeline, lines))
+
+
+def _fed(timeline: Timeline, lines: Iterable[bytes]) -> Timeline:
+    timeline.feed_lines(lines)
+    return timeline
+
+
+def run_timeline(timeline: Timeline, feed: Callable[[], Timeline],
+                 live: Callable[[], Timeline] | None = None) -> Estimate:
+    """`feed()`, which feeds `timeline` its lines and returns the timeline it ended with,
+    then that one's estimate, checked, with the errors of estimate_lines. kestimator.resume
+    feeds a timeline restored mid-file so, and goes on with copies of it: `live()` is the
+    one running (an error names its line)."""
+    path = timeline.path
     try:
-        timeline.feed_lines(lines)
+        timeline = feed()
         est = timeline.finish()
     except (ArithmeticError, ValueError) as exc:
         # Values Klipper accepts one by one can still break its arithmetic together (a
         # velocity so small its square is 0); Klipper would shut down, we name the line.
+        if live is not None:
+            timeline = live()
         raise KestimatorError("the planner cannot compute a time at or before this line "
                               "(%s: %s)" % (type(exc).__name__, exc), path,
                               timeline.lineno or None) from None

@@ -24,10 +24,16 @@ from kestimator.stepgen import MAX_SMOOTH_TIME_T, pressure_advance_window
 if TYPE_CHECKING:
     from kestimator.toolhead import Move, ToolHead
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # pressure_advance_smooth_time's default (of an [extruder_stepper] whose options are unknown).
 EXTRUDER_STEPPER_SMOOTH_TIME = 0.040
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ExtruderStepper:
     """One extruder stepper: its pressure advance and whether it follows a motion queue."""
 
@@ -43,6 +49,7 @@ class ExtruderStepper:
         return pressure_advance_window(self.pressure_advance, self.pressure_advance_smooth_time)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class PrinterExtruder:
     """One [extruder] / [extruderN]: the limits `check_move` applies to moves that extrude."""
 
@@ -91,6 +98,7 @@ class PrinterExtruder:
                 % (fixed(area), fixed(self.max_extrude_ratio * self.filament_area)))
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class PrinterExtruders:
     """Every extruder and extruder stepper of the printer, and their commands.
 

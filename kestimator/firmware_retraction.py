@@ -13,7 +13,13 @@ from kestimator.gcode import Command, command_params, get_float
 from kestimator.gcode_move import GCodeMove
 from kestimator.limits import Limits
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class FirmwareRetraction:
     """The retraction lengths and speeds, and whether the filament is retracted."""
 

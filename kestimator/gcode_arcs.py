@@ -14,12 +14,18 @@ from kestimator.errors import CommandError
 from kestimator.gcode import ABSENT, Command, get_float
 from kestimator.gcode_move import GCodeMove
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # Coordinates of the arc's plane: the plane's two axes and the helical one.
 ARC_PLANE_X_Y, ARC_PLANE_X_Z, ARC_PLANE_Y_Z = 0, 1, 2
 # An arc that would need more segments than this (100 m at 1 mm resolution) is refused.
 MAX_ARC_SEGMENTS: Final = 100_000
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ArcSupport:
     """G2/G3 (and the plane commands) of [gcode_arcs]."""
 

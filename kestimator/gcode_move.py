@@ -20,6 +20,11 @@ from kestimator.errors import CommandError
 from kestimator.gcode import Command, command_params, get_float, get_int
 from kestimator.toolhead import ToolHead
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # Klipper's default G-code speed: 25 mm/s.
 DEFAULT_SPEED_V: Final = 25.0
 MM_PER_MIN_TO_MM_PER_S: Final = 1.0 / 60.0
@@ -43,6 +48,7 @@ class MoveTransform(Protocol):
     def get_position(self) -> list[float]: ...
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ToolHeadTransform:
     """The toolhead as the last transform of the chain (upstream passes the toolhead)."""
 
@@ -58,6 +64,7 @@ class ToolHeadTransform:
         return list(self.toolhead.commanded_pos)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class GCodeMove:
     """The G-code position and modes, and the moves they make."""
 

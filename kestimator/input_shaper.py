@@ -19,7 +19,13 @@ from kestimator.stepgen import (
 )
 from kestimator.toolhead import ToolHead
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class InputShaper:
     """Each axis's (shaper_type, frequency, damping ratio)."""
 

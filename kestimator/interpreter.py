@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable
+from functools import partial
 from typing import Final
 
 from kestimator.bed_mesh import BedMesh
@@ -51,6 +52,11 @@ from kestimator.preflight import Preflight
 from kestimator.safe_z_home import SafeZHoming
 from kestimator.skew_correction import PrinterSkew
 from kestimator.toolhead import ToolHead, ToolHeadCommandHelper
+
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
 __all__ = ["CommandError", "Interpreter", "MoveError", "ParamError", "printer_commands"]
 
@@ -115,6 +121,7 @@ def printer_commands(limits: Limits) -> frozenset[str] | None:
                                                                          limits.kinematics)
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Interpreter:
     """Runs commands against a ToolHead through the printer's objects."""
 
@@ -124,8 +131,9 @@ class Interpreter:
         self.limits = limits
         self.toolhead = toolhead
         self.warn = warn
-        self.add_time: AddTimeFn = add_time or (lambda seconds, name, source:
-                                                 toolhead.add_time(seconds))
+        # Bound methods and partials, not closures, throughout: the worker pickles the
+        # whole planner to resume it (kestimator.resume), and pickle takes no closure.
+        self.add_time: AddTimeFn = add_time or self._rest
         # Called with the name of every command Klipper does not know (a macro, maybe).
         self.on_unknown: Callable[[str], object] | None = None
         # Called with the name of a command that takes time the file cannot show
@@ -234,20 +242,12 @@ class Interpreter:
         objects is printed with it). Its commands stay counted as before: module commands
         with the config, unknown ones without (the printer may lack the module)."""
         self.exclude_object = exclude = ExcludeObject(gcode_move)
-        modules = self.modules
         for name in ("EXCLUDE_OBJECT_START", "EXCLUDE_OBJECT_END", "EXCLUDE_OBJECT",
                      "EXCLUDE_OBJECT_DEFINE"):
             if name in self.macros:
                 continue
             handler: Handler = getattr(exclude, "cmd_" + name)
-
-            def counted(cmd: Command, handler: Handler = handler) -> None:
-                if modules is None:
-                    self._unknown(cmd.name)
-                else:
-                    self._count(KIND_MODULE, cmd.name)
-                handler(cmd)
-            self.register_command(name, counted)
+            self.register_command(name, partial(self._counted, handler))
 
     def _register_heater_commands(self, heaters: PrinterHeaters,
                                   modules: frozenset[str]) -> None:
@@ -257,11 +257,7 @@ class Interpreter:
         if "extruder" in modules:
             commands += [("M104", heaters.cmd_M104), ("M109", heaters.cmd_M109)]
         if "heater_bed" in modules:
-            # M140 stays counted as a module command (Estimate.commands), as before.
-            def cmd_M140(cmd: Command) -> None:
-                self._count(KIND_MODULE, "M140")
-                heaters.cmd_M140(cmd)
-            commands += [("M140", cmd_M140), (HEATER_BED_WAIT, heaters.cmd_M190)]
+            commands += [("M140", self._cmd_M140), (HEATER_BED_WAIT, heaters.cmd_M190)]
         if heaters.heaters:
             commands.append(("SET_HEATER_TEMPERATURE", heaters.cmd_SET_HEATER_TEMPERATURE))
         if heaters.sensors:
@@ -269,6 +265,24 @@ class Interpreter:
         for name, handler in commands:
             if name not in self.macros:
                 self.register_command(name, handler)
+
+    def _rest(self, seconds: float, name: str, source: str) -> None:
+        """Added time without a timeline: the toolhead rests that long."""
+        self.toolhead.add_time(seconds)
+
+    def _counted(self, handler: Handler, cmd: Command) -> None:
+        """An exclude_object command, counted as before: a module command with the
+        config, an unknown one without (the printer may lack the module)."""
+        if self.modules is None:
+            self._unknown(cmd.name)
+        else:
+            self._count(KIND_MODULE, cmd.name)
+        handler(cmd)
+
+    def _cmd_M140(self, cmd: Command) -> None:
+        """M140, counted as a module command (Estimate.commands), as before."""
+        self._count(KIND_MODULE, "M140")
+        self.heaters.cmd_M140(cmd)
 
     def _maybe_cold(self, message: str) -> None:
         """Klipper may refuse this extrusion (a macro may have heated the extruder)."""

@@ -18,7 +18,13 @@ from collections.abc import Callable
 
 from kestimator.stepgen import SDS_CHECK_TIME_T, kin_flush_delay
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class PrinterMotionQueuing:
     """Step-generation bookkeeping, as the toolhead consults it."""
 

@@ -18,6 +18,11 @@ from typing import Final
 from kestimator.gcode import Command, extended_params
 from kestimator.toolhead import ToolHead
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # Commands that say which object the following moves belong to.
 OBJECT_COMMANDS = frozenset(("EXCLUDE_OBJECT_DEFINE", "EXCLUDE_OBJECT_START",
                              "EXCLUDE_OBJECT_END", "M486"))
@@ -38,6 +43,7 @@ OBJECT_COMMENT: Final = ";printing object"
 OBJECT_STOP_COMMENT: Final = ";stop printing object"
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Segments:
     """Time per (feature, object) segment, as the planner releases moves."""
 

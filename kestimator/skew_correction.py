@@ -18,6 +18,11 @@ from kestimator.errors import CommandError
 from kestimator.gcode import Command, command_params, get_int
 from kestimator.gcode_move import GCodeMove, MoveTransform
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 
 def calc_skew_factor(ac: float, bd: float, ad: float) -> float:
     """The skew factor of a measured square's diagonals AC, BD and side AD."""
@@ -26,6 +31,7 @@ def calc_skew_factor(ac: float, bd: float, ad: float) -> float:
         (ac * ac - side * side - ad * ad) / (2 * side * ad)))
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class PrinterSkew:
     """The skew transform and its profiles (upstream's PrinterSkew)."""
 

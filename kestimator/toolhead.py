@@ -35,6 +35,11 @@ from kestimator.kinematics import load_kinematics
 from kestimator.limits import Limits
 from kestimator.motion_queuing import PrinterMotionQueuing
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 __all__ = ["LookAheadQueue", "Move", "MoveError", "ToolHead", "ToolHeadCommandHelper"]
 
 # Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
@@ -53,6 +58,7 @@ TimingCallback = Callable[[float], None]
 
 
 # Class to track each move request
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Move:
     """One straight-line move and, once planned, its trapezoidal velocity profile.
 
@@ -274,6 +280,7 @@ LOOKAHEAD_FLUSH_TIME: Final = 0.150
 
 # Class to track a list of pending move requests and to facilitate
 # "look-ahead" across moves to reduce acceleration between moves.
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class LookAheadQueue:
     """Pending moves, planned when enough are queued or when motion must stop."""
 
@@ -382,6 +389,7 @@ _JD_FACTOR: Final = 2.0**0.5 - 1.0
 
 
 # Main code to track events (and their timing) on the printer toolhead
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ToolHead:
     """Accumulates print time exactly as Klipper's toolhead does in batch mode."""
 
@@ -600,6 +608,7 @@ class ToolHead:
 
 
 # Support common G-Code commands relative to the toolhead
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class ToolHeadCommandHelper:
     """G4, M400, SET_VELOCITY_LIMIT and M204.
 

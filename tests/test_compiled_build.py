@@ -14,6 +14,7 @@ CI it must be there (.ci/run installs gcc).
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
@@ -23,7 +24,7 @@ from pathlib import Path
 
 import pytest
 
-from kestimator import build
+from kestimator import build, worker
 
 from .builds import (
     cli_outputs,
@@ -33,7 +34,7 @@ from .builds import (
     pure_cli_outputs,
     transform_runs,
 )
-from .conftest import IN_CI, PROJECT
+from .conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT, isolate_user_environment
 
 BUILD_TIMEOUT_S = 1200
 # What a wheel is built from: the package's sources and the build files (as in an sdist).
@@ -150,6 +151,53 @@ def test_the_wheel_holds_compiled_modules_and_says_compiled(compiled_python: str
     assert where[1] == "True"  # the compiled build parses moves with the byte scanner
     # ...while this checkout (the editable install the tests run) is the pure package.
     assert build() == "pure Python"
+
+
+# Run by the compiled build: the worker's answers after changes at 50 % and 90 % of a file
+# go on from checkpoints (the compiled planner pickles and loads again) and are the bytes
+# of a whole pass (and of the pure build's answer, printed for the test to compare).
+RESUME_SRC = """
+import json, os, sys
+from kestimator import worker
+path, config = sys.argv[1], sys.argv[2]
+size = os.path.getsize(path)
+def ask(events):
+    doc = worker.answer(worker._checked({"id": 1, "file": path, "config": config,
+                                         "events": events, "use_table": False}))
+    doc.pop("elapsed_s")
+    return json.dumps(doc, sort_keys=True)
+ask([])
+resumable = worker._resumable
+assert not resumable.disabled and len(resumable.checkpoints) > 10, resumable.checkpoints
+events = [[size // 2, "M220 S150"], [size * 9 // 10, "SET_VELOCITY_LIMIT ACCEL=1500"]]
+resumed = ask(events)
+assert worker._resumable is resumable and resumable.resumed_at > 0
+worker._resumable = None
+assert resumed == ask(events)
+print(resumed)
+"""
+
+
+def test_compiled_worker_resumes_from_checkpoints_with_whole_pass_bytes(
+        compiled_python: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = CORPUS / "gcode" / "prusaslicer" / "gcodepreview_benchy_ps2.6.1.gcode"
+    if not path.exists():
+        pytest.skip("the shared corpus is not beside this checkout")
+    isolate_user_environment(tmp_path, monkeypatch)
+    compiled = subprocess.run([compiled_python, "-c", RESUME_SRC, str(path), str(CORPUS_CFG)],
+                              capture_output=True, text=True, cwd="/", env=dict(os.environ),
+                              timeout=BUILD_TIMEOUT_S)
+    assert compiled.returncode == 0, compiled.stderr[-2000:]
+    worker._resumable = None
+    try:
+        pure = worker.answer(worker._checked({
+            "id": 1, "file": str(path), "config": str(CORPUS_CFG), "use_table": False,
+            "events": [[path.stat().st_size // 2, "M220 S150"],
+                       [path.stat().st_size * 9 // 10, "SET_VELOCITY_LIMIT ACCEL=1500"]]}))
+    finally:
+        worker._resumable = None
+    pure.pop("elapsed_s")
+    assert compiled.stdout.strip() == json.dumps(pure, sort_keys=True)
 
 
 @pytest.mark.parametrize("path", compared_files(), ids=lambda p: p.parent.name + "/" + p.name)

@@ -27,6 +27,11 @@ from collections.abc import Mapping
 
 from kestimator.errors import KestimatorError
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 # Sections (lower-case) a kinematics may read, besides [printer] and every [stepper_*].
 # [safe_z_home] and [homing_override] decide where G28 leaves the head.
 EXTRA_SECTIONS = ("dual_carriage", "probe", "bltouch", "smart_effector",
@@ -80,6 +85,11 @@ class MissingSectionError(KestimatorError):
 class MachineConfig:
     """The configuration sections a kinematics reads, with where each option came from."""
 
+    def __reduce__(self) -> tuple[type[MachineConfig], tuple[object, ...]]:
+        # A frozen dataclass pickles by its fields (the worker pickles the planner,
+        # kestimator.resume; the compiled class cannot take its state afterwards).
+        return type(self), tuple(getattr(self, f.name) for f in dataclasses.fields(self))
+
     description: str
     """The printer.cfg path or "moonraker <url>"."""
     sections: tuple[tuple[str, tuple[tuple[str, str, str], ...]], ...]
@@ -127,6 +137,7 @@ class MachineConfig:
 _NO_DEFAULT = object()
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Section:
     """One section, read with Klipper's getters (the same bounds, the same defaults)."""
 
@@ -251,6 +262,11 @@ class Section:
 class Rail:
     """A [stepper_*] rail as `stepper.GenericPrinterRail` reads it (what homing and range
     checks need)."""
+
+    def __reduce__(self) -> tuple[type[Rail], tuple[object, ...]]:
+        # A frozen dataclass pickles by its fields (the worker pickles the planner,
+        # kestimator.resume; the compiled class cannot take its state afterwards).
+        return type(self), tuple(getattr(self, f.name) for f in dataclasses.fields(self))
 
     name: str
     position_endstop: float

@@ -11,9 +11,15 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from kestimator.toolhead import Move
 
+try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
+    from mypy_extensions import mypyc_attr
+except ImportError:
+    from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
+
 Position = tuple[float, float, float, float]
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Kinematics:
     """The interface `ToolHead` uses; the base does what Klipper's `none` kinematics does."""
 

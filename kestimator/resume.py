@@ -1,0 +1,287 @@
+"""Estimates that go on from saved planner states: the worker's answer after a change.
+
+Owns the checkpoints of one file's estimate: while a pass runs, the whole planner (the
+`Timeline` and everything it holds: toolhead with its look-ahead queue, gcode_move,
+extruders, macros and variables, firmware retraction, input shaper, exclude_object, the
+per-feature, per-object and per-layer sums, progress samples, warnings, pending look-ahead
+callbacks) is pickled between two blocks of lines, the gap to the next checkpoint GAP_RATIO
+of what is left of the file (at least MIN_GAP_RATIO of the file): denser towards the end,
+where a change leaves less to replay. A later estimate of the same file whose events
+(`estimate.Event`: commands typed at some line) agree with the saved run's up to a
+checkpoint loads that checkpoint and reads the file on from its byte offset, so a change at
+fraction f of the file costs at most (1 - f) / (1 - GAP_RATIO) of a pass (or 1 - f +
+MIN_GAP_RATIO near the end) and the answer's constant; the estimate is bit for bit the one
+a whole pass gives (the planner's floats are pickled exactly; tests/test_resume.py compares
+the answers' bytes on every corpus file).
+
+Memory stays bounded whatever the file: at most MAX_CHECKPOINTS checkpoints (about 65 for
+any large file: 45 while the gaps shrink to MIN_GAP_RATIO, 20 in the last tenth), and no
+more than MAX_CHECKPOINT_BYTES in all (past it no more are taken in that pass: later
+changes replay from the last one). A checkpoint is the planner's pickle without its growing
+arrays (samples, layer and mark times: `GROWING`), which are kept once, as what changed
+since the previous checkpoint (plus one copy of them as at the last checkpoint, to find
+what changed: the estimate's own size again).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import pickle
+from array import array
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any, Final
+
+from kestimator.estimate import (
+    Estimate,
+    Event,
+    EventRunner,
+    Timeline,
+    line_batches_at,
+    run_timeline,
+)
+
+# The gap after a checkpoint: this share of the rest of the file, at least MIN_GAP_RATIO of
+# the file and MIN_GAP_BYTES (a small file has fewer checkpoints).
+GAP_RATIO: Final = 0.05
+MIN_GAP_RATIO: Final = 0.005
+MIN_GAP_BYTES: Final = 1 << 14
+MAX_CHECKPOINTS: Final = 100
+# All checkpoints of a file together hold at most this many bytes.
+MAX_CHECKPOINT_BYTES: Final = 64 << 20
+# The timeline's arrays that grow with the file, kept outside the pickles: (attribute of
+# the timeline or "" for the timeline itself, attribute of that holding the array).
+GROWING: Final = (("samples", "lines"), ("samples", "times"), ("layers", "lines"),
+                  ("layers", "times"), ("marks", "lines"), ("marks", "times"),
+                  ("", "noted_lines"))
+
+
+def _owner(timeline: Timeline, name: str) -> object:
+    return getattr(timeline, name) if name else timeline
+
+
+def _common_prefix(a: array, b: array) -> int:
+    """How many leading items `a` and `b` share, bit for bit."""
+    x, y = a.tobytes(), b.tobytes()
+    n = min(len(x), len(y))
+    if x[:n] == y[:n]:
+        return n // a.itemsize
+    lo, hi = 0, n  # x[:lo] == y[:lo], x[:hi] != y[:hi]
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if x[:mid] == y[:mid]:
+            lo = mid
+        else:
+            hi = mid
+    return lo // a.itemsize
+
+
+def _has_dict(obj: object) -> bool:
+    """Whether instances of `obj`'s class have a __dict__ (read without making one)."""
+    return getattr(type(obj), "__dictoffset__", 0) != 0
+
+
+def _new(cls: Any) -> object:
+    """An instance of `cls` not yet initialised (its attributes come from `_set_attributes`)."""
+    return cls.__new__(cls)
+
+
+def _set_attributes(obj: object, state: dict[str, object]) -> None:
+    """Set a loaded object's attributes one by one (frozen dataclasses too): on CPython
+    3.11 and 3.12 it keeps them inline, as an object built by its __init__ does."""
+    for name, value in state.items():
+        object.__setattr__(obj, name, value)
+
+
+class _Pickler(pickle.Pickler):
+    """Pickles kestimator's plain classes so that loading sets their attributes one by one
+    (`_set_attributes`), not through their __dict__; everything else as pickle does."""
+
+    def reducer_override(self, obj: object) -> Any:
+        cls = type(obj)
+        if (not _has_dict(obj) or not cls.__module__.startswith("kestimator.")
+                or isinstance(obj, BaseException)
+                or cls.__reduce_ex__ is not object.__reduce_ex__
+                or cls.__reduce__ is not object.__reduce__
+                or getattr(cls, "__getstate__", None) is not _OBJECT_GETSTATE
+                or hasattr(cls, "__setstate__")):
+            return NotImplemented
+        return (_new, (cls,), obj.__dict__, None, None, _set_attributes)
+
+
+# object.__getstate__ (Python 3.11 and later; None before).
+_OBJECT_GETSTATE = getattr(object, "__getstate__", None)
+
+
+def _dumps(timeline: Timeline) -> bytes:
+    out = io.BytesIO()
+    _Pickler(out, protocol=pickle.HIGHEST_PROTOCOL).dump(timeline)
+    return out.getvalue()
+
+
+@dataclasses.dataclass
+class Checkpoint:
+    """The planner after line `lineno`, whose successor starts at byte `offset`."""
+
+    lineno: int
+    offset: int
+    # How many of the run's events (in line order) had run.
+    ran: int
+    blob: bytes
+    # Per GROWING array: (items kept from the previous checkpoint's, the items after them).
+    deltas: list[tuple[int, array]]
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.blob) + sum(len(tail) * tail.itemsize for _, tail in self.deltas)
+
+
+class Resumable:
+    """One file's checkpoints, and estimates of that file that go on from them.
+
+    `key` says what the checkpoints hold for (the file's identity and the settings);
+    `size` is the file's size in bytes."""
+
+    def __init__(self, key: object, size: int) -> None:
+        self.key = key
+        self.size = size
+        self.min_gap = max(MIN_GAP_BYTES, int(size * MIN_GAP_RATIO))
+        self.checkpoints: list[Checkpoint] = []
+        # The events of the run the checkpoints come from, in line order.
+        self.events: list[Event] = []
+        # The GROWING arrays as at the last checkpoint.
+        self._last: list[array] = []
+        self.nbytes = 0
+        # Where the last estimate started: the checkpoint's line (0: the file's start).
+        self.resumed_at = 0
+        # Whether the planner's pickle is still to be checked once; whether it cannot be.
+        self.probe = True
+        self.disabled = False
+
+    def usable(self, events: Sequence[Event]) -> int:
+        """The index of the last checkpoint valid for `events` (in line order), or -1:
+        every event run before it is the saved run's, and no other is due by then."""
+        found = -1
+        for i, checkpoint in enumerate(self.checkpoints):
+            ran = checkpoint.ran
+            if list(events[:ran]) != self.events[:ran]:
+                break
+            if len(events) > ran and events[ran][0] <= checkpoint.lineno + 1:
+                break
+            found = i
+        return found
+
+    def estimate(self, path: str, new_timeline: Callable[[Sequence[Event]], Timeline],
+                 events: Sequence[Event]) -> Estimate:
+        """The estimate of `path` with `events`, from the last usable checkpoint (or from
+        `new_timeline(events)` at the file's start), taking checkpoints as it goes."""
+        ordered = sorted(events, key=lambda event: event[0])
+        index = self.usable(ordered)
+        if index >= 0:
+            checkpoint = self.checkpoints[index]
+            timeline = self._restore(index, ordered)
+            lineno, offset = checkpoint.lineno, checkpoint.offset
+            del self.checkpoints[index + 1:]
+        else:
+            timeline = new_timeline(ordered)
+            lineno = offset = 0
+            self.checkpoints = []
+            self._last = [array(getattr(_owner(timeline, owner), name).typecode)
+                          for owner, name in GROWING]
+        self.nbytes = sum(c.nbytes for c in self.checkpoints)
+        self.events = ordered
+        self.resumed_at = lineno
+
+        self.live = timeline
+
+        def feed() -> Timeline:
+            with open(path, "rb", buffering=0) as f:
+                f.seek(offset)
+                self._feed(line_batches_at(f.read, path, None, lineno, offset), offset)
+            return self.live
+        return run_timeline(timeline, feed, self._live)
+
+    def _live(self) -> Timeline:
+        return self.live
+
+    def _feed(self, batches: Iterator[tuple[list[bytes], int]], offset: int) -> None:
+        """Feed `self.live` the batches, taking checkpoints as due (and, in the pure build,
+        going on with the checkpoint's copy: see `_save`)."""
+        due = offset + self.gap(offset)
+        for lines, after in batches:
+            self.live.feed_lines(lines)
+            if (due <= after < self.size and self.nbytes < MAX_CHECKPOINT_BYTES
+                    and len(self.checkpoints) < MAX_CHECKPOINTS and not self.disabled):
+                self._save(self.live, after)
+                due = after + self.gap(after)
+
+    def gap(self, offset: int) -> int:
+        """Bytes from a checkpoint at `offset` to the next."""
+        return max(self.min_gap, int((self.size - offset) * GAP_RATIO))
+
+    def _save(self, timeline: Timeline, offset: int) -> None:
+        """A checkpoint of `timeline` after its last line, the next one at `offset`.
+
+        Pickling reads each object's __dict__, and on CPython 3.11 and 3.12 an object whose
+        __dict__ was read keeps a real dict for life: its attributes are slower to read
+        (a pass taking checkpoints cost 23 % more). So where the planner's objects have a
+        __dict__ (the pure build), the pass goes on with the checkpoint's copy, whose
+        objects were built attribute by attribute (`_set_attributes`); compiled classes
+        have no __dict__ and go on as they are."""
+        growing = []
+        for owner, name in GROWING:
+            holder = _owner(timeline, owner)
+            values = getattr(holder, name)
+            growing.append(values)
+            setattr(holder, name, array(values.typecode))
+        copy: Timeline | None = None
+        try:
+            blob = _dumps(timeline)
+            if self.probe or _has_dict(timeline):
+                # That the planner loads again (once per file where the copy is not used).
+                # A build whose classes do not (mypyc's native classes without
+                # serializable=True cannot be created without their __init__'s arguments)
+                # takes no checkpoints: whole passes.
+                self.probe = False
+                copy = pickle.loads(blob)
+        except (pickle.PickleError, TypeError, AttributeError):
+            self.disabled = True
+            return
+        finally:
+            for (owner, name), values in zip(GROWING, growing):
+                setattr(_owner(timeline, owner), name, values)
+        if copy is not None and _has_dict(timeline):
+            for (owner, name), values in zip(GROWING, growing):
+                setattr(_owner(copy, owner), name, values)
+            self.live = copy
+        deltas = []
+        for i, values in enumerate(growing):
+            kept = _common_prefix(self._last[i], values)
+            deltas.append((kept, values[kept:]))
+            self._last[i] = array(values.typecode, values)
+        runner = timeline.events
+        checkpoint = Checkpoint(timeline.lineno, offset,
+                                runner.next if runner is not None else 0, blob, deltas)
+        self.checkpoints.append(checkpoint)
+        self.nbytes += checkpoint.nbytes
+
+    def _restore(self, index: int, events: list[Event]) -> Timeline:
+        """The timeline of checkpoint `index`, to go on with `events`."""
+        checkpoint = self.checkpoints[index]
+        timeline: Timeline = pickle.loads(checkpoint.blob)
+        self._last = []
+        for i, (owner, name) in enumerate(GROWING):
+            values = array(getattr(_owner(timeline, owner), name).typecode)
+            for earlier in self.checkpoints[:index + 1]:
+                kept, tail = earlier.deltas[i]
+                del values[kept:]
+                values.extend(tail)
+            self._last.append(values)
+            setattr(_owner(timeline, owner), name, array(values.typecode, values))
+        if events:
+            runner = EventRunner(timeline, events)
+            runner.next = checkpoint.ran
+            timeline.events = runner
+        else:
+            timeline.events = None
+        return timeline

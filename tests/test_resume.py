@@ -1,0 +1,153 @@
+"""The worker's answer after a change goes on from a saved planner state (kestimator.resume)
+and is byte for byte the answer a whole pass gives: on every corpus file (the 40 MB one
+marked slow), with events at several points of the file, added, moved and taken back."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from kestimator import resume, worker
+
+from .conftest import CORPUS_CFG, corpus_files, isolate_user_environment
+
+BIG = "ps25_bunny120_fast_fwretract_large.gcode"
+SMALL_FILES = [p for p in corpus_files() if p.name != BIG]
+BIG_FILES = [p for p in corpus_files() if p.name == BIG]
+
+
+@pytest.fixture(autouse=True)
+def _fresh_worker(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[None]:
+    isolate_user_environment(tmp_path, monkeypatch)
+    worker._resumable = None
+    yield
+    worker._resumable = None
+
+
+def _answer(path: Path, events: list[list[Any]]) -> str:
+    """The worker's answer as sent, without its elapsed time."""
+    request = {"id": 1, "file": str(path), "config": str(CORPUS_CFG), "events": events,
+               "use_table": False}
+    doc = worker.handle(json.dumps(request).encode())
+    doc.pop("elapsed_s", None)
+    return json.dumps(doc, sort_keys=True)
+
+
+def _whole_pass(path: Path, events: list[list[Any]]) -> str:
+    """The answer of a worker that has no checkpoints and takes none (its planner is never
+    pickled: the checkpoints are kept aside)."""
+    kept, worker._resumable = worker._resumable, None
+    limit = resume.MAX_CHECKPOINT_BYTES
+    resume.MAX_CHECKPOINT_BYTES = 0
+    try:
+        return _answer(path, events)
+    finally:
+        resume.MAX_CHECKPOINT_BYTES = limit
+        worker._resumable = kept
+
+
+def _event_sets(path: Path, first: dict[str, Any]) -> list[list[list[Any]]]:
+    """Events as the Klipper module sends them through a print: each request holds every
+    change so far; then one taken back and one moved earlier."""
+    size = path.stat().st_size
+    names = first.get("object_names") or []
+    exclusion = ("EXCLUDE_OBJECT NAME=%s" % names[0]) if names else "M220 S130"
+    a = [int(size * 0.3), "SET_VELOCITY_LIMIT ACCEL=1500"]
+    b = [int(size * 0.6), exclusion]
+    c = [int(size * 0.9), "M220 S70"]
+    return [[a], [a, b], [a, b, c], [a, c], [[int(size * 0.1), "M220 S150"], a]]
+
+
+def _check_resumed_answers_match_whole_passes(path: Path) -> None:
+    first = _answer(path, [])
+    doc = json.loads(first)
+    assert first == _whole_pass(path, [])
+    resumed_any = False
+    for events in _event_sets(path, doc):
+        resumed = _answer(path, events)
+        assert worker._resumable is not None or not doc["ok"]
+        if worker._resumable is not None and worker._resumable.resumed_at:
+            resumed_any = True
+        assert resumed == _whole_pass(path, events), (path.name, events)
+    if doc["ok"] and path.stat().st_size >= 8 * resume.MIN_GAP_BYTES:
+        assert resumed_any, "no answer went on from a checkpoint"
+
+
+@pytest.mark.parametrize("path", SMALL_FILES, ids=lambda p: p.name)
+def test_resumed_answer_bytes_equal_whole_pass(corpus_root: Path, path: Path) -> None:
+    _check_resumed_answers_match_whole_passes(path)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", BIG_FILES, ids=lambda p: p.name)
+def test_resumed_answer_bytes_equal_whole_pass_big_file(corpus_root: Path,
+                                                        path: Path) -> None:
+    first = _answer(path, [])
+    size = path.stat().st_size
+    resumable = worker._resumable
+    assert resumable is not None
+    assert len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
+    assert resumable.nbytes <= resume.MAX_CHECKPOINT_BYTES + max(
+        c.nbytes for c in resumable.checkpoints)
+    events: list[list[Any]] = [[int(size * 0.5), "M220 S150"]]
+    resumed = _answer(path, events)
+    # It went on from a checkpoint within two spacings before the change.
+    assert worker._resumable is resumable
+    assert resumable.checkpoints[0].lineno <= resumable.resumed_at
+    assert resumed == _whole_pass(path, events)
+    assert first != resumed
+
+
+def test_change_at_the_end_goes_on_from_the_last_checkpoint(corpus_root: Path) -> None:
+    path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+    _answer(path, [])
+    resumable = worker._resumable
+    assert resumable is not None
+    before, last = resumable.checkpoints[-2:]
+    size = path.stat().st_size
+    _answer(path, [[(before.offset + last.offset) // 2, "M220 S150"]])
+    assert resumable.resumed_at == before.lineno
+    # Each gap GAP_RATIO of the rest (at least min_gap); the last within a gap of the end.
+    offsets = [0] + [c.offset for c in resumable.checkpoints]
+    for before, after in zip(offsets, offsets[1:]):
+        assert resumable.gap(before) <= after - before <= resumable.gap(before) + (3 << 14)
+    assert size - last.offset <= resumable.min_gap + (3 << 14)
+    assert 40 <= len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
+
+
+def test_checkpoints_are_dropped_when_the_file_changes(corpus_root: Path,
+                                                       tmp_path: Path) -> None:
+    source = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+    path = tmp_path / "x.gcode"
+    path.write_bytes(source.read_bytes())
+    _answer(path, [])
+    before = worker._resumable
+    data = path.read_bytes()
+    cut = data.index(b"\nG1 ", len(data) // 2)
+    path.write_bytes(data[:cut] + b"\nG4 P5000" + data[cut:])
+    os.utime(path, ns=(1, 1))
+    event = [[len(data) * 9 // 10, "M220 S150"]]
+    changed = _answer(path, event)
+    assert worker._resumable is not before
+    assert changed == _whole_pass(path, event)
+
+
+def test_a_planner_that_cannot_be_pickled_gives_whole_passes(
+        corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+
+    def refuse(_blob: bytes) -> object:
+        raise TypeError("__init__() missing 2 required positional arguments")
+    monkeypatch.setattr(pickle, "loads", refuse)
+    _answer(path, [])
+    assert worker._resumable is not None and worker._resumable.disabled
+    assert not worker._resumable.checkpoints
+    event = [[path.stat().st_size // 2, "M220 S150"]]
+    assert _answer(path, event) == _whole_pass(path, event)
+    assert worker._resumable.resumed_at == 0
