@@ -78,7 +78,7 @@ def test_move_out_of_range_is_klippers_error_on_klippers_line(ref_path: Path,
 
 def test_every_config_has_references() -> None:
     configs = sorted(p.parent.name for p in REFS.glob("*/printer.cfg"))
-    assert configs == ["cartesian_idex", "corexy_maxend", "corexy_probe", "corexz",
+    assert configs == ["cartesian_idex", "corexy_eddy", "corexy_maxend", "corexy_probe", "corexz",
                        "corexz_force_move", "delta", "delta_mini", "delta_tight", "deltesian",
                        "generic_cartesian", "none", "polar", "rotary_delta", "safe_z_home",
                        "safe_z_home_previous", "winch"]

@@ -48,9 +48,9 @@ def survey() -> dict[str, dict[str, Any]]:
 # the table): input_shaper.cfg's `ei(v_tol=0.02)` (stepgen.shaper_pulses takes no ei
 # parameters).
 UNREADABLE = {"klippy/input_shaper.cfg"}
-# Configs whose G28 kestimator refuses (a limit of its own): eddy.cfg's Z endstop is a
-# named [probe_eddy_current my_eddy], which machine.py does not look for.
-ESTIMATE_REFUSES = {"klippy/eddy.cfg"}
+# Configs whose G28 kestimator refuses (a limit of its own): none since machine.py reads a
+# named [probe_eddy_current NAME]'s Z endstop (tests/oracle_refs/corexy_eddy).
+ESTIMATE_REFUSES: set[str] = set()
 # What the table cannot tell from section names: query_adc.py is loaded only for an ADC
 # sensor, and linuxtest.cfg's one temperature_sensor is a DS18B20. The table's answer
 # errs to the side of knowing.

@@ -35,7 +35,9 @@ except ImportError:
 # Sections (lower-case) a kinematics may read, besides [printer] and every [stepper_*].
 # [safe_z_home] and [homing_override] decide where G28 leaves the head.
 EXTRA_SECTIONS = ("dual_carriage", "probe", "bltouch", "smart_effector",
-                  "probe_eddy_current", "load_cell_probe", "safe_z_home", "homing_override")
+                  "load_cell_probe", "safe_z_home", "homing_override")
+# The same, named ("probe_eddy_current my_eddy": Klipper loads it by prefix only).
+NAMED_EXTRA_SECTIONS = ("probe_eddy_current",)
 _TRUE = frozenset(("1", "yes", "true", "on"))
 _FALSE = frozenset(("0", "no", "false", "off"))
 
@@ -51,7 +53,8 @@ TRANSFORM_SECTIONS = ("bed_mesh", "skew_correction")
 def is_machine_section(name: str) -> bool:
     """Whether a kinematics reads the section called ``name`` (lower-case)."""
     return (name == "printer" or name.startswith(MACHINE_SECTION_PREFIXES)
-            or name in EXTRA_SECTIONS or name.split(" ", 1)[0] in TRANSFORM_SECTIONS)
+            or name in EXTRA_SECTIONS or name.split(" ", 1)[0] in TRANSFORM_SECTIONS
+            or (" " in name and name.split(" ", 1)[0] in NAMED_EXTRA_SECTIONS))
 
 
 # Beyond getfloat()'s bounds, Klipper cannot start with a number its arithmetic breaks on:
@@ -282,15 +285,21 @@ class Rail:
 
 
 def _probe_z_offset(config: MachineConfig, section: Section) -> float | None:
-    """position_endstop of a rail whose endstop is a probe's virtual endstop: its z_offset."""
+    """position_endstop of a rail whose endstop is a probe's virtual endstop (the
+    `HomingViaProbeHelper` the probe registers as chip 'probe'): a probe's z_offset
+    (`ProbeOffsetsHelper`); for `[probe_eddy_current NAME]` its descend_z, or the deprecated
+    z_offset when descend_z is not given (probe_eddy_current.py `EddyDescend`)."""
     pin = (section.get("endstop_pin", None) or "").strip().lstrip("^~!").strip()
     if not pin.startswith("probe:"):
         return None
-    for name in ("probe", "bltouch", "smart_effector", "probe_eddy_current",
-                 "load_cell_probe"):
+    for name in ("probe", "bltouch", "smart_effector", "load_cell_probe"):
         probe = config.section(name)
         if probe is not None:
             return probe.getfloat("z_offset")
+    for eddy in config.get_prefix_sections("probe_eddy_current "):
+        if eddy.get("z_offset", None) is not None and eddy.get("descend_z", None) is None:
+            return eddy.getfloat("z_offset")
+        return eddy.getfloat("descend_z")
     raise section._error("endstop_pin", "endstop_pin %s needs a [probe] section" % pin)
 
 

@@ -36,6 +36,10 @@ corexy_maxend cura/cura413_ender3_nut_small.gcode
 corexy_maxend snippets/home_then_move.gcode
 corexy_probe snippets/home_then_move.gcode
 corexy_probe snippets/z_moves.gcode
+corexy_probe snippets/home_then_z.gcode
+corexy_eddy snippets/home_then_move.gcode
+corexy_eddy snippets/z_moves.gcode
+corexy_eddy snippets/home_then_z.gcode
 delta orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode
 delta snippets/home_then_move.gcode
 delta snippets/z_moves.gcode
