@@ -33,6 +33,7 @@ from kestimator.errors import CommandError, MoveError, ParamError, PrintEndsErro
 from kestimator.exclude_object import ExcludeObject
 from kestimator.extruder import PrinterExtruders
 from kestimator.firmware_retraction import FirmwareRetraction
+from kestimator.force_move import enabled_force_move_commands
 from kestimator.gcode import Command, command_params, get_float, parse_line
 from kestimator.gcode_arcs import ArcSupport
 from kestimator.gcode_move import GCodeMove
@@ -117,8 +118,9 @@ def printer_commands(limits: Limits) -> frozenset[str] | None:
     if not limits.configured_sections:
         return None
     modules = loaded_modules(limits.configured_sections, limits.kinematics)
-    return registered_commands(modules) - unregistered_endstop_commands(limits.machine,
-                                                                         limits.kinematics)
+    return (registered_commands(modules)
+            - unregistered_endstop_commands(limits.machine, limits.kinematics)
+            | enabled_force_move_commands(limits.machine))
 
 
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
@@ -194,7 +196,8 @@ class Interpreter:
         # G28 lines that took no time (no homing time given).
         self.untimed_homings = 0
         self.register_command("G28", self._cmd_G28_timed)
-        self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
+        if self.modules is None or "SET_KINEMATIC_POSITION" in self.registered:
+            self.register_command("SET_KINEMATIC_POSITION", self.cmd_SET_KINEMATIC_POSITION)
         self.heaters = heaters = PrinterHeaters(limits, toolhead, extruders, heat_time,
                                                 self.add_time)
         heaters.on_maybe_cold = self._maybe_cold

@@ -33,9 +33,10 @@ except ImportError:
     from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
 # Sections (lower-case) a kinematics may read, besides [printer] and every [stepper_*].
-# [safe_z_home] and [homing_override] decide where G28 leaves the head.
+# [safe_z_home] and [homing_override] decide where G28 leaves the head, [force_move] whether
+# SET_KINEMATIC_POSITION exists (kestimator.force_move).
 EXTRA_SECTIONS = ("dual_carriage", "probe", "bltouch", "smart_effector",
-                  "load_cell_probe", "safe_z_home", "homing_override")
+                  "load_cell_probe", "safe_z_home", "homing_override", "force_move")
 # The same, named ("probe_eddy_current my_eddy": Klipper loads it by prefix only).
 NAMED_EXTRA_SECTIONS = ("probe_eddy_current",)
 _TRUE = frozenset(("1", "yes", "true", "on"))

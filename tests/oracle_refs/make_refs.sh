@@ -30,6 +30,7 @@ corexz snippets/out_of_range_x.gcode
 corexz snippets/motors_off.gcode
 corexz snippets/dwell_then_layer.gcode
 corexz snippets/motors_off_g28.gcode
+corexz snippets/kinematic_position.gcode
 corexz_force_move snippets/kinematic_position.gcode
 corexz_force_move snippets/kinematic_position_clear.gcode
 corexy_maxend cura/cura413_ender3_nut_small.gcode
