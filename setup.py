@@ -50,6 +50,7 @@ COMPILED_MODULES = [
     "kestimator/segments.py",
     "kestimator/estimate.py",
     "kestimator/config/machine.py",
+    "kestimator/progress_table.py",
 ] + sorted("kestimator/kinematics/" + name
            for name in os.listdir(os.path.join(HERE, "kestimator", "kinematics"))
            if name.endswith(".py"))
@@ -68,7 +69,7 @@ GROUPS: list[tuple[list[str], str | None]] = [
     (["kestimator/interpreter.py", "kestimator/gcode_arcs.py",
       "kestimator/firmware_retraction.py", "kestimator/input_shaper.py",
       "kestimator/bed_mesh.py", "kestimator/skew_correction.py",
-      "kestimator/config/machine.py"], "kestimator_commands"),
+      "kestimator/config/machine.py", "kestimator/progress_table.py"], "kestimator_commands"),
     (KINEMATICS, "kestimator_kinematics"),
 ]
 PREFIX = "kestimator build: "
