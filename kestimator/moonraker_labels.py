@@ -36,7 +36,7 @@ import shutil
 import subprocess
 import tempfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from kestimator.limits import Limits
@@ -140,52 +140,39 @@ def moonraker_labeller(pid: int | None = None) -> Labeller | None:
     return Labeller(python=args[at - 1], metadata_script=os.path.join(here, args[at]))
 
 
-class _Digest:
-    """SHA-256 of what is fed to it, a file's bytes in blocks or bytes."""
-
-    def __init__(self) -> None:
-        self.sha = hashlib.sha256()
-
-    def file(self, path: str, length: int | None = None) -> _Digest:
-        """Add the first `length` bytes of `path` (all of it for None)."""
-        with open(path, "rb") as f:
-            left = os.path.getsize(path) if length is None else length
-            while left > 0:
-                block = f.read(min(COPY_CHUNK, left))
-                if not block:
-                    raise ValueError("%s ended early" % path)
-                self.sha.update(block)
-                left -= len(block)
-        return self
-
-    def data(self, data: bytes) -> _Digest:
-        self.sha.update(data)
-        return self
-
-
-def _crc32(path: str, length: int) -> int:
-    crc = 0
+def _blocks(path: str, length: int | None = None) -> Iterator[bytes]:
+    """The first `length` bytes of `path` (all of it for None), a block at a time."""
     with open(path, "rb") as f:
-        left = length
+        left = os.path.getsize(path) if length is None else length
         while left > 0:
             block = f.read(min(COPY_CHUNK, left))
             if not block:
                 raise ValueError("%s ended early" % path)
-            crc = zlib.crc32(block, crc)
+            yield block
             left -= len(block)
+
+
+def _digest(path: str, length: int | None = None, then: bytes = b"") -> bytes:
+    """SHA-256 of the first `length` bytes of `path` (all for None) followed by `then`."""
+    sha = hashlib.sha256()
+    for block in _blocks(path, length):
+        sha.update(block)
+    sha.update(then)
+    return sha.digest()
+
+
+def _crc32(path: str, length: int) -> int:
+    crc = 0
+    for block in _blocks(path, length):
+        crc = zlib.crc32(block, crc)
     return crc & 0xFFFFFFFF
 
 
 def _copy_head(source: str, dest: str, length: int, tail: bytes) -> None:
     """`dest` = the first `length` bytes of `source`, then `tail`."""
-    with open(source, "rb") as src, open(dest, "wb") as out:
-        left = length
-        while left > 0:
-            block = src.read(min(COPY_CHUNK, left))
-            if not block:
-                raise ValueError("%s ended early" % source)
+    with open(dest, "wb") as out:
+        for block in _blocks(source, length):
             out.write(block)
-            left -= len(block)
         out.write(tail)
 
 
@@ -271,10 +258,9 @@ def table_for_labelled_file(output: str, uploaded: str, labeller: Labeller,
         table = ProgressTable.from_selection(selection, offsets.get, labelled_bytes, settings,
                                              _crc32(copy, labelled_bytes))
         new_lines = table.encode(b"\n")
-        expected = _Digest().file(copy, labelled_bytes).data(new_lines + after_lines)
+        expected = _digest(copy, labelled_bytes, new_lines + after_lines)
         _copy_head(output, copy, start, new_lines + after)
-        if not labeller.label(uploaded, copy) \
-                or _Digest().file(copy).sha.digest() != expected.sha.digest():
+        if not labeller.label(uploaded, copy) or _digest(copy) != expected:
             return Prelabel(False, "Moonraker's labelling of this file moves the table's "
                                    "lines: the table holds for the unlabelled file only")
         with open(output, "rb+") as f:
