@@ -48,6 +48,15 @@ EXTRUDE_ONLY_ACCEL: Final = 99999999.9
 UNLIMITED_JUNCTION_V2: Final = 999999999.9
 # A move shorter than this in XYZ is an extrude-only move.
 MIN_KINEMATIC_MOVE_D: Final = 0.000000001
+# Where upstream squares with `**` (C's pow(), whose result can differ from v * v in
+# its last bit), pow() is taken only where it can matter: where it may be below a limit.
+# pow(v, 2.0) and v * v each lie within an ulp of the exact square (glibc's pow: 0.54
+# ulp), far inside the margin of 2**-40, so v * v * POW2_BELOW >= limit proves
+# pow(v, 2.0) >= limit; outside POW2_TINY..POW2_INF (subnormal, overflow, NaN) pow()
+# itself is taken. tests/test_toolhead_pow.py pins both shortcuts against pow().
+POW2_BELOW: Final = 1.0 - 2.0**-40
+POW2_TINY: Final = 1e-290
+POW2_INF: Final = math.inf
 # LookAheadQueue.flush: this move cannot accelerate (upstream's cruise_v2 = None); every
 # real cruise_v2 is >= 0.
 NO_CRUISE_V2: Final = -1.0
@@ -58,7 +67,7 @@ TimingCallback = Callable[[float], None]
 
 
 # Class to track each move request
-@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True, acyclic=True)
 class Move:
     """One straight-line move and, once planned, its trapezoidal velocity profile.
 
@@ -147,7 +156,14 @@ class Move:
         # Junction speeds are tracked in velocity squared.  The delta_v2 is the maximum
         # amount of this squared-velocity that can change in this move.
         self.max_start_v2 = 0.0
-        self.max_cruise_v2 = math.pow(velocity, 2.0)  # upstream: velocity**2
+        # upstream: velocity**2, which is C's pow() (its last bit can differ from
+        # velocity * velocity). pow() is dear on every line and moves in a row mostly
+        # share one speed, so the toolhead keeps the last square it took.
+        if velocity == toolhead.last_velocity:
+            self.max_cruise_v2 = toolhead.last_velocity2
+        else:
+            self.max_cruise_v2 = toolhead.last_velocity2 = math.pow(velocity, 2.0)
+            toolhead.last_velocity = velocity
         self.delta_v2 = 2.0 * move_d * self.accel
         self.next_junction_v2 = UNLIMITED_JUNCTION_V2
         # Setup for minimum_cruise_ratio checks
@@ -184,10 +200,16 @@ class Move:
 
     def limit_speed(self, speed: float, accel: float) -> None:
         """Lower the cruise speed and acceleration (kinematic or extruder limits)."""
-        speed2 = math.pow(speed, 2.0)  # upstream: speed**2
-        if speed2 < self.max_cruise_v2:
-            self.max_cruise_v2 = speed2
-            self.min_move_t = self.move_d / speed
+        # upstream: speed2 = speed**2 (C's pow()), then `if speed2 < self.max_cruise_v2`.
+        # pow() lies within an ulp or two of speed * speed, so it is taken only where it
+        # can be below (or overflows and raises, as upstream's `**`).
+        max_cruise_v2 = self.max_cruise_v2
+        square = speed * speed
+        if square * POW2_BELOW < max_cruise_v2 or not POW2_TINY < square < POW2_INF:
+            speed2 = math.pow(speed, 2.0)
+            if speed2 < max_cruise_v2:
+                self.max_cruise_v2 = speed2
+                self.min_move_t = self.move_d / speed
         self.accel = min(self.accel, accel)
         self.delta_v2 = 2.0 * self.move_d * self.accel
         self.mcr_delta_v2 = min(self.mcr_delta_v2, self.delta_v2)
@@ -204,11 +226,6 @@ class Move:
         # The extruder is an extra axis: it limits the junction by its change of E/mm
         # (upstream's `ea.calc_junction`, kinematics/extruder.py, written in here).
         max_cruise_v2 = self.max_cruise_v2
-        diff_r = self.axes_r_e - prev_move.axes_r_e
-        if diff_r:
-            ea_v2 = math.pow(self.instant_corner_v / abs(diff_r), 2.0)
-        else:
-            ea_v2 = max_cruise_v2
         # min() of the limits, written out as comparisons (the hot path; min() keeps the
         # first of equal values, and so does `b if b < a else a`).
         max_start_v2 = max_cruise_v2
@@ -221,8 +238,18 @@ class Move:
         v2 = prev_move.max_start_v2 + prev_move.delta_v2
         if v2 < max_start_v2:
             max_start_v2 = v2
-        if ea_v2 < max_start_v2:
-            max_start_v2 = ea_v2
+        # The extruder's limit: upstream's ea_v2 = (instant_corner_v / abs(diff_r))**2
+        # (max_cruise_v2 when diff_r is 0, which changes no minimum). C's pow() lies
+        # within an ulp or two of v * v, so it is taken only where it can be the minimum
+        # (or overflows and raises, as upstream's `**`).
+        diff_r = self.axes_r_e - prev_move.axes_r_e
+        if diff_r:
+            v = self.instant_corner_v / abs(diff_r)
+            square = v * v
+            if square * POW2_BELOW < max_start_v2 or not POW2_TINY < square < POW2_INF:
+                ea_v2 = math.pow(v, 2.0)
+                if ea_v2 < max_start_v2:
+                    max_start_v2 = ea_v2
         # Find max velocity using "approximated centripetal velocity"
         junction_cos_theta = -(self.axes_r_x * prev_move.axes_r_x
                                + self.axes_r_y * prev_move.axes_r_y
@@ -400,6 +427,8 @@ class ToolHead:
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH)
         # Upstream's commanded_pos list, one float per axis (see the commanded_pos property).
         self.commanded_x = self.commanded_y = self.commanded_z = self.commanded_e = 0.0
+        # The last velocity a Move squared, and its square (see Move.__init__).
+        self.last_velocity = self.last_velocity2 = math.nan
         # Velocity and acceleration control
         self.max_velocity = limits.max_velocity
         self.max_accel = limits.max_accel
