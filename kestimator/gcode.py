@@ -141,14 +141,13 @@ def parse_plain_move_regex(raw: bytes) -> MoveValues:
         return NOT_PLAIN
 
 
-# 10**k for the decimals a G-code number has: exact as floats up to 10**22.
-_POW10: Final = tuple(10.0**k for k in range(23))
-# Up to this many digits the integer mantissa is exact as a float (< 2**53).
+# Up to this many digits the integer mantissa, and 10**k for its k decimals, are exact as
+# floats (< 2**53).
 _EXACT_DIGITS: Final = 15
 
 
 def parse_plain_move_scan(raw: bytes) -> MoveValues:
-    """The same as `parse_plain_move_regex`, by one pass over the bytes (for PyPy).
+    """The same as `parse_plain_move_regex`, by one pass over the bytes (PyPy, compiled).
 
     A number with at most 15 digits and k decimals is its integer mantissa divided by
     10**k: both are exact floats and IEEE division rounds correctly, so the result is the
@@ -183,15 +182,17 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
                 i += 1
             elif d == 43:  # "+"
                 i += 1
-        # The mantissa is summed as a float: exact while it has at most 15 digits (below
-        # 2**53), the only case it is used in.
-        mantissa = 0.0
+        # The mantissa is summed as an integer, used only when it has at most 15 digits
+        # (one float conversion per number; no more digits are summed, so it stays far
+        # below 2**63).
+        mantissa: i64 = 0
         digits: i64 = 0
         point: i64 = -1
         while i < n:
             d = raw[i]
             if 48 <= d <= 57:
-                mantissa = mantissa * 10.0 + float(d - 48)
+                if digits < _EXACT_DIGITS:
+                    mantissa = mantissa * 10 + (d - 48)
                 digits += 1
             elif d == 46 and point < 0:  # the first "."
                 point = digits
@@ -205,7 +206,12 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
             if d != 32 and d != 59 and d != 10 and d != 13:
                 return NOT_PLAIN
         if digits <= _EXACT_DIGITS:
-            v = mantissa / _POW10[0 if point < 0 else digits - point]
+            scale: i64 = 1
+            decimals: i64 = 0 if point < 0 else digits - point
+            while decimals > 0:
+                scale *= 10
+                decimals -= 1
+            v = float(mantissa) / float(scale)
             if negative:
                 v = -v
         else:
