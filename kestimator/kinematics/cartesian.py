@@ -47,6 +47,12 @@ class CartKinematics(Kinematics):
         self.max_z_velocity = limits.max_z_velocity
         self.max_z_accel = limits.max_z_accel
         self.limits = [UNHOMED] * 3
+        self._note_xy_range()
+
+    def _note_xy_range(self) -> None:
+        """check_move's X and Y ranges, from self.limits, as four floats (set wherever
+        self.limits changes): the check on every move reads no list of tuples."""
+        (self.x_low, self.x_high), (self.y_low, self.y_high) = self.limits[0], self.limits[1]
 
     def _dual_carriage_range_note(self, config: MachineConfig, axis: str,
                                   safe_distance: float) -> None:
@@ -68,12 +74,14 @@ class CartKinematics(Kinematics):
         for axis_name in homing_axes:
             axis = "xyz".index(axis_name)
             self.limits[axis] = self.rails[axis].get_range()
+        self._note_xy_range()
 
     def clear_homing_state(self, clear_axes: str) -> None:
         """Cleared axes must be homed again before they move."""
         for axis, axis_name in enumerate("xyz"):
             if axis_name in clear_axes:
                 self.limits[axis] = UNHOMED
+        self._note_xy_range()
 
     def homed_axes(self) -> str:
         """The axes whose limits are set (get_status's homed_axes)."""
@@ -99,10 +107,9 @@ class CartKinematics(Kinematics):
 
     def check_move(self, move: Move) -> None:
         """Range checks, and Z moves slowed to max_z_velocity/accel along Z."""
-        limits = self.limits
         xpos, ypos = move.end_x, move.end_y
-        if (xpos < limits[0][0] or xpos > limits[0][1]
-                or ypos < limits[1][0] or ypos > limits[1][1]):
+        if (xpos < self.x_low or xpos > self.x_high
+                or ypos < self.y_low or ypos > self.y_high):
             self._check_endstops(move)
         if not move.axes_d_z:
             # Normal XY move - use defaults

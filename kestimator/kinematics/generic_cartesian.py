@@ -65,6 +65,7 @@ class GenericCartesianKinematics(CartKinematics):
         self.max_z_velocity = limits.max_z_velocity
         self.max_z_accel = limits.max_z_accel
         self.limits = [(1.0, -1.0)] * 3
+        self._note_xy_range()
 
 
 def load_kinematics(config: MachineConfig, limits: Limits) -> Kinematics:
