@@ -13,6 +13,7 @@ import dataclasses
 import io
 import math
 import os
+import struct
 from array import array
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -73,6 +74,8 @@ FIRST_SAMPLE_SPACING_S: Final = 0.01
 # progress table needs the end of a print finer than the doubled spacing (memory bounded).
 TAIL_SPACING_S: Final = 0.2
 TAIL_SAMPLES: Final = 4096
+# ProgressSamples holds back at most this many samples before moving them into its arrays.
+SAMPLES_PENDING: Final = 1024
 # Parsed commands kept for lines that repeat (memory stays bounded: only short lines are
 # kept, and the cache is emptied when full).
 MAX_CACHED_COMMANDS: Final = 4096
@@ -327,26 +330,56 @@ class ProgressSamples:
         self.next_t = 0.0
         self.next_regular_t = 0.0
         self.tail: deque[tuple[int, float]] = deque(maxlen=TAIL_SAMPLES)
+        # Samples (and tail samples) not yet in lines and times (tail): add() appends
+        # to lists, which the compiled build does in C, where an array's or a deque's
+        # append is a method call by name (8 % of a compiled inject). flush() moves them.
+        self.new_lines: list[int] = []
+        self.new_times: list[float] = []
+        self.new_tail_lines: list[int] = []
+        self.new_tail_times: list[float] = []
 
     def add(self, line: int, t: float) -> None:
         """The move on `line` ends at `t` (at least next_t)."""
         if t >= self.next_regular_t:
-            lines, times = self.lines, self.times
-            if len(lines) >= MAX_SAMPLES:
-                del lines[1::2]
-                del times[1::2]
+            new_lines = self.new_lines
+            if len(self.lines) + len(new_lines) >= MAX_SAMPLES:
+                self.flush()
+                del self.lines[1::2]
+                del self.times[1::2]
                 self.spacing *= 2.0
-            lines.append(line)
-            times.append(t)
+            elif len(new_lines) >= SAMPLES_PENDING:
+                self.flush()
+            new_lines.append(line)
+            self.new_times.append(t)
             self.next_regular_t = t + self.spacing
         if self.spacing > TAIL_SPACING_S:
-            self.tail.append((line, t))
+            new_tail_lines = self.new_tail_lines
+            if len(new_tail_lines) >= SAMPLES_PENDING:
+                self.flush()
+            new_tail_lines.append(line)
+            self.new_tail_times.append(t)
             self.next_t = min(self.next_regular_t, t + TAIL_SPACING_S)
         else:
             self.next_t = self.next_regular_t
 
+    def flush(self) -> None:
+        """Move the samples add() holds back into lines, times and tail."""
+        if self.new_lines:
+            # struct packs the lists in C; array.extend converts item by item, as slowly
+            # as append (its typecode is parsed for each).
+            n = len(self.new_lines)
+            self.lines.frombytes(struct.pack("%dq" % n, *self.new_lines))
+            self.times.frombytes(struct.pack("%dd" % n, *self.new_times))
+            self.new_lines.clear()
+            self.new_times.clear()
+        if self.new_tail_lines:
+            self.tail.extend(zip(self.new_tail_lines, self.new_tail_times))
+            self.new_tail_lines.clear()
+            self.new_tail_times.clear()
+
     def map_times(self, function: Callable[[float], float]) -> None:
         """Every time t becomes function(t)."""
+        self.flush()
         times = self.times
         for i in range(len(times)):
             times[i] = function(times[i])
@@ -427,21 +460,26 @@ class Timeline:
         next_sample_t = samples.next_t if self.sample else math.inf
         if self.first_extrusion_t is None:
             self.first_extrusion_t = first_extrusion(moves, start_t, filament)
+        # The current segment's sum stays in a local (unboxed in the compiled build) and
+        # goes back to segment_time before anything reads it: the same additions.
+        seconds = segment_time[segment]
         for move in moves:
             while changes and changes[0][0] <= move.tag:
                 sid = changes.popleft()[1]
+                segment_time[segment] = seconds
                 if sid < 0:  # a layer marker: each object's time before this move
                     split.snapshot(-1 - sid)
                 else:
                     segment = sid
+                seconds = segment_time[segment]
             dt = move.accel_t + move.cruise_t + move.decel_t
-            # Not `+=`: mypyc boxes dt for that; this is the same addition, unboxed.
-            segment_time[segment] = segment_time[segment] + dt
+            seconds = seconds + dt
             t += dt
             filament += move.axes_d_e
             if t >= next_sample_t:
                 samples.add(move.tag, t)
                 next_sample_t = samples.next_t
+        segment_time[segment] = seconds
         if t > MAX_PRINT_S:
             raise _too_long_move(self.path, moves, start_t)
         split.segment = segment
@@ -680,6 +718,7 @@ class Timeline:
         self.split.rest_until(total)
         self.split.flush_snapshots()
         last_line = self.toolhead.last_move_line
+        self.samples.flush()
         if self.sample and last_line is not None:
             # The last move's end, sampled or not: where the file's moves end.
             self.samples.tail.append((last_line, self.toolhead.last_move_end_t))
