@@ -207,7 +207,9 @@ def parse_plain_move_scan(raw: bytes) -> MoveValues:
                 return NOT_PLAIN
         if digits <= _EXACT_DIGITS:
             scale: i64 = 1
-            decimals: i64 = 0 if point < 0 else digits - point
+            decimals: i64 = 0  # (an if statement: mypyc boxes a conditional expression)
+            if point >= 0:
+                decimals = digits - point
             while decimals > 0:
                 scale *= 10
                 decimals -= 1
