@@ -72,7 +72,6 @@ from __future__ import annotations
 import base64
 import binascii
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -220,6 +219,8 @@ def spacing_bound(remaining_s: float) -> float:
 
 
 def _digest(text: str) -> str:
+    import hashlib  # here: its OpenSSL start-up is 2-4 ms of every estimate, which needs none
+
     return hashlib.sha256(text.encode("utf-8", "surrogateescape")).hexdigest()[:DIGEST_HEX]
 
 

@@ -17,7 +17,6 @@ comments), re-implemented here so that every value keeps its file and line.
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import glob
 import math
 import operator
@@ -248,6 +247,8 @@ def check_options(sections: Sections) -> None:
             if option in accepted or (_EXTRUDER_SECTION.match(name)
                                       and _NUMBERED_OPTION.match(option)):
                 continue
+            import difflib  # here: only an error needs it (1 ms of every start)
+
             close = difflib.get_close_matches(option, sorted(accepted), n=1)
             hint = f" (did you mean '{close[0]}'?)" if close else ""
             raise KestimatorError(f"[{name}] has no option '{option}'{hint}: Klipper "

@@ -18,7 +18,6 @@ changes as INI text; machine limits are rarely among them), the ``;FLAVOR:`` hea
 
 from __future__ import annotations
 
-import configparser
 import json
 import re
 from collections.abc import Mapping
@@ -108,6 +107,8 @@ _FEEDRATE_KEYS = frozenset(("machine_max_feedrate_x", "machine_max_feedrate_y",
 
 def _ini_values(text: str) -> dict[str, str]:
     """The [values] section of one serialised Cura profile."""
+    import configparser  # here: only Cura 3MF profiles need it (1 ms of every start)
+
     parser = configparser.ConfigParser(interpolation=None)
     try:
         parser.read_string(text)
