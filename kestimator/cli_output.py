@@ -202,6 +202,17 @@ class LayerEntries:
 _LAYERS_PLACEHOLDER = "\u0000kestimator-layers\u0000"
 
 
+def _layer_json(entry: dict[str, Any]) -> str:
+    """`json.dumps(entry, indent=1)` of a layer entry, two levels deep, written out: the
+    encoder's own text for its int and its two finite floats (float.__repr__), without
+    the pure-Python encoder that indent= takes (1 ms per 20 layers)."""
+    t, duration = entry["t"], entry["duration_s"]
+    if not (math.isfinite(t) and math.isfinite(duration)):
+        return json.dumps(entry, indent=1).replace("\n", "\n  ")
+    return '{\n   "line": %d,\n   "t": %s,\n   "duration_s": %s\n  }' % (
+        entry["line"], float.__repr__(t), float.__repr__(duration))
+
+
 def write_json(doc: dict[str, Any], out: TextIO) -> None:
     """`json.dump(doc, out, indent=1)` and a newline, byte for byte, with a `LayerEntries`
     written entry by entry (memory stays bounded however many layers there are)."""
@@ -218,7 +229,7 @@ def write_json(doc: dict[str, Any], out: TextIO) -> None:
     separator = ""
     for entry in layers:
         out.write(separator)
-        out.write(json.dumps(entry, indent=1).replace("\n", "\n  "))
+        out.write(_layer_json(entry))
         separator = ",\n  "
     out.write(text[at + len(json.dumps(_LAYERS_PLACEHOLDER)):])
     out.write("\n")

@@ -170,37 +170,49 @@ class GCodeMove:
         The same arithmetic as `cmd_G1`, in the same order, without the text handling. A
         parameter the line does not give is `gcode.ABSENT` (NaN, so `v == v` is "given").
         """
+        # The new position is kept in locals as it is written to last_position, so the
+        # toolhead gets it without reading the list back (a compiled build boxes every
+        # float a list holds: reading one back is a lookup and an unboxing).
         lp = self.last_position
         base = self.base_position
         if self.absolute_coord:
             if x == x:
-                lp[0] = x + base[0]
+                lp[0] = px = x + base[0]
+            else:
+                px = lp[0]
             if y == y:
-                lp[1] = y + base[1]
+                lp[1] = py = y + base[1]
+            else:
+                py = lp[1]
             if z == z:
-                lp[2] = z + base[2]
+                lp[2] = pz = z + base[2]
+            else:
+                pz = lp[2]
         else:
             # Upstream's `last_position[pos] += v`, written out: the same float addition,
             # which mypyc compiles to a machine add (`+=` on a list item boxes v first).
+            px, py, pz = lp[0], lp[1], lp[2]
             if x == x:
-                lp[0] = lp[0] + x
+                lp[0] = px = px + x
             if y == y:
-                lp[1] = lp[1] + y
+                lp[1] = py = py + y
             if z == z:
-                lp[2] = lp[2] + z
+                lp[2] = pz = pz + z
         if e == e:
             e *= self.extrude_factor
             if self.absolute_coord and self.absolute_extrude:
-                lp[3] = e + base[3]
+                lp[3] = pe = e + base[3]
             else:
-                lp[3] = lp[3] + e
+                lp[3] = pe = lp[3] + e
             if not self.extrude_mode_set:
                 self.moved_e_before_mode = True
+        else:
+            pe = lp[3]
         if f == f:
             self.speed = f * self.speed_factor
         transform = self.move_transform
         if transform is None:
-            self.toolhead.move_to(lp[0], lp[1], lp[2], lp[3], self.speed, self.tag)
+            self.toolhead.move_to(px, py, pz, pe, self.speed, self.tag)
         else:
             transform.move(lp, self.speed, self.tag)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 import subprocess
 import sys
 from collections.abc import Callable
@@ -19,7 +20,7 @@ from typing import Any
 
 import pytest
 
-from kestimator.cli_output import LayerEntries, write_json
+from kestimator.cli_output import LayerEntries, _layer_json, write_json
 from kestimator.errors import KestimatorError
 from kestimator.estimate import MAX_LINE_BYTES, estimate_lines, split_line_batches
 from kestimator.limits import Limits
@@ -217,3 +218,13 @@ def test_a_huge_last_line_without_line_ending_gets_the_time_comment_after_it(
     data = without_progress_table(path.read_bytes())
     assert data.endswith(b"M73 P100 R0\n" + big
                          + b"\n; estimated printing time (normal mode) = 2s\n")
+
+
+def test_a_layer_entry_written_out_is_json_dumps_text_for_any_number() -> None:
+    values = [0.0, -0.0, 1e-07, 0.1, 2.5, 123456.789012, 1e16, 1.7976931348623157e308,
+              5e-324, math.inf, -math.inf, math.nan]
+    for line in (0, 1, 1_700_000, 2**62):
+        for t in values:
+            for duration in values:
+                entry = {"line": line, "t": t, "duration_s": duration}
+                assert _layer_json(entry) == json.dumps(entry, indent=1).replace("\n", "\n  ")
