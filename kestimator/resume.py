@@ -15,7 +15,7 @@ a whole pass gives (the planner's floats are pickled exactly; tests/test_resume.
 the answers' bytes on every corpus file).
 
 Memory stays bounded whatever the file: at most MAX_CHECKPOINTS checkpoints (about 65 for
-any large file: 45 while the gaps shrink to MIN_GAP_RATIO, 20 in the last tenth), and no
+any large file: 31 while the gaps shrink to MIN_GAP_RATIO, 20 in the last fifth), and no
 more than MAX_CHECKPOINT_BYTES in all (past it no more are taken in that pass: later
 changes replay from the last one). A checkpoint is the planner's pickle without its growing
 arrays (samples, layer and mark times: `GROWING`), which are kept once, as what changed
@@ -44,7 +44,7 @@ from kestimator.estimate import (
 # The gap after a checkpoint: this share of the rest of the file, at least MIN_GAP_RATIO of
 # the file and MIN_GAP_BYTES (a small file has fewer checkpoints).
 GAP_RATIO: Final = 0.05
-MIN_GAP_RATIO: Final = 0.005
+MIN_GAP_RATIO: Final = 0.01
 MIN_GAP_BYTES: Final = 1 << 14
 MAX_CHECKPOINTS: Final = 100
 # All checkpoints of a file together hold at most this many bytes.

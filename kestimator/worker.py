@@ -74,6 +74,7 @@ import math
 import os
 import sys
 import time
+from bisect import bisect_right
 from collections.abc import Sequence
 from typing import IO, TYPE_CHECKING, Any
 
@@ -303,24 +304,31 @@ def _file_id(path: str, st: os.stat_result) -> tuple[object, ...]:
 
 
 def event_lines(path: str, offsets: list[int]) -> list[int]:
-    """The line each byte offset falls on (`lines_at_offsets`), counted from the last
-    checkpoint of this very file at or before the first offset (a checkpoint knows its line
-    and the byte offset of the next) rather than from the file's start."""
+    """The line each byte offset falls on (`lines_at_offsets`), each counted from the last
+    checkpoint of this very file at or before it (a checkpoint knows its line and the byte
+    offset of the next) rather than from the file's start: a few gaps are read, not the
+    file between the first event and the last."""
     if not offsets:
         return []
-    line0 = offset0 = 0
+    anchors = [(0, 0)]  # (line, byte offset of the next line), ascending
     resumable = _resumable
     if resumable is not None and isinstance(resumable.key, tuple):
         file_id = _file_id(path, os.stat(path))
         if resumable.key[:len(file_id)] == file_id:
-            first = min(offsets)
-            for checkpoint in resumable.checkpoints:
-                if checkpoint.offset <= first:
-                    line0, offset0 = checkpoint.lineno, checkpoint.offset
+            anchors += [(c.lineno, c.offset) for c in resumable.checkpoints if c.offset > 0]
+    starts = [offset for _, offset in anchors]
+    groups: dict[int, list[int]] = {}  # anchor index -> indexes of the offsets after it
+    for i, offset in enumerate(offsets):
+        groups.setdefault(max(0, bisect_right(starts, offset) - 1), []).append(i)
+    result = [0] * len(offsets)
     with open(path, "rb") as f:
-        f.seek(offset0)
-        relative = lines_at_offsets(f.read, [offset - offset0 for offset in offsets])
-    return [line0 + line for line in relative]
+        for anchor, indexes in groups.items():
+            line0, offset0 = anchors[anchor]
+            f.seek(offset0)
+            relative = lines_at_offsets(f.read, [offsets[i] - offset0 for i in indexes])
+            for i, line in zip(indexes, relative):
+                result[i] = line0 + line
+    return result
 
 
 def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estimate:

@@ -118,7 +118,7 @@ def test_change_at_the_end_goes_on_from_the_last_checkpoint(corpus_root: Path) -
     for before, after in zip(offsets, offsets[1:]):
         assert resumable.gap(before) <= after - before <= resumable.gap(before) + (3 << 14)
     assert size - last.offset <= resumable.min_gap + (3 << 14)
-    assert 40 <= len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
+    assert 30 <= len(resumable.checkpoints) <= resume.MAX_CHECKPOINTS
 
 
 def test_checkpoints_are_dropped_when_the_file_changes(corpus_root: Path,
@@ -151,3 +151,18 @@ def test_a_planner_that_cannot_be_pickled_gives_whole_passes(
     event = [[path.stat().st_size // 2, "M220 S150"]]
     assert _answer(path, event) == _whole_pass(path, event)
     assert worker._resumable.resumed_at == 0
+
+
+def test_event_lines_counted_from_each_events_checkpoint_are_those_counted_from_the_start(
+        corpus_root: Path) -> None:
+    path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+    _answer(path, [])
+    assert worker._resumable is not None and len(worker._resumable.checkpoints) > 10
+    data = path.read_bytes()
+    offsets = [0, 1, len(data) // 7, len(data) // 2, len(data) // 2 + 1, len(data) * 9 // 10,
+               len(data) - 1, len(data)] + [c.offset for c in worker._resumable.checkpoints]
+    offsets += [c.offset - 1 for c in worker._resumable.checkpoints]
+    expected = [data.count(b"\n", 0, offset) + (0 if offset == 0 or data[offset - 1] == 10
+                                                else 1) + 1 for offset in offsets]
+    expected = [min(line, data.count(b"\n") + 1) for line in expected]
+    assert worker.event_lines(str(path), offsets) == expected
