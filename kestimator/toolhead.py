@@ -67,7 +67,7 @@ TimingCallback = Callable[[float], None]
 
 
 # Class to track each move request
-@mypyc_attr(serializable=True, allow_interpreted_subclasses=True, acyclic=True)
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class Move:
     """One straight-line move and, once planned, its trapezoidal velocity profile.
 
