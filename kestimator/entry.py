@@ -10,7 +10,7 @@ removes its temporary file and exits 128 + the signal number), then puts back wh
 there. `kestimator.cli.main` and `kestimator.compat.main` install none themselves, so a
 library caller keeps its own. And the garbage collector while the program starts: loading
 makes about 100,000 objects that all live as long as the program, so no collection runs
-while it loads (its walks were a tenth of the start-up), and `run_program` freezes them
+while it loads (its walks were a tenth of the start-up), and `run_program` freezes them on CPython
 (`gc.freeze`: the collections a long pass triggers do not walk them again). This module
 imports nothing at load but `gc`, `sys` and `typing`.
 """
@@ -31,7 +31,9 @@ def run_program(main: Callable[[], int]) -> int:
     objects alive before it are frozen out of the garbage collector's walks (gc.freeze)."""
     from kestimator.files import terminating_cleanly
 
-    gc.freeze()
+    freeze = getattr(gc, "freeze", None)  # CPython's; PyPy's gc has none
+    if freeze is not None:
+        freeze()
     with terminating_cleanly():
         return main()
 
