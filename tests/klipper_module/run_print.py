@@ -18,6 +18,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 from typing import Any, Callable
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -63,11 +64,15 @@ def run_klippy(cfg: str, batch: str, log: str, out: str, env: dict[str, str],
 
 
 def _link(src: str, klipper: str, name: str) -> None:
+    """Point klippy/extras/`name` at `src`. Prints run in parallel threads and processes,
+    so the link is made under a name of its own and renamed over `dst`: a check-then-create
+    raced (FileExistsError) when two prints linked the same module at once."""
     dst = os.path.join(klipper, "klippy", "extras", name)
-    if os.path.lexists(dst) and os.path.realpath(dst) != os.path.realpath(src):
-        os.remove(dst)
-    if not os.path.lexists(dst):
-        os.symlink(src, dst)
+    if os.path.lexists(dst) and os.path.realpath(dst) == os.path.realpath(src):
+        return
+    tmp = "%s.%d.%d.tmp" % (dst, os.getpid(), threading.get_ident())
+    os.symlink(src, tmp)
+    os.replace(tmp, dst)
 
 
 def _is_move(line: bytes) -> bool:
