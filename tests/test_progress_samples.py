@@ -56,4 +56,7 @@ def test_samples_held_back_end_as_those_appended_one_by_one() -> None:
     assert reference.spacing > TAIL_SPACING_S and len(reference.tail) == TAIL_SAMPLES
     assert samples.spacing == reference.spacing
     assert samples.lines == reference.lines and samples.times == reference.times
-    assert samples.tail == reference.tail
+    assert list(zip(samples.tail_lines, samples.tail_times)) == list(reference.tail)
+    samples.add_tail(1_200_000, t + 1.0)
+    reference.tail.append((1_200_000, t + 1.0))
+    assert list(zip(samples.tail_lines, samples.tail_times)) == list(reference.tail)
