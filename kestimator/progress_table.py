@@ -78,9 +78,8 @@ import os
 import re
 import zlib
 from array import array
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from itertools import chain
 from typing import Any, BinaryIO, Protocol
 
 TABLE_VERSION = 2
@@ -340,6 +339,125 @@ def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
     return kept
 
 
+def _by_line(lines: list[int], times: list[float]) -> tuple[list[int], list[float]]:
+    """The points ordered by line (stably; as they are when they already are, as an
+    estimate's are)."""
+    for i in range(1, len(lines)):
+        if lines[i] < lines[i - 1]:
+            order = sorted(range(len(lines)), key=lines.__getitem__)
+            return [lines[k] for k in order], [times[k] for k in order]
+    return lines, times
+
+
+def _merged(a_lines: list[int], a_times: list[float], b_lines: list[int],
+            b_times: list[float]) -> tuple[list[int], list[float]]:
+    """Two lists of points ordered by line, merged (ordered by line; `a`'s first on a
+    tie). Where only one list has points (the samples before the tail's), they are copied
+    as a slice: one by one, each item would be unboxed and boxed again."""
+    i = bisect_right(a_lines, b_lines[0]) if b_lines else len(a_lines)
+    lines, times = a_lines[:i], a_times[:i]
+    j = 0
+    na, nb = len(a_lines), len(b_lines)
+    while i < na and j < nb:
+        if a_lines[i] <= b_lines[j]:
+            lines.append(a_lines[i])
+            times.append(a_times[i])
+            i += 1
+        else:
+            lines.append(b_lines[j])
+            times.append(b_times[j])
+            j += 1
+    lines += a_lines[i:]
+    times += a_times[i:]
+    lines += b_lines[j:]
+    times += b_times[j:]
+    return lines, times
+
+
+def _add_point(lines: list[int], times: list[float], keep: list[bool], line: int, t: float,
+               layer: bool, latest: float, total_s: float) -> float:
+    """Add the point (`line`, `t`) after those in `lines` (its line at or after theirs):
+    the time by which every move before it has ended (`latest`, the greatest so far, at
+    most total_s). The new `latest`."""
+    if t > latest:
+        latest = t
+    value = total_s if latest > total_s else latest
+    if lines and lines[-1] == line:
+        times[-1] = value
+        keep[-1] = keep[-1] or layer
+    else:
+        lines.append(line)
+        times.append(value)
+        keep.append(layer)
+    return latest
+
+
+def _plain_run(lines: list[int], times: list[float], start: int, stop: int, after_line: int,
+               latest: float, total_s: float) -> bool:
+    """Whether the points lines[start:stop] go into the candidates as they are: lines
+    strictly ascending (after `after_line`), times ascending, positive, from `latest` on
+    and at most total_s (so _add_point would keep each time and line as it is)."""
+    if stop <= start:
+        return False
+    if not (lines[start] > after_line and times[start] >= latest and times[start] > 0.0
+            and times[stop - 1] <= total_s):
+        return False
+    for k in range(start + 1, stop):
+        if not (lines[k] > lines[k - 1] and times[k] >= times[k - 1]):
+            return False
+    return True
+
+
+def _candidates(est: _EstimateLike, total_s: float
+                ) -> tuple[list[int], list[float], list[bool]]:
+    """The lines a table may hold a point at, less one (so the samples' own lines), in
+    ascending order, once each: line 1, each layer's line and the line after each
+    progress sample's (and tail sample's) move, up to the file's end (line n_lines + 1:
+    where the output of a file whose last line is a move goes on, inject's own lines after
+    it, as in a second run's input); at each, the time by which every move of the lines
+    before it has ended (at most total_s); whether it is a layer's line.
+
+    The lists come ordered, merged rather than sorted, and runs of samples that need no
+    change are copied as slices (tests/test_progress_table.py holds the result to a dict
+    by line's): select was 21 ms of the worker's answer after a change, most of it spent
+    boxing each sample's line and time again."""
+    after_lines, after_times = _merged(
+        *_by_line([0] + list(est.sample_lines), [0.0] + list(est.sample_times)),
+        *_by_line(list(est.tail_lines), list(est.tail_times)))
+    layer_lines, layer_times = _by_line([line - 1 for line, _ in est.layers],
+                                        [float(t) for _, t in est.layers])
+    last = est.n_lines  # line n_lines + 1, less one
+    lines: list[int] = []
+    times: list[float] = []
+    keep: list[bool] = []
+    latest = 0.0
+    i = j = 0
+    n_layers, n_after = len(layer_lines), len(after_lines)
+    while True:
+        # The samples before the next layer's line (which goes first on a tie), up to the
+        # file's end.
+        stop = bisect_right(after_lines, last, j)
+        if i < n_layers:
+            stop = min(stop, bisect_left(after_lines, layer_lines[i], j))
+        if _plain_run(after_lines, after_times, j, stop, lines[-1] if lines else -1,
+                      latest, total_s):
+            lines += after_lines[j:stop]
+            times += after_times[j:stop]
+            keep += [False] * (stop - j)
+            latest = after_times[stop - 1]
+        else:
+            for k in range(j, stop):
+                latest = _add_point(lines, times, keep, after_lines[k], after_times[k],
+                                    False, latest, total_s)
+        j = stop
+        if i < n_layers and layer_lines[i] <= last:
+            latest = _add_point(lines, times, keep, layer_lines[i], layer_times[i], True,
+                                latest, total_s)
+            i += 1
+        elif j >= n_after or after_lines[j] > last:
+            return lines, times, keep
+
+
 def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
            max_object_points: int = MAX_OBJECT_POINTS,
            max_objects: int = MAX_OBJECTS, precision: float = 1.0) -> Selection:
@@ -347,24 +465,7 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
     most `precision` x spacing_bound apart while they fit in `max_points` (a table that
     never goes into a file, the worker's, can afford more points than a file's footer)."""
     total_s = float(est.total_s)
-    by_line: dict[int, float] = {1: 0.0}
-    layer_lines = set()
-    for line, t in est.layers:
-        by_line[line] = max(t, by_line.get(line, 0.0))
-        layer_lines.add(line)
-    for line, t in chain(zip(est.sample_lines, est.sample_times),
-                         zip(est.tail_lines, est.tail_times)):
-        after = line + 1
-        by_line[after] = max(t, by_line.get(after, 0.0))
-    # Line n_lines + 1 is the file's end: where the output of a file whose last line is a
-    # move goes on (inject's own lines after it), as in a second run's input.
-    lines = sorted(line for line in by_line if line <= est.n_lines + 1)
-    times = []
-    latest = 0.0
-    for line in lines:
-        latest = min(max(latest, by_line[line]), total_s)
-        times.append(latest)
-    keep = [line in layer_lines for line in lines]
+    lines, times, keep = _candidates(est, total_s)
     factor = precision
     forced = True
     while True:
@@ -380,7 +481,7 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
     names, object_lines, remaining, left_out = _select_objects(est, max_object_points,
                                                                max_objects)
     return Selection(total_s=total_s, n_lines=est.n_lines,
-                     lines=[lines[i] for i in kept], times=[times[i] for i in kept],
+                     lines=[lines[i] + 1 for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
                      object_remaining=remaining, objects_left_out=left_out)
 
@@ -921,7 +1022,7 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
         pos = 0
         while k < len(lines) and lines[k] <= last:
             target = lines[k]
-            pos = _after_newlines(block, pos, target - line, line_bytes)
+            pos = _line_start(block, pos, target - line, line_bytes)
             line = target
             result[target] = base + pos
             k += 1
@@ -930,22 +1031,79 @@ def line_offsets(read: Callable[[int], bytes], lines: Sequence[int],
     return result
 
 
-def _after_newlines(block: bytes, pos: int, n: int, line_bytes: float) -> int:
-    """The position just after the `n`-th LF at or after `pos` in `block` (which has that
-    many), its lines `line_bytes` long on average. Most of the way is skipped by counting
+def _line_start(block: bytes, pos: int, n: int, line_bytes: float) -> int:
+    """The position just after the `n`-th LF at or after `pos` in `block` (-1: it has
+    fewer), its lines `line_bytes` long on average. Most of the way is skipped by counting
     LFs in a stretch guessed a little short (C speed), the last few found one by one."""
-    span = int(n * line_bytes * 0.8)
+    end = len(block)
+    span = max(1, int(n * line_bytes * 0.8))
     while n > 16:
-        count = block.count(b"\n", pos, pos + span)
+        stop = min(end, pos + span)
+        count = block.count(b"\n", pos, stop)
         if count < n:
-            pos += span
+            if stop == end:
+                return -1
+            pos = stop
             n -= count
-            span = int(n * line_bytes * 0.8)
+            span = max(1, int(n * line_bytes * 0.8))
         else:
             span //= 2
     for _ in range(n):
-        pos = block.index(b"\n", pos) + 1
+        found = block.find(b"\n", pos)
+        if found < 0:
+            return -1
+        pos = found + 1
     return pos
+
+
+def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int],
+                      known: Mapping[int, int], known_lines: Sequence[int],
+                      line_bytes: float, block_bytes: int = 1 << 16) -> dict[int, int]:
+    """`line_offsets` of `lines` (ascending), counting each line not in `known` (line ->
+    byte offset of its start, line 1 -> 0 among them) from the closest line before it whose
+    offset is known (`known_lines`: known's lines, ascending) or was just found, rather
+    than from the file's start: the worker's answer after a change reads a few thousand
+    short stretches of the file, not all of it. `read_at(size, offset)` reads the file
+    as os.pread does (fewer bytes only at its end), `block_bytes` at a time (the lines
+    looked for in one block are found in it); `line_bytes`: the file's mean line length."""
+    result: dict[int, int] = {}
+    k = 0  # known_lines[:k] are at or before the line being looked for
+    base_line, base = 1, 0  # the closest line before it with a known offset
+    data = b""  # the file from byte `start` on
+    start = 0
+    for line in lines:
+        if line <= 1:
+            result[line] = 0
+            continue
+        offset = known.get(line)
+        if offset is None:
+            while k < len(known_lines) and known_lines[k] <= line:
+                if known_lines[k] >= base_line:
+                    base_line, base = known_lines[k], known[known_lines[k]]
+                k += 1
+            n = line - base_line  # LFs from `base` to the line's start
+            pos = -1
+            if start <= base <= start + len(data):
+                pos = _line_start(data, base - start, n, line_bytes)
+            if pos < 0:  # read on from `base`: a block, more where its lines run out
+                size = max(block_bytes, int(n * line_bytes * 2.0) + 256)
+                data = read_at(size, base)
+                start = base
+                pos = _line_start(data, 0, n, line_bytes)
+                while pos < 0 and len(data) == size:
+                    more = read_at(size, start + size)
+                    if not more:
+                        break
+                    data += more
+                    size = len(data)
+                    pos = _line_start(data, 0, n, line_bytes)
+                if pos < 0:
+                    break  # past the file's last line: this one and every later one
+            offset = start + pos
+        result[line] = offset
+        if line >= base_line:
+            base_line, base = line, offset
+    return result
 
 
 def lines_at_offsets(read: Callable[[int], bytes], offsets: Sequence[int],

@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import os
+import random
 import shutil
 import tracemalloc
 from pathlib import Path
@@ -29,9 +30,11 @@ from kestimator.progress_table import (
     ProgressTable,
     Selection,
     TableError,
+    _candidates,
     decode_block,
     describe_differences,
     line_offsets,
+    line_offsets_from,
     lines_at_offsets,
     read_table,
     read_table_file,
@@ -507,3 +510,75 @@ def test_a_slicers_settings_block_may_follow_the_table() -> None:
     assert decode_block(table.encode() + block, table.content_bytes) == table
     with pytest.raises(TableError, match="goes on after"):
         decode_block(table.encode() + b"; x\n" * 2000, table.content_bytes)
+
+
+def _candidates_by_dict(est: Any, total_s: float) -> tuple[list[int], list[float], list[bool]]:
+    """select's candidate points as it first found them: a dict by line, then sorted."""
+    by_line: dict[int, float] = {1: 0.0}
+    layer_lines = set()
+    for line, t in est.layers:
+        by_line[line] = max(t, by_line.get(line, 0.0))
+        layer_lines.add(line)
+    for line, t in list(zip(est.sample_lines, est.sample_times)) + list(
+            zip(est.tail_lines, est.tail_times)):
+        by_line[line + 1] = max(t, by_line.get(line + 1, 0.0))
+    lines = sorted(line for line in by_line if line <= est.n_lines + 1)
+    times, latest = [], 0.0
+    for line in lines:
+        latest = min(max(latest, by_line[line]), total_s)
+        times.append(latest)
+    return lines, times, [line in layer_lines for line in lines]
+
+
+@pytest.mark.parametrize("seed", range(80))
+def test_select_merges_its_candidates_as_a_dict_by_line_finds_them(seed: int) -> None:
+    rng = random.Random(seed)
+
+    def points(n: int, ordered: bool) -> tuple[list[int], list[float]]:
+        lines = [rng.randrange(0, 400) for _ in range(n)]
+        times = [rng.choice([0.0, -0.0, -1.0, rng.uniform(0, 900), rng.uniform(0, 1200)])
+                 for _ in range(n)]
+        if ordered:
+            pairs = sorted(zip(lines, times), key=lambda p: p[0])
+            lines, times = [p[0] for p in pairs], [p[1] for p in pairs]
+            if seed % 2:  # an estimate's: times ascending too, mostly on distinct lines
+                times = sorted(times)
+        return lines, times
+
+    class Fake:
+        total_s = rng.choice([1000.0, 0.0, 5000.0])
+        n_lines = rng.randrange(0, 420)
+        sample_lines, sample_times = points(rng.randrange(0, 300), seed % 3 != 0)
+        tail_lines, tail_times = points(rng.randrange(0, 100), seed % 4 != 0)
+        layers = list(zip(*points(rng.randrange(0, 50), seed % 5 != 0)))
+        object_remaining: list[tuple[int, float, dict[str, float]]] = []
+
+    lines, times, keep = _candidates(Fake(), Fake.total_s)
+    assert ([line + 1 for line in lines], times, keep) == _candidates_by_dict(Fake(),
+                                                                             Fake.total_s)
+
+
+@pytest.mark.parametrize("seed", range(30))
+def test_line_offsets_from_known_lines_are_those_counted_from_the_start(seed: int) -> None:
+    rng = random.Random(seed)
+    data = b"".join(b"x" * rng.choice([0, 0, 1, 5, 30, 300]) + rng.choice([b"\n", b"\r\n"])
+                    for _ in range(rng.randrange(1, 3000)))
+    if rng.random() < 0.5:
+        data += b"tail without LF"
+    n_lines = data.count(b"\n") + 1
+    wanted = sorted(set(rng.sample(range(-1, n_lines + 4), min(n_lines + 5, 400))))
+    expected = line_offsets(io.BytesIO(data).read, wanted)
+    everything = line_offsets(io.BytesIO(data).read, list(range(1, n_lines + 2)))
+    known = {line: everything[line]
+             for line in rng.sample(sorted(everything), min(len(everything), 40))}
+    known[1] = 0
+
+    def read_at(size: int, offset: int) -> bytes:
+        return data[offset:offset + size]
+
+    for block_bytes in (1 << 16, 7, 100):
+        got = line_offsets_from(read_at, wanted, known, sorted(known), len(data) / n_lines,
+                                block_bytes)
+        assert got == expected
+    # Without anchors but line 1, and with a poor guess of the line length.
+    assert line_offsets_from(read_at, wanted, {1: 0}, [1], 1.0) == expected
