@@ -288,8 +288,13 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         "%d bytes): their time counts in the total only"
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
-    with open(path, "rb") as f:
-        offsets = line_offsets(f.read, selection.wanted_lines())
+    resumable = _resumable
+    if resumable is not None:  # the file estimate_resuming has just estimated
+        offsets = resumable.line_offsets(path, selection.wanted_lines(),
+                                         size / max(1, est.n_lines))
+    else:
+        with open(path, "rb") as f:
+            offsets = line_offsets(f.read, selection.wanted_lines())
     return ProgressTable.from_selection(selection, offsets.get, size,
                                         printer.settings), warnings
 

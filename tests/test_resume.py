@@ -7,6 +7,8 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import random
+from array import array
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -166,3 +168,21 @@ def test_event_lines_counted_from_each_events_checkpoint_are_those_counted_from_
                                                 else 1) + 1 for offset in offsets]
     expected = [min(line, data.count(b"\n") + 1) for line in expected]
     assert worker.event_lines(str(path), offsets) == expected
+
+
+def test_common_prefix_counts_the_items_two_arrays_share_bit_for_bit() -> None:
+    rng = random.Random(37)
+    for typecode, size in (("q", 8), ("d", 8), ("b", 1)):
+        for _ in range(100):
+            n = rng.choice([0, 1, 5, resume.COMPARE_BYTES // size, 3 * resume.COMPARE_BYTES])
+            a = array(typecode, rng.randbytes(n * size))
+            b = array(typecode, a)
+            b.extend(array(typecode, [1] * rng.randrange(0, 3)))
+            expected = min(len(a), len(b))
+            if n and rng.random() < 0.7:
+                expected = rng.randrange(n)
+                raw = bytearray(b.tobytes())
+                raw[expected * size + rng.randrange(size)] ^= 1 << rng.randrange(8)
+                b = array(typecode, bytes(raw))
+            assert resume._common_prefix(a, b) == expected
+            assert resume._common_prefix(b, a) == expected
