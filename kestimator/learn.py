@@ -23,7 +23,6 @@ value needs ``MIN_JOBS`` jobs left.
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import math
 import os
@@ -383,6 +382,8 @@ def _shown(value: object) -> str:
 
 
 def _now_text() -> str:
+    import datetime
+
     return datetime.datetime.now(datetime.timezone.utc).strftime(_DATE_STORED)
 
 
