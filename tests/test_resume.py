@@ -186,3 +186,27 @@ def test_common_prefix_counts_the_items_two_arrays_share_bit_for_bit() -> None:
                 b = array(typecode, bytes(raw))
             assert resume._common_prefix(a, b) == expected
             assert resume._common_prefix(b, a) == expected
+
+
+def test_known_line_offsets_stay_bounded_and_answers_stay_those_of_a_whole_pass(
+        corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+    _answer(path, [])
+    resumable = worker._resumable
+    assert resumable is not None
+    first_known = len(resumable.known_offsets)
+    assert first_known > len(resumable.checkpoints)  # the table's lines and the checkpoints'
+    # With room for fewer lines than one table holds, each answer keeps only its own (and
+    # the checkpoints'), and is still the whole pass's.
+    monkeypatch.setattr(resume, "MAX_KNOWN_OFFSETS", first_known // 2)
+    size = path.stat().st_size
+    for fraction, command in ((0.3, "M220 S150"), (0.8, "M220 S60")):
+        events: list[list[Any]] = [[int(size * fraction), command]]
+        assert _answer(path, events) == _whole_pass(path, events)
+        assert worker._resumable is resumable
+        assert len(resumable.known_offsets) <= first_known + len(resumable.checkpoints) + 1
+    with open(path, "rb") as f:
+        data = f.read()
+    for line, offset in resumable.known_offsets.items():
+        assert offset == 0 if line <= 1 else data[offset - 1:offset] == b"\n"
+        assert data.count(b"\n", 0, offset) == line - 1
