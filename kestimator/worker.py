@@ -85,7 +85,6 @@ from kestimator.progress_table import (
     Settings,
     TableError,
     describe_differences,
-    line_offsets,
     lines_at_offsets,
     read_table,
     select,
@@ -280,7 +279,8 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
     lines = event_lines(path, [offset for offset, _ in events])
     resolved, macros = printer.resolved, printer.macros
     warnings = list(resolved.warnings) + list(macros.warnings)
-    est = estimate_resuming(path, printer, list(zip(lines, (text for _, text in events))))
+    est, resumable = estimate_resuming(path, printer,
+                                       list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
     selection = select(est, precision=WORKER_PRECISION)
     if selection.objects_left_out:
@@ -288,13 +288,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         "%d bytes): their time counts in the total only"
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
-    resumable = _resumable
-    if resumable is not None:  # the file estimate_resuming has just estimated
-        offsets = resumable.line_offsets(path, selection.wanted_lines(),
-                                         size / max(1, est.n_lines))
-    else:
-        with open(path, "rb") as f:
-            offsets = line_offsets(f.read, selection.wanted_lines())
+    offsets = resumable.line_offsets(path, selection.wanted_lines(), size / max(1, est.n_lines))
     return ProgressTable.from_selection(selection, offsets.get, size,
                                         printer.settings), warnings
 
@@ -336,10 +330,12 @@ def event_lines(path: str, offsets: list[int]) -> list[int]:
     return result
 
 
-def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estimate:
+def estimate_resuming(path: str, printer: Printer, events: list[Event]
+                      ) -> tuple[Estimate, Resumable]:
     """The estimate of `path` for `printer` with `events` (line, command), going on from
     the checkpoints of the last estimate when they are of this very file (device, inode,
-    size, times) for these very settings, and keeping them for the next."""
+    size, times) for these very settings, and keeping them for the next; and those
+    checkpoints (`Resumable`, which also finds the table's line offsets)."""
     global _resumable
     from kestimator.estimate import Timeline
     from kestimator.resume import Resumable
@@ -358,7 +354,7 @@ def estimate_resuming(path: str, printer: Printer, events: list[Event]) -> Estim
                         heat_time=printer.heat_time, sample=True, macros=macros,
                         events=ordered)
     try:
-        return resumable.estimate(path, new_timeline, events)
+        return resumable.estimate(path, new_timeline, events), resumable
     except BaseException:
         _resumable = None  # what a failed pass left is not kept
         raise
