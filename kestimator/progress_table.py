@@ -80,7 +80,7 @@ import zlib
 from array import array
 from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from typing import Any, BinaryIO, Protocol
+from typing import Any, BinaryIO, Final, Protocol
 
 TABLE_VERSION = 2
 """The version `encode` writes for a table that records its printer's settings."""
@@ -93,9 +93,10 @@ CHUNK_CHARS = 200
 _HEADER_RE = re.compile(rb"; kestimator_table v(\d{1,6}) bytes=(\d{1,20}) lines=(\d{1,9})"
                         rb" crc32=([0-9a-f]{8})(?: content_crc32=([0-9a-f]{8}))?\r?\n?\Z")
 _CHUNK_RE = re.compile(rb"; kt ([A-Za-z0-9+/=]{1,%d})\r?\n?\Z" % CHUNK_CHARS)
-# Which points are kept (see the module's docstring).
-MIN_SPACING_S = 0.4
-SPACING_FRACTION = 0.0015
+# Which points are kept (see the module's docstring). Final: the compiled build reads a
+# module's other globals from its dict, a lookup by name at each of _thin's 40,000 steps.
+MIN_SPACING_S: Final = 0.4
+SPACING_FRACTION: Final = 0.0015
 MAX_TIME_POINTS = 20000
 MAX_OBJECT_POINTS = 500
 MAX_OBJECTS = 200
@@ -314,27 +315,44 @@ class Selection:
     """object_remaining[i][j]: object i's seconds left at object_lines[j]."""
     objects_left_out: int = 0
     """Objects of the estimate left out: past MAX_OBJECTS, or named in over MAX_NAME_BYTES."""
+    candidates: list[int] = dataclasses.field(default_factory=list)
+    """Every line a table of the estimate may hold a point at, less one, ascending (the
+    points `lines` were chosen from: another total chooses others)."""
 
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
         return sorted(set(self.lines) | set(self.object_lines))
 
+    def candidate_lines(self, after: int = 0) -> list[int]:
+        """The lines past `after` a table of the estimate may hold a point at, ascending:
+        the worker finds their offsets once, for the answers after a change whose new total
+        chooses other points before the change (kestimator.resume)."""
+        candidates = self.candidates
+        return [line + 1 for line in candidates[bisect_right(candidates, after - 1):]]
+
 
 def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
-          forced: bool) -> list[int]:
+          forced: bool, max_points: int) -> list[int] | None:
     """Indices kept: the first and last, the forced ones, and every one without which the
-    time between its kept neighbours would pass `factor` x spacing_bound."""
+    time between its kept neighbours would pass `factor` x spacing_bound; None as soon as
+    they are more than `max_points` (the rest of the walk would not change that)."""
     n = len(times)
     if n <= 2:
-        return list(range(n))
+        return list(range(n)) if n <= max_points else None
     kept = [0]
+    last = times[0]  # times[kept[-1]]
     for i in range(1, n - 1):
         if forced and keep[i]:
             kept.append(i)
-            continue
-        after = times[i + 1]
-        if after - times[kept[-1]] > factor * spacing_bound(total_s - after):
-            kept.append(i)
+        else:
+            after = times[i + 1]
+            if after - last > factor * spacing_bound(total_s - after):
+                kept.append(i)
+            else:
+                continue
+        last = times[i]
+        if len(kept) >= max_points:  # with the last one, more than max_points
+            return None
     kept.append(n - 1)
     return kept
 
@@ -469,21 +487,21 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
     factor = precision
     forced = True
     while True:
-        kept = _thin(times, keep, total_s, factor, forced)
-        if len(kept) <= max_points:
+        thinned = _thin(times, keep, total_s, factor, forced, max(2, max_points))
+        if thinned is not None:
+            kept = thinned
             break
         if forced:
             forced = False  # first, layer markers may go; then the bound grows
         else:
             factor *= 2.0
-    if len(kept) > max_points:  # pragma: no cover - the bound grows until they fit
-        kept = kept[:max_points]
     names, object_lines, remaining, left_out = _select_objects(est, max_object_points,
                                                                max_objects)
     return Selection(total_s=total_s, n_lines=est.n_lines,
                      lines=[lines[i] + 1 for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
-                     object_remaining=remaining, objects_left_out=left_out)
+                     object_remaining=remaining, objects_left_out=left_out,
+                     candidates=lines)
 
 
 def name_bytes(name: str) -> bytes | None:
@@ -1060,28 +1078,31 @@ def _line_start(block: bytes, pos: int, n: int, line_bytes: float) -> int:
 def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int],
                       known: Mapping[int, int], known_lines: Sequence[int],
                       line_bytes: float, block_bytes: int = 1 << 16) -> dict[int, int]:
-    """`line_offsets` of `lines` (ascending), counting each line not in `known` (line ->
-    byte offset of its start, line 1 -> 0 among them) from the closest line before it whose
-    offset is known (`known_lines`: known's lines, ascending) or was just found, rather
-    than from the file's start: the worker's answer after a change reads a few thousand
-    short stretches of the file, not all of it. `read_at(size, offset)` reads the file
-    as os.pread does (fewer bytes only at its end), `block_bytes` at a time (the lines
-    looked for in one block are found in it); `line_bytes`: the file's mean line length."""
+    """`line_offsets` of `lines` (ascending, a line maybe more than once), counting each
+    line not in `known` (line -> byte offset of its start, line 1 -> 0 among them) from
+    the closest line before it whose offset is known (`known_lines`: known's lines,
+    ascending) or was just found, rather than from the file's start: the worker's answer
+    after a change reads a few thousand short stretches of the file, not all of it.
+    `read_at(size, offset)` reads the file as os.pread does (fewer bytes only at its end),
+    `block_bytes` at a time (the lines looked for in one block are found in it);
+    `line_bytes`: the file's mean line length."""
     result: dict[int, int] = {}
     k = 0  # known_lines[:k] are at or before the line being looked for
     base_line, base = 1, 0  # the closest line before it with a known offset
     data = b""  # the file from byte `start` on
     start = 0
     for line in lines:
-        if line <= 1:
-            result[line] = 0
+        if line == base_line or line <= 1:  # line 1, or the line just before again
+            result[line] = base if line == base_line else 0
             continue
         offset = known.get(line)
         if offset is None:
-            while k < len(known_lines) and known_lines[k] <= line:
-                if known_lines[k] >= base_line:
-                    base_line, base = known_lines[k], known[known_lines[k]]
-                k += 1
+            # The closest known line before it, found only for a line not known (a
+            # bisection: a walk through every known line cost as much as the counting).
+            k = bisect_right(known_lines, line, k)
+            if k and known_lines[k - 1] >= base_line:
+                base_line = known_lines[k - 1]
+                base = known[base_line]
             n = line - base_line  # LFs from `base` to the line's start
             pos = -1
             if start <= base <= start + len(data):

@@ -582,3 +582,60 @@ def test_line_offsets_from_known_lines_are_those_counted_from_the_start(seed: in
         assert got == expected
     # Without anchors but line 1, and with a poor guess of the line length.
     assert line_offsets_from(read_at, wanted, {1: 0}, [1], 1.0) == expected
+    # A line asked for more than once (the worker merges the table's lines with the
+    # candidates') is found once, at the same offset.
+    repeated = sorted(wanted + rng.sample(wanted, len(wanted) // 3))
+    assert line_offsets_from(read_at, repeated, known, sorted(known),
+                             len(data) / n_lines) == expected
+
+
+def _select_lines_by_whole_walks(est: Any, max_points: int, precision: float) -> list[int]:
+    """select's lines as it chose them before it stopped a walk past max_points: each
+    walk to the end, its points counted after."""
+    total_s = float(est.total_s)
+    lines, times, keep = _candidates(est, total_s)
+    factor, forced = precision, True
+    while True:
+        kept = [0] if len(times) > 2 else list(range(len(times)))
+        if len(times) > 2:
+            for i in range(1, len(times) - 1):
+                after = times[i + 1]
+                if ((forced and keep[i]) or after - times[kept[-1]]
+                        > factor * spacing_bound(total_s - after)):
+                    kept.append(i)
+            kept.append(len(times) - 1)
+        if len(kept) <= max_points:
+            return [lines[i] + 1 for i in kept]
+        if forced:
+            forced = False
+        else:
+            factor *= 2.0
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_select_stopping_a_walk_past_the_limit_keeps_the_points_whole_walks_keep(
+        seed: int) -> None:
+    rng = random.Random(seed)
+    n = rng.randrange(0, 3000)
+    t = 0.0
+    sample_times = []
+    for _ in range(n):
+        t += rng.choice([0.0, 0.01, 0.3, 2.0, 40.0])
+        sample_times.append(t)
+
+    class Fake:
+        total_s = t + rng.choice([0.0, 5.0])
+        n_lines = 2 * n + 3
+        sample_lines = list(range(1, 2 * n, 2))
+        layers = [(line + 1, sample_times[(line - 1) // 2])
+                  for line in sorted(rng.sample(range(1, 2 * n, 2), min(n, rng.randrange(50))))]
+        tail_lines: list[int] = []
+        tail_times: list[float] = []
+        object_remaining: list[tuple[int, float, dict[str, float]]] = []
+
+    Fake.sample_times = sample_times
+    for max_points in (2, 3, 10, 100, 5000):
+        for precision in (0.1, 1.0):
+            got = select(Fake(), max_points=max_points, precision=precision)
+            assert got.lines == _select_lines_by_whole_walks(Fake(), max_points, precision)
+            assert len(got.lines) <= max(2, max_points)
