@@ -43,7 +43,7 @@ from kestimator.estimate import (
     line_batches_at,
     run_timeline,
 )
-from kestimator.progress_table import line_offsets_from
+from kestimator.progress_table import Selection, line_offsets_from
 
 # The gap after a checkpoint: this share of the rest of the file, at least MIN_GAP_RATIO of
 # the file and MIN_GAP_BYTES (a small file has fewer checkpoints).
@@ -177,6 +177,9 @@ class Resumable:
         # Byte offsets of line starts found so far (line -> offset): the tables' lines and
         # the checkpoints' next lines.
         self.known_offsets: dict[int, int] = {1: 0}
+        # The line of each byte offset events were typed at (kestimator.worker.event_lines;
+        # at most as many as one request's events).
+        self.event_lines: dict[int, int] = {}
 
     def usable(self, events: Sequence[Event]) -> int:
         """The index of the last checkpoint valid for `events` (in line order), or -1:
@@ -296,14 +299,25 @@ class Resumable:
         self.checkpoints.append(checkpoint)
         self.nbytes += checkpoint.nbytes
 
-    def line_offsets(self, path: str, lines: Sequence[int], line_bytes: float
+    def line_offsets(self, path: str, selection: Selection, line_bytes: float
                      ) -> dict[int, int]:
-        """`progress_table.line_offsets` of `lines` (ascending) in this file, each counted
-        from the closest line before it whose offset an earlier table or a checkpoint found
-        (`line_offsets_from`): after a change at 90 % of the 40 MB file, about 7,000 short
-        stretches instead of the whole file. The lines found are kept for the next answer
-        (at most MAX_KNOWN_OFFSETS: past it, only this answer's)."""
+        """`progress_table.line_offsets` of the lines a table of `selection` needs, each
+        counted from the closest line before it whose offset an earlier answer or a
+        checkpoint found (`line_offsets_from`); `line_bytes`: the file's mean line length.
+
+        The offsets of every line a table of this estimate could hold past where this pass
+        went on from (`Selection.candidate_lines`) are found too, in the same walk, and
+        kept: a later change moves the total, and with it which points the table keeps
+        before the change, but those points are among the candidates the passes before
+        found (after a change at 90 % of the 40 MB file, 8,000 lines were new to count,
+        3,400 of them spread over the 89 % before the change). At most MAX_KNOWN_OFFSETS
+        are kept: past it, this estimate's candidates and the checkpoints' lines."""
         known = self.known_offsets
+        more = selection.candidate_lines(self.resumed_at)
+        if len(more) > MAX_KNOWN_OFFSETS // 2:  # a file of countless layers: only the table's
+            more = []
+        # Ascending runs, merged (not sorted) by sorted; a line in two of them is found once.
+        lines = sorted(selection.lines + selection.object_lines + more)
         with open(path, "rb", buffering=0) as f:
             read_at: Callable[[int, int], bytes]
             if hasattr(os, "pread"):  # one call (no seek), and no Python frame per read
@@ -314,9 +328,15 @@ class Resumable:
                     return f.read(size) or b""
             found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
         if len(known) + len(found) > MAX_KNOWN_OFFSETS:
-            known = self.known_offsets = {1: 0}
+            kept = {1: 0}
             for checkpoint in self.checkpoints:
-                known[checkpoint.lineno + 1] = checkpoint.offset
+                kept[checkpoint.lineno + 1] = checkpoint.offset
+            if len(selection.candidates) + len(found) <= MAX_KNOWN_OFFSETS // 2:
+                for line in selection.candidate_lines():
+                    offset = known.get(line)
+                    if offset is not None:
+                        kept[line] = offset
+            known = self.known_offsets = kept
         known.update(found)
         return found
 

@@ -288,7 +288,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         "%d bytes): their time counts in the total only"
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
-    offsets = resumable.line_offsets(path, selection.wanted_lines(), size / max(1, est.n_lines))
+    offsets = resumable.line_offsets(path, selection, size / max(1, est.n_lines))
     return ProgressTable.from_selection(selection, offsets.get, size,
                                         printer.settings), warnings
 
@@ -306,20 +306,28 @@ def event_lines(path: str, offsets: list[int]) -> list[int]:
     """The line each byte offset falls on (`lines_at_offsets`), each counted from the last
     checkpoint of this very file at or before it (a checkpoint knows its line and the byte
     offset of the next) rather than from the file's start: a few gaps are read, not the
-    file between the first event and the last."""
+    file between the first event and the last. The lines found are kept with the
+    checkpoints (the Klipper module sends every change so far each time: only the new
+    one is counted)."""
     if not offsets:
         return []
     anchors = [(0, 0)]  # (line, byte offset of the next line), ascending
+    found: dict[int, int] = {}
     resumable = _resumable
     if resumable is not None and isinstance(resumable.key, tuple):
         file_id = _file_id(path, os.stat(path))
         if resumable.key[:len(file_id)] == file_id:
             anchors += [(c.lineno, c.offset) for c in resumable.checkpoints if c.offset > 0]
+            found = resumable.event_lines
     starts = [offset for _, offset in anchors]
     groups: dict[int, list[int]] = {}  # anchor index -> indexes of the offsets after it
-    for i, offset in enumerate(offsets):
-        groups.setdefault(max(0, bisect_right(starts, offset) - 1), []).append(i)
     result = [0] * len(offsets)
+    for i, offset in enumerate(offsets):
+        line = found.get(offset)
+        if line is not None:
+            result[i] = line
+        else:
+            groups.setdefault(max(0, bisect_right(starts, offset) - 1), []).append(i)
     with open(path, "rb") as f:
         for anchor, indexes in groups.items():
             line0, offset0 = anchors[anchor]
@@ -327,6 +335,10 @@ def event_lines(path: str, offsets: list[int]) -> list[int]:
             relative = lines_at_offsets(f.read, [offsets[i] - offset0 for i in indexes])
             for i, line in zip(indexes, relative):
                 result[i] = line0 + line
+    if resumable is not None and found is resumable.event_lines:
+        if len(found) + len(offsets) > MAX_EVENTS:
+            found.clear()
+        found.update(zip(offsets, result))
     return result
 
 

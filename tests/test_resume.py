@@ -210,3 +210,50 @@ def test_known_line_offsets_stay_bounded_and_answers_stay_those_of_a_whole_pass(
     for line, offset in resumable.known_offsets.items():
         assert offset == 0 if line <= 1 else data[offset - 1:offset] == b"\n"
         assert data.count(b"\n", 0, offset) == line - 1
+
+
+def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_once(
+        corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The first answer finds the offset of every line a later table may hold (the
+    candidates), so an answer after a change counts only lines past the checkpoint it went
+    on from, whichever points the new total keeps before it; and a change already answered
+    is not looked for again."""
+    path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
+    asked: list[tuple[list[int], dict[int, int]]] = []
+    real = resume.line_offsets_from
+
+    def spy(read_at: Any, lines: Any, known: Any, *args: Any) -> dict[int, int]:
+        asked.append((list(lines), dict(known)))
+        return real(read_at, lines, known, *args)
+
+    monkeypatch.setattr(resume, "line_offsets_from", spy)
+    counted: list[list[int]] = []
+    real_lines_at = worker.lines_at_offsets
+
+    def spy_lines(read: Any, offsets: Any, *args: Any) -> list[int]:
+        counted.append(list(offsets))
+        return real_lines_at(read, offsets, *args)
+
+    monkeypatch.setattr(worker, "lines_at_offsets", spy_lines)
+    _answer(path, [])
+    size = path.stat().st_size
+    events: list[list[Any]] = []
+    for fraction, command in ((0.3, "M220 S150"), (0.6, "SET_VELOCITY_LIMIT ACCEL=900"),
+                              (0.9, "M220 S60")):
+        events.append([int(size * fraction), command])
+        counted.clear()
+        asked.clear()
+        answer = _answer(path, events)
+        resumable = worker._resumable
+        assert resumable is not None and resumable.resumed_at > 0
+        # Only the new change's line is counted.
+        assert sum(len(offsets) for offsets in counted) == 1
+        (lines, known), = asked
+        before = [line for line in lines if line <= resumable.resumed_at]
+        assert before and all(line in known for line in before)
+        assert answer == _whole_pass(path, events)
+    # Every line kept is at its true offset.
+    with open(path, "rb") as f:
+        data = f.read()
+    for line, offset in resumable.known_offsets.items():
+        assert data.count(b"\n", 0, offset) == line - 1
