@@ -1077,7 +1077,8 @@ def _line_start(block: bytes, pos: int, n: int, line_bytes: float) -> int:
 
 def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int],
                       known: Mapping[int, int], known_lines: Sequence[int],
-                      line_bytes: float, block_bytes: int = 1 << 16) -> dict[int, int]:
+                      line_bytes: float, block_bytes: int = 1 << 16,
+                      found: dict[int, int] | None = None) -> dict[int, int]:
     """`line_offsets` of `lines` (ascending, a line maybe more than once), counting each
     line not in `known` (line -> byte offset of its start, line 1 -> 0 among them) from
     the closest line before it whose offset is known (`known_lines`: known's lines,
@@ -1085,8 +1086,9 @@ def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int]
     after a change reads a few thousand short stretches of the file, not all of it.
     `read_at(size, offset)` reads the file as os.pread does (fewer bytes only at its end),
     `block_bytes` at a time (the lines looked for in one block are found in it);
-    `line_bytes`: the file's mean line length."""
-    result: dict[int, int] = {}
+    `line_bytes`: the file's mean line length. The offsets go into `found` (a new dict by
+    default; `known` itself adds them there), which is returned."""
+    result: dict[int, int] = {} if found is None else found
     k = 0  # known_lines[:k] are at or before the line being looked for
     base_line, base = 1, 0  # the closest line before it with a known offset
     data = b""  # the file from byte `start` on

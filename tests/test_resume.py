@@ -222,9 +222,10 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
     asked: list[tuple[list[int], dict[int, int]]] = []
     real = resume.line_offsets_from
 
-    def spy(read_at: Any, lines: Any, known: Any, *args: Any) -> dict[int, int]:
+    def spy(read_at: Any, lines: Any, known: Any, *args: Any, **kwargs: Any
+            ) -> dict[int, int]:
         asked.append((list(lines), dict(known)))
-        return real(read_at, lines, known, *args)
+        return real(read_at, lines, known, *args, **kwargs)
 
     monkeypatch.setattr(resume, "line_offsets_from", spy)
     counted: list[list[int]] = []
