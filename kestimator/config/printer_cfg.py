@@ -138,24 +138,25 @@ def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[
     "klipper default", "derived from <option>", "kestimator default" (klipper_generation)
     or, for options Klipper requires but the config lacks, `REQUIRED_FALLBACK`.
     """
-    values, provenance = printer_cfg_values(path)
-    limits = Limits.from_values(values).replace(machine=machine_config(path))
+    values, provenance, machine = printer_cfg_values(path)
+    limits = Limits.from_values(values).replace(machine=machine)
     for field in Limits.field_names():
         provenance.setdefault(field, ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT))
     return limits, provenance
 
 
-def machine_config(path: str | os.PathLike[str]) -> MachineConfig:
+def _machine_config(path: str, config: _Config) -> MachineConfig:
     """The sections the kinematics reads ([printer], [stepper_*], [dual_carriage], probes),
     each option with its "<file>:<line>"."""
-    config = _read_config(os.fspath(path))
-    return MachineConfig.build(os.fspath(path), {
+    return MachineConfig.build(path, {
         name: {option: (raw.value, raw.location) for option, raw in options.items()}
         for name, options in config.sections.items()})
 
 
-def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object], dict[str, str]]:
-    """Only the Limits fields the config sets, and the "<file>:<line>" each came from.
+def printer_cfg_values(path: str | os.PathLike[str]
+                       ) -> tuple[dict[str, object], dict[str, str], MachineConfig]:
+    """Only the Limits fields the config sets, the "<file>:<line>" each came from, and the
+    sections the kinematics reads (`MachineConfig`), from one reading of the files.
 
     A field the config leaves out is Klipper's default (``Limits.from_values`` fills it in);
     ``arcs_enabled`` and ``firmware_retraction_enabled`` are set, to True, where their
@@ -225,7 +226,7 @@ def printer_cfg_values(path: str | os.PathLike[str]) -> tuple[dict[str, object],
                 f"got {raw.value}", raw.path, raw.line)
     for field, raw in read_from.items():
         provenance[field] = raw.location
-    return values, provenance
+    return values, provenance, _machine_config(os.fspath(path), config)
 
 
 def check_options(sections: Sections) -> None:

@@ -39,7 +39,6 @@ from kestimator.config.printer_cfg import (
     KLIPPER_DEFAULT,
     RELATIVE_BOUNDS,
     REQUIRED_FALLBACK,
-    machine_config,
     printer_cfg_values,
 )
 from kestimator.config.profile import (
@@ -347,9 +346,8 @@ def _machine(request: LimitRequest, profile: Profile | None,
     if printer_cfg is None and moonraker_url is None and profile is not None:
         printer_cfg, moonraker_url = profile.printer_cfg, profile.moonraker
     if printer_cfg is not None:
-        values, sources = printer_cfg_values(printer_cfg)
-        return SourcedValues(os.fspath(printer_cfg), values, sources,
-                             machine=machine_config(printer_cfg))
+        values, sources, machine = printer_cfg_values(printer_cfg)
+        return SourcedValues(os.fspath(printer_cfg), values, sources, machine=machine)
     if moonraker_url is None:
         return None
     api_key = _api_key(request, profile, environ)
