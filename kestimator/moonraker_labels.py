@@ -255,7 +255,7 @@ def table_for_labelled_file(output: str, uploaded: str, labeller: Labeller,
         selection, settings = plan(copy)
         with open(copy, "rb") as f:
             offsets = line_offsets(f.read, selection.wanted_lines())
-        table = ProgressTable.from_selection(selection, offsets.get, labelled_bytes, settings,
+        table = ProgressTable.from_selection(selection, offsets, labelled_bytes, settings,
                                              _crc32(copy, labelled_bytes))
         new_lines = table.encode(b"\n")
         expected = _digest(copy, labelled_bytes, new_lines + after_lines)

@@ -32,7 +32,7 @@ import io
 import os
 import pickle
 from array import array
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Final
 
 from kestimator.estimate import (
@@ -300,7 +300,7 @@ class Resumable:
         self.nbytes += checkpoint.nbytes
 
     def line_offsets(self, path: str, selection: Selection, line_bytes: float
-                     ) -> Mapping[int, int]:
+                     ) -> dict[int, int]:
         """The byte offsets (`progress_table.line_offsets`) of the lines a table of
         `selection` needs, among others; `line_bytes`: the file's mean line length. Each
         line not known yet is counted from the line before it (`line_offsets_from`).

@@ -705,7 +705,7 @@ class Rewriter:
     def _table_block(self, eol: bytes) -> bytes:
         """The progress table's lines, here: every byte written so far is before it."""
         assert self.plan.table is not None
-        self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets.get,
+        self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets,
                                                   self._out_pos, self.plan.table_settings,
                                                   self._crc & 0xFFFFFFFF)
         return self.table.encode(eol)

@@ -289,7 +289,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
     offsets = resumable.line_offsets(path, selection, size / max(1, est.n_lines))
-    return ProgressTable.from_selection(selection, offsets.get, size,
+    return ProgressTable.from_selection(selection, offsets, size,
                                         printer.settings), warnings
 
 

@@ -326,7 +326,7 @@ def test_interpolation_stays_within_the_bound_at_every_progress_sample(
     with open(path, "rb") as f:
         offsets = line_offsets(f.read, sorted({line + 1 for line in est.sample_lines}
                                               | set(selection.wanted_lines())))
-    table = ProgressTable.from_selection(selection, offsets.get, path.stat().st_size)
+    table = ProgressTable.from_selection(selection, offsets, path.stat().st_size)
     # The time at the start of the line after a sample's move: when every move of that
     # line has finished (a line with many moves, an arc, has many samples: the last).
     at_line: dict[int, float] = {}
@@ -408,7 +408,7 @@ def test_a_post_processors_line_after_the_table_stays_after_it(
 def test_a_selection_without_objects_has_none() -> None:
     selection = Selection(total_s=10.0, n_lines=3, lines=[1, 2], times=[0.0, 5.0],
                           object_names=[], object_lines=[], object_remaining=[])
-    table = ProgressTable.from_selection(selection, {1: 0, 2: 10}.get, 20)
+    table = ProgressTable.from_selection(selection, {1: 0, 2: 10}, 20)
     assert table.offsets == [0, 10, 20] and table.times == [0.0, 5.0, 10.0]
     assert table.objects_remaining_at(5) == {}
 
