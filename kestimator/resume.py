@@ -303,7 +303,8 @@ class Resumable:
                      ) -> dict[int, int]:
         """The byte offsets (`progress_table.line_offsets`) of the lines a table of
         `selection` needs, among others; `line_bytes`: the file's mean line length. Each
-        line not known yet is counted from the line before it (`line_offsets_from`).
+        line not known yet is counted from the line before it (`line_offsets_from`): a
+        dict of these lines alone, which the table reads faster than all the known ones.
 
         The offsets of every line a table of this estimate could hold past where this pass
         went on from (`Selection.candidate_lines`) are found too, in the same walk, and
@@ -328,7 +329,7 @@ class Resumable:
                     return f.read(size) or b""
             # Without the known lines to bisect (sorting them took longer than the few
             # lines it saves counting): the line before is at most a candidate away.
-            line_offsets_from(read_at, lines, known, (), line_bytes, found=known)
+            found = line_offsets_from(read_at, lines, known, (), line_bytes, learn=True)
         if len(known) > MAX_KNOWN_OFFSETS:
             kept = {1: 0}
             for checkpoint in self.checkpoints:
@@ -338,12 +339,9 @@ class Resumable:
                     offset = known.get(line)
                     if offset is not None:
                         kept[line] = offset
-            for line in lines:
-                offset = known.get(line)
-                if offset is not None:
-                    kept[line] = offset
-            known = self.known_offsets = kept
-        return known
+            kept.update(found)
+            self.known_offsets = kept
+        return found
 
     def _restore(self, index: int, events: list[Event]) -> Timeline:
         """The timeline of checkpoint `index`, to go on with `events`."""
