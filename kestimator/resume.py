@@ -32,6 +32,7 @@ import io
 import os
 import pickle
 from array import array
+from bisect import bisect_right
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, Final
 
@@ -312,13 +313,19 @@ class Resumable:
         before the change, but those points are among the candidates the passes before
         found (after a change at 90 % of the 40 MB file, 8,000 lines were new to count,
         3,400 of them spread over the 89 % before the change). At most MAX_KNOWN_OFFSETS
-        are kept: past it, the checkpoints', this estimate's candidates' and this table's."""
-        known = self.known_offsets
+        are kept: where this answer's lines would pass it, the others kept are first cut
+        to the checkpoints' and the candidates' before where this pass went on from."""
         more = selection.candidate_lines(self.resumed_at)
         if len(more) > MAX_KNOWN_OFFSETS // 2:  # a file of countless layers: only the table's
             more = []
         # Ascending runs, merged (not sorted) by sorted; a line in two of them is found once.
         lines = sorted(selection.lines + selection.object_lines + more)
+        known = self.known_offsets
+        if len(known) + len(lines) > MAX_KNOWN_OFFSETS:
+            # Room first: the checkpoints' lines and, where they fit with this table's, the
+            # candidates before where this pass went on from (those past it are counted
+            # again: they are in `more`).
+            known = self.known_offsets = self._kept_offsets(selection, len(lines))
         with open(path, "rb", buffering=0) as f:
             read_at: Callable[[int, int], bytes]
             if hasattr(os, "pread"):  # one call (no seek), and no Python frame per read
@@ -329,19 +336,23 @@ class Resumable:
                     return f.read(size) or b""
             # Without the known lines to bisect (sorting them took longer than the few
             # lines it saves counting): the line before is at most a candidate away.
-            found = line_offsets_from(read_at, lines, known, (), line_bytes, learn=True)
-        if len(known) > MAX_KNOWN_OFFSETS:
-            kept = {1: 0}
-            for checkpoint in self.checkpoints:
-                kept[checkpoint.lineno + 1] = checkpoint.offset
-            if len(selection.candidates) + len(lines) <= MAX_KNOWN_OFFSETS // 2:
-                for line in selection.candidate_lines():
-                    offset = known.get(line)
-                    if offset is not None:
-                        kept[line] = offset
-            kept.update(found)
-            self.known_offsets = kept
-        return found
+            return line_offsets_from(read_at, lines, known, (), line_bytes, learn=True)
+
+    def _kept_offsets(self, selection: Selection, room: int) -> dict[int, int]:
+        """The known offsets kept when `room` more must fit: the checkpoints', and the
+        candidates' before where this pass went on from if they fit too."""
+        known = self.known_offsets
+        kept = {1: 0}
+        for checkpoint in self.checkpoints:
+            kept[checkpoint.lineno + 1] = checkpoint.offset
+        candidates = selection.candidates
+        before = candidates[:bisect_right(candidates, self.resumed_at - 1)]
+        if len(kept) + len(before) + room <= MAX_KNOWN_OFFSETS:
+            for line in before:
+                offset = known.get(line + 1)
+                if offset is not None:
+                    kept[line + 1] = offset
+        return kept
 
     def _restore(self, index: int, events: list[Event]) -> Timeline:
         """The timeline of checkpoint `index`, to go on with `events`."""
