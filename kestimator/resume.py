@@ -315,9 +315,11 @@ class Resumable:
         3,400 of them spread over the 89 % before the change). At most MAX_KNOWN_OFFSETS
         are kept: where this answer's lines would pass it, the others kept are first cut
         to the checkpoints' and the candidates' before where this pass went on from."""
-        more = selection.candidate_lines(self.resumed_at)
-        if len(more) > MAX_KNOWN_OFFSETS // 2:  # a file of countless layers: only the table's
-            more = []
+        candidates = selection.candidates
+        more: list[int] = []
+        if len(candidates) - bisect_right(candidates, self.resumed_at - 1) \
+                <= MAX_KNOWN_OFFSETS // 2:  # else a file of countless layers: the table's only
+            more = selection.candidate_lines(self.resumed_at)
         # Ascending runs, merged (not sorted) by sorted; a line in two of them is found once.
         lines = sorted(selection.lines + selection.object_lines + more)
         known = self.known_offsets
@@ -346,12 +348,12 @@ class Resumable:
         for checkpoint in self.checkpoints:
             kept[checkpoint.lineno + 1] = checkpoint.offset
         candidates = selection.candidates
-        before = candidates[:bisect_right(candidates, self.resumed_at - 1)]
-        if len(kept) + len(before) + room <= MAX_KNOWN_OFFSETS:
-            for line in before:
-                offset = known.get(line + 1)
+        before = bisect_right(candidates, self.resumed_at - 1)
+        if len(kept) + before + room <= MAX_KNOWN_OFFSETS:
+            for i in range(before):
+                offset = known.get(candidates[i] + 1)
                 if offset is not None:
-                    kept[line + 1] = offset
+                    kept[candidates[i] + 1] = offset
         return kept
 
     def _restore(self, index: int, events: list[Event]) -> Timeline:
