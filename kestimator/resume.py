@@ -175,8 +175,8 @@ class Resumable:
         # Whether the planner's pickle is still to be checked once; whether it cannot be.
         self.probe = True
         self.disabled = False
-        # Byte offsets of line starts found so far (line -> offset): the tables' lines and
-        # the checkpoints' next lines.
+        # Byte offsets of line starts found so far (line -> offset): the candidates' and
+        # tables' lines (`line_offsets`) and the checkpoints' next lines.
         self.known_offsets: dict[int, int] = {1: 0}
         # The line of each byte offset events were typed at (kestimator.worker.event_lines;
         # at most as many as one request's events).
