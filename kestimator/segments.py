@@ -12,6 +12,7 @@ the segment of the last move before it.
 from __future__ import annotations
 
 import re
+from array import array
 from collections import deque
 from typing import Final
 
@@ -66,9 +67,13 @@ class Segments:
         # Segment changes (line, segment id) waiting until the planner has flushed every
         # move before them; a negative id -1-i is layer marker i's snapshot (`snapshot`).
         self.changes: deque[tuple[int, int]] = deque()
-        # Each kept layer marker's index and every object's time before it (by object id).
-        self.snapshot_layers: list[int] = []
-        self.snapshot_times: list[list[float]] = []
+        # Each kept layer marker's index and every object's time before it (by object id):
+        # snapshot i is snapshot_times[snapshot_ends[i - 1]:snapshot_ends[i]] (0 for i = 0).
+        # Flat arrays, not a list per layer: a checkpoint (kestimator.resume) pickles them
+        # as three blocks of bytes, where 600 lists of floats were half its objects.
+        self.snapshot_layers = array("q")
+        self.snapshot_ends = array("q")
+        self.snapshot_times = array("d")
         self._snapshot_stride = 1
         # The segment of the moves being timed, and of the last line read.
         self.segment = 0
@@ -139,8 +144,7 @@ class Segments:
         if index % self._snapshot_stride:
             return
         if len(self.snapshot_layers) >= MAX_REMAINING_LAYERS:
-            del self.snapshot_layers[1::2]
-            del self.snapshot_times[1::2]
+            self._drop_every_other_snapshot()
             self._snapshot_stride *= 2
             if index % self._snapshot_stride:
                 return
@@ -151,7 +155,20 @@ class Segments:
             if oid < n:
                 times[oid] += segment_time[sid]
         self.snapshot_layers.append(index)
-        self.snapshot_times.append(times)
+        self.snapshot_times.extend(array("d", times))
+        self.snapshot_ends.append(len(self.snapshot_times))
+
+    def _drop_every_other_snapshot(self) -> None:
+        """Keep snapshots 0, 2, 4, ..."""
+        ends, times = self.snapshot_ends, self.snapshot_times
+        kept_ends = array("q")
+        kept_times = array("d")
+        for i in range(0, len(ends), 2):
+            kept_times.extend(times[ends[i - 1] if i else 0:ends[i]])
+            kept_ends.append(len(kept_times))
+        del self.snapshot_layers[1::2]
+        self.snapshot_ends = kept_ends
+        self.snapshot_times = kept_times
 
     def flush_snapshots(self) -> None:
         """Take the snapshots still waiting for a move (the head is at rest)."""
@@ -211,7 +228,7 @@ class Segments:
     def scale(self, factor: float) -> None:
         """Every segment's time grows by `factor` (a learned motion correction)."""
         self.segment_time = [t * factor for t in self.segment_time]
-        self.snapshot_times = [[t * factor for t in times] for times in self.snapshot_times]
+        self.snapshot_times = array("d", [t * factor for t in self.snapshot_times])
 
     def remaining(self, layers: list[tuple[int, float]]) -> list[
             tuple[int, float, dict[str, float]]]:
@@ -226,7 +243,10 @@ class Segments:
             totals[oid] += self.segment_time[sid]
         names = [self.object_names.get(key, key) for key in self.object_keys]
         result: list[tuple[int, float, dict[str, float]]] = []
-        for index, before in zip(self.snapshot_layers, self.snapshot_times):
+        times = self.snapshot_times
+        start = 0
+        for index, end in zip(self.snapshot_layers, self.snapshot_ends):
+            before, start = times[start:end], end
             if index >= len(layers):
                 continue
             remaining: dict[str, float] = {}

@@ -254,3 +254,32 @@ def test_estimate_at_without_exclude_or_below_1_is_a_usage_error(
         tmp_path: Path, capsys: pytest.CaptureFixture[str], options: list[str]) -> None:
     assert _estimate_exclude(tmp_path, *options) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_object_remaining_past_the_layer_limit_keeps_every_other_layers_numbers(
+        limits, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Past MAX_REMAINING_LAYERS snapshots, every other one goes (and every other marker
+    is skipped from then on): the layers kept have the numbers they have without a limit,
+    for objects that start at different layers."""
+    from kestimator import segments
+
+    text = "G28\nG90\nM83\nEXCLUDE_OBJECT_DEFINE NAME=a\nEXCLUDE_OBJECT_DEFINE NAME=b\n"
+    for layer in range(23):
+        text += ";LAYER_CHANGE\nG1 Z%.1f F600\n" % (0.2 * (layer + 1))
+        for name in ("a", "b") if layer >= 5 else ("a",):
+            text += "EXCLUDE_OBJECT_START NAME=%s\n" % name
+            text += "".join("G1 X%d Y%d E0.5 F3000\n" % (10 + i * 7, 10 + layer + (name == "b"))
+                            for i in range(4))
+            text += "EXCLUDE_OBJECT_END NAME=%s\n" % name
+    full = estimate_text(text, limits).object_remaining
+    assert len(full) == 23
+    monkeypatch.setattr(segments, "MAX_REMAINING_LAYERS", 4)
+    thinned = estimate_text(text, limits).object_remaining
+    # 0-3 kept; at 4: 0 2 (stride 2), 4, 6; at 8: 0 4 (stride 4), 8, 12; at 16: 0 8
+    # (stride 8), 16; 20 and 22 skipped.
+    by_line = {line: (t, left) for line, t, left in full}
+    assert [line for line, _, _ in thinned] == [full[i][0] for i in (0, 8, 16)]
+    for line, t, left in thinned:
+        assert (t, left) == by_line[line]
+    # b started at layer 5: its snapshots before are shorter than a's after.
+    assert 0.0 < thinned[1][2]["b"] < thinned[0][2]["b"] == full[4][2]["b"]
