@@ -26,9 +26,11 @@ restored planner starts empty.
 
 from __future__ import annotations
 
+import copyreg
 import dataclasses
 import functools
 import io
+import operator
 import os
 import pickle
 from array import array
@@ -111,29 +113,54 @@ def _set_attributes(obj: object, state: dict[str, object]) -> None:
         object.__setattr__(obj, name, value)
 
 
-class _Pickler(pickle.Pickler):
-    """Pickles kestimator's plain classes so that loading sets their attributes one by one
-    (`_set_attributes`), not through their __dict__; everything else as pickle does."""
+def _plain_reduce(obj: object) -> tuple[Any, ...]:
+    """The reduction of an instance of a plain kestimator class (`_Reductions`)."""
+    return (_new, (type(obj),), obj.__dict__, None, None, _set_attributes)
 
-    def reducer_override(self, obj: object) -> Any:
-        cls = type(obj)
-        if (not _has_dict(obj) or not cls.__module__.startswith("kestimator.")
-                or isinstance(obj, BaseException)
-                or cls.__reduce_ex__ is not object.__reduce_ex__
-                or cls.__reduce__ is not object.__reduce__
-                or getattr(cls, "__getstate__", None) is not _OBJECT_GETSTATE
-                or hasattr(cls, "__setstate__")):
-            return NotImplemented
-        return (_new, (cls,), obj.__dict__, None, None, _set_attributes)
+
+def _is_plain(cls: type) -> bool:
+    """Whether `cls` is a kestimator class whose instances keep their attributes in a
+    __dict__ and pickle by it as object does."""
+    return (getattr(cls, "__dictoffset__", 0) != 0 and cls.__module__.startswith("kestimator.")
+            and not issubclass(cls, BaseException)
+            and cls.__reduce_ex__ is object.__reduce_ex__
+            and cls.__reduce__ is object.__reduce__
+            and getattr(cls, "__getstate__", None) is _OBJECT_GETSTATE
+            and not hasattr(cls, "__setstate__"))
+
+
+class _Reductions(dict):  # type: ignore[type-arg]
+    """The pickler's dispatch table: for each class met, how its instances reduce.
+
+    A plain kestimator class (`_is_plain`) pickles so that loading sets its attributes
+    one by one (`_set_attributes`), not through its __dict__; every other class as pickle
+    does (copyreg's table, else the object's own __reduce_ex__), and a metaclass's
+    instances (classes) as pickle does, by name (no entry). The decision is made once
+    per class: a reducer_override was a Python call for each object pickled (a third of a
+    checkpoint's pickling)."""
+
+    def __missing__(self, cls: type) -> Callable[[object], Any]:
+        if issubclass(cls, type):
+            raise KeyError(cls)
+        reduce = copyreg.dispatch_table.get(cls)
+        if reduce is None:
+            reduce = (_plain_reduce if _is_plain(cls)
+                      else operator.methodcaller("__reduce_ex__", PROTOCOL))
+        self[cls] = reduce
+        return reduce
 
 
 # object.__getstate__ (Python 3.11 and later; None before).
 _OBJECT_GETSTATE = getattr(object, "__getstate__", None)
+PROTOCOL: Final = pickle.HIGHEST_PROTOCOL
+_REDUCTIONS = _Reductions()
 
 
 def _dumps(timeline: Timeline) -> bytes:
     out = io.BytesIO()
-    _Pickler(out, protocol=pickle.HIGHEST_PROTOCOL).dump(timeline)
+    pickler = pickle.Pickler(out, protocol=PROTOCOL)
+    pickler.dispatch_table = _REDUCTIONS
+    pickler.dump(timeline)
     return out.getvalue()
 
 

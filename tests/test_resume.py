@@ -258,3 +258,39 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
         data = f.read()
     for line, offset in resumable.known_offsets.items():
         assert data.count(b"\n", 0, offset) == line - 1
+
+
+class _Elsewhere:
+    """A plain class outside kestimator: pickled as pickle does."""
+
+    def __init__(self, value: int) -> None:
+        self.value = value
+
+
+def test_pickling_sets_plain_kestimator_objects_attributes_and_leaves_the_rest_to_pickle(
+        ) -> None:
+    from kestimator.limits import Limits
+    from kestimator.macros import MacroTimes
+
+    limits = Limits()
+    macros = MacroTimes()
+    plain = [cls for cls in (Limits, MacroTimes) if resume._is_plain(cls)]
+    assert plain  # the planner's configuration classes are plain in both builds
+    state = {"limits": limits, "macros": macros, "class": Limits, "other": _Elsewhere(3),
+             "error": ValueError("x"), "values": array("d", [1.5]), "complex": 1j}
+    blob = resume._dumps(state)  # type: ignore[arg-type]
+    for cls in plain:
+        assert resume._REDUCTIONS[cls] is resume._plain_reduce
+    assert resume._REDUCTIONS[_Elsewhere] is not resume._plain_reduce
+    assert resume._REDUCTIONS[ValueError] is not resume._plain_reduce
+    with pytest.raises(KeyError):  # classes themselves: pickled by name, as pickle does
+        resume._REDUCTIONS[type]  # noqa: B018
+    loaded = pickle.loads(blob)
+    assert loaded["limits"] == limits and vars(loaded["limits"]) == vars(limits)
+    assert loaded["macros"] == macros and loaded["class"] is Limits
+    assert loaded["other"].value == 3 and loaded["error"].args == ("x",)
+    assert loaded["values"] == array("d", [1.5]) and loaded["complex"] == 1j
+    # Plain objects load through _set_attributes (attribute by attribute); others not.
+    assert b"_set_attributes" in blob
+    others = {"other": _Elsewhere(3), "error": ValueError("x")}
+    assert b"_set_attributes" not in resume._dumps(others)  # type: ignore[arg-type]
