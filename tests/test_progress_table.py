@@ -31,6 +31,7 @@ from kestimator.progress_table import (
     Selection,
     TableError,
     _candidates,
+    _thin,
     decode_block,
     describe_differences,
     line_offsets,
@@ -639,3 +640,48 @@ def test_select_stopping_a_walk_past_the_limit_keeps_the_points_whole_walks_keep
             got = select(Fake(), max_points=max_points, precision=precision)
             assert got.lines == _select_lines_by_whole_walks(Fake(), max_points, precision)
             assert len(got.lines) <= max(2, max_points)
+
+
+def _walk_counts(est: Any, precision: float, walks: int) -> list[int]:
+    """How many points select's first `walks` whole walks keep: forced, then unforced at
+    precision, 2x, 4x, ... (the limits at which select stops at each of them)."""
+    total_s = float(est.total_s)
+    _lines, times, keep = _candidates(est, total_s)
+    counts = [len(_thin(times, keep, total_s, precision, True, 10**9) or [])]
+    factor = precision
+    for _ in range(walks - 1):
+        counts.append(len(_thin(times, keep, total_s, factor, False, 10**9) or []))
+        factor *= 2.0
+    return counts
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_select_lands_on_each_walk_as_whole_walks_do(seed: int) -> None:
+    """With the limit at each walk's count (and one less), select keeps the points the
+    whole walks keep, whichever walk it stops at."""
+    rng = random.Random(seed)
+    n = rng.randrange(50, 2000)
+    sample_times = []
+    t = 0.0
+    for _ in range(n):
+        t += rng.expovariate(1.0) * rng.choice([0.01, 1.0, 30.0])
+        sample_times.append(t)
+
+    class Fake:
+        total_s = t + rng.choice([0.0, 50.0])
+        n_lines = 2 * n + 3
+        sample_lines = list(range(1, 2 * n, 2))
+        layers = [(line + 1, sample_times[(line - 1) // 2])
+                  for line in sorted(rng.sample(range(1, 2 * n, 2), rng.randrange(1, 60)))]
+        tail_lines: list[int] = []
+        tail_times: list[float] = []
+        object_remaining: list[tuple[int, float, dict[str, float]]] = []
+
+    Fake.sample_times = sample_times
+    precision = rng.choice([0.01, 0.1, 1.0])
+    limits = set()
+    for count in _walk_counts(Fake(), precision, 6):
+        limits.update((count, count - 1))
+    for max_points in sorted(m for m in limits if m >= 2):
+        got = select(Fake(), max_points=max_points, precision=precision)
+        assert got.lines == _select_lines_by_whole_walks(Fake(), max_points, precision)
