@@ -96,6 +96,7 @@ if TYPE_CHECKING:
     from kestimator.estimate import Estimate, Event
     from kestimator.macros import MacroTimes
     from kestimator.resume import Resumable
+    from kestimator.slicers import SettingsCache
 
 # A request line longer than this is refused without being parsed (memory stays bounded).
 MAX_REQUEST_BYTES = 1 << 20
@@ -251,15 +252,24 @@ class Printer:
         return float(self.resolved.heat_time_s or 0.0)
 
 
+# The slicer's settings of the file asked about last, by the bytes they were read from.
+_slicer_cache: SettingsCache | None = None
+
+
 def resolve_printer(path: str, config: str | None) -> Printer:
     """The settings `path` is estimated with for the printer.cfg `config`, as
     ``kestimator estimate --printer-cfg CONFIG`` resolves them (the profile, the slicer's
     settings and the learned times, the printer.cfg winning)."""
+    global _slicer_cache
     from kestimator import learn
     from kestimator.config.resolve import LimitRequest, resolve_limits
     from kestimator.rewrite import table_settings
+    from kestimator.slicers import SettingsCache
 
-    resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config))
+    if _slicer_cache is None:
+        _slicer_cache = SettingsCache()
+    resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config,
+                                           slicer_cache=_slicer_cache))
     macros = learn.macro_times_for(resolved, True)
     homing = resolved.homing_time_s or 0.0
     heat = resolved.heat_time_s or 0.0

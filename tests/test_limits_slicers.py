@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -287,3 +288,33 @@ def test_vector_first_items_and_nil() -> None:
     assert first_item("nil,0.4") is None
     assert first_item("") is None
     assert first_item("80%") == "80%"
+
+
+def test_the_settings_cache_answers_again_only_for_the_same_bytes_and_environment(
+        corpus_root: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import kestimator.slicers as slicers
+
+    parsed: list[int] = []
+    parse = slicers._read_slicer_settings
+
+    def counting(ends: Any, environ: Any) -> Any:
+        parsed.append(1)
+        return parse(ends, environ)
+    monkeypatch.setattr(slicers, "_read_slicer_settings", counting)
+    path = tmp_path / "a.gcode"
+    data = (GCODE / "prusaslicer/libbgcode_mini_cube_ps2.8.1_arcs.gcode").read_bytes()
+    path.write_bytes(data)
+    cache = slicers.SettingsCache()
+    environ = {"SLIC3R_NOZZLE_DIAMETER": "0.25"}
+    first = read_slicer_settings(path, environ, cache)
+    assert first == read_slicer_settings(path, environ)  # as without a cache
+    assert read_slicer_settings(path, dict(environ), cache) is first and len(parsed) == 2
+    # The same size, another value: parsed again, as without a cache.
+    changed = data.replace(b"max_feedrate_z = 40", b"max_feedrate_z = 41")
+    assert changed != data and len(changed) == len(data)
+    path.write_bytes(changed)
+    _info, second = read_slicer_settings(path, environ, cache)
+    assert second.by_field()["max_z_velocity"].value == 41.0 and len(parsed) == 3
+    # Another environment: parsed again.
+    _info, third = read_slicer_settings(path, {}, cache)
+    assert third.origin == "settings in the file" and len(parsed) == 4

@@ -53,6 +53,7 @@ from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
 from kestimator.macros import MacroTime
 from kestimator.slicers import (
     FILE_ORIGIN,
+    SettingsCache,
     SlicerInfo,
     SlicerSettings,
     read_slicer_settings,
@@ -114,6 +115,9 @@ class LimitRequest:
     """A klipper_estimator config file (JSON/JSON5): a stand-in below the machine."""
     guess_fix: str = GUESS_FIX
     """How this front end's user gives the real limits (ends the guessed-limits line)."""
+    slicer_cache: SettingsCache | None = dataclasses.field(default=None, compare=False,
+                                                            repr=False)
+    """The worker's: the slicer's settings read from the same bytes are not parsed again."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,7 +235,8 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
     slicer, slicer_settings = None, NO_SETTINGS
     if request.gcode is not None:
         slicer, slicer_settings = read_slicer_settings(
-            request.gcode, environ if request.read_slicer_environment else None)
+            request.gcode, environ if request.read_slicer_environment else None,
+            request.slicer_cache)
     warnings: list[str] = []
     profile = _profile(request, environ, slicer_settings.printer_preset, warnings)
     machine = _machine(request, profile, environ)

@@ -35,6 +35,7 @@ __all__ = [
     "ADAPTERS",
     "SlicerAdapter",
     "SlicerInfo",
+    "SettingsCache",
     "SlicerSettings",
     "adapter_for",
     "detect",
@@ -119,8 +120,21 @@ ENVIRONMENT_ORIGIN = "SLIC3R_* environment"
 FILE_ORIGIN = "settings in the file"
 
 
+class SettingsCache:
+    """The last file's `read_slicer_settings`, by the very bytes it read (both ends) and the
+    environment it was given: a process that asks again and again about one file (the
+    worker, after each change typed during a print) reads the ends, but decodes and parses
+    them only when they differ (1.2 of 1.7 ms). Holds one file's ends, 2 MiB at most."""
+
+    def __init__(self) -> None:
+        self.ends: tuple[bytes, bytes] | None = None
+        self.environ: dict[str, str] | None = None
+        self.result: tuple[SlicerInfo, SlicerSettings] | None = None
+
+
 def read_slicer_settings(path: str | os.PathLike[str] | None,
-                         environ: Mapping[str, str] | None = None
+                         environ: Mapping[str, str] | None = None,
+                         cache: SettingsCache | None = None
                          ) -> tuple[SlicerInfo, SlicerSettings]:
     """Which slicer wrote the file at ``path`` and what its settings say about the printer.
 
@@ -128,9 +142,24 @@ def read_slicer_settings(path: str | os.PathLike[str] | None,
     from the slicer's post-processing environment (``SLIC3R_*``); per key the file wins. With
     no ``path`` only the environment is read. A file whose slicer is unknown (binary G-code,
     say) takes its family from the environment. Never fails on content; raises
-    ``KestimatorError`` only if the file cannot be read.
+    ``KestimatorError`` only if the file cannot be read. With a `cache`, the answer for the
+    same bytes and environment as the last time is that answer (both parts are frozen).
     """
-    ends = FileEnds.from_bytes(*read_file_ends(path)) if path is not None else None
+    if cache is None or path is None:
+        return _read_slicer_settings(
+            FileEnds.from_bytes(*read_file_ends(path)) if path is not None else None, environ)
+    ends = read_file_ends(path)
+    copied = None if environ is None else dict(environ)
+    if cache.result is not None and cache.ends == ends and cache.environ == copied:
+        return cache.result
+    cache.result = None
+    result = _read_slicer_settings(FileEnds.from_bytes(*ends), environ)
+    cache.ends, cache.environ, cache.result = ends, copied, result
+    return result
+
+
+def _read_slicer_settings(ends: FileEnds | None, environ: Mapping[str, str] | None
+                          ) -> tuple[SlicerInfo, SlicerSettings]:
     info = UNKNOWN
     if ends is not None:
         info = next((found for adapter in ADAPTERS
