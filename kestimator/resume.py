@@ -387,18 +387,32 @@ class Resumable:
                     kept[candidates[i] + 1] = offset
         return kept
 
-    def _restore(self, index: int, events: list[Event]) -> Timeline:
-        """The timeline of checkpoint `index`, to go on with `events`."""
-        checkpoint = self.checkpoints[index]
-        timeline: Timeline = pickle.loads(checkpoint.blob)
-        self._last = []
-        for i, (owner, name) in enumerate(GROWING):
-            values = array(getattr(_owner(timeline, owner), name).typecode)
+    def _arrays_at(self, index: int) -> list[array]:
+        """The GROWING arrays as at checkpoint `index`. Where no later checkpoint kept
+        fewer items than they had then, they are the first items of the arrays as at the
+        last checkpoint (`_last`): one copy, not the deltas of every checkpoint before
+        (350 extends of the 40 MB file's arrays, a third of loading a checkpoint)."""
+        result = []
+        for i, last in enumerate(self._last):
+            kept, tail = self.checkpoints[index].deltas[i]
+            length = kept + len(tail)
+            if all(later.deltas[i][0] >= length for later in self.checkpoints[index + 1:]):
+                result.append(last[:length])
+                continue
+            values = array(last.typecode)
             for earlier in self.checkpoints[:index + 1]:
                 kept, tail = earlier.deltas[i]
                 del values[kept:]
                 values.extend(tail)
-            self._last.append(values)
+            result.append(values)
+        return result
+
+    def _restore(self, index: int, events: list[Event]) -> Timeline:
+        """The timeline of checkpoint `index`, to go on with `events`."""
+        checkpoint = self.checkpoints[index]
+        timeline: Timeline = pickle.loads(checkpoint.blob)
+        self._last = self._arrays_at(index)
+        for (owner, name), values in zip(GROWING, self._last):
             setattr(_owner(timeline, owner), name, array(values.typecode, values))
         if events:
             runner = EventRunner(timeline, events)

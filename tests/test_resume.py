@@ -294,3 +294,33 @@ def test_pickling_sets_plain_kestimator_objects_attributes_and_leaves_the_rest_t
     assert b"_set_attributes" in blob
     others = {"other": _Elsewhere(3), "error": ValueError("x")}
     assert b"_set_attributes" not in resume._dumps(others)  # type: ignore[arg-type]
+
+
+def test_arrays_at_a_checkpoint_are_those_its_deltas_build_when_samples_thin_between(
+        corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The growing arrays as at each checkpoint: a prefix of the last ones where nothing
+    later kept fewer items, else built from the deltas; both are met when the samples
+    thin out (every other one dropped) between checkpoints."""
+    from kestimator import estimate
+
+    monkeypatch.setattr(estimate, "MAX_SAMPLES", 64)
+    path = corpus_files("cura/cura413_voron250_torus_relE_fwretract.gcode")[0]
+    _answer(path, [])
+    resumable = worker._resumable
+    assert resumable is not None and len(resumable.checkpoints) > 10
+    prefixes = 0
+    for index, checkpoint in enumerate(resumable.checkpoints):
+        expected = []
+        for i, last in enumerate(resumable._last):
+            values = array(last.typecode)
+            for earlier in resumable.checkpoints[:index + 1]:
+                kept, tail = earlier.deltas[i]
+                del values[kept:]
+                values.extend(tail)
+            expected.append(values)
+            length = checkpoint.deltas[i][0] + len(checkpoint.deltas[i][1])
+            prefixes += last[:length] == values
+        assert resumable._arrays_at(index) == expected
+    assert 0 < prefixes < len(resumable.checkpoints) * len(resumable._last)
+    event = [[path.stat().st_size * 6 // 10, "M220 S70"]]
+    assert _answer(path, event) == _whole_pass(path, event)
