@@ -75,7 +75,7 @@ class FirmwareRetraction:
         state = gcode_move.save_state()
         gcode_move.absolute_coord = False
         e = e_value * gcode_move.extrude_factor
-        gcode_move.last_position[3] += e
+        gcode_move.last_e += e  # upstream's last_position[3] += v
         gcode_move.speed = f_value * gcode_move.speed_factor
         try:
             gcode_move.move_with_speed(gcode_move.speed)
