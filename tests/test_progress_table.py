@@ -613,6 +613,26 @@ def _select_lines_by_whole_walks(est: Any, max_points: int, precision: float) ->
             factor *= 2.0
 
 
+def _samples_estimate(sample_times: list[float], total_s: float, n_layers: int,
+                      rng: random.Random) -> Any:
+    """An estimate with a sample on every odd line (at `sample_times`) and `n_layers` layer
+    markers on sampled lines, no tail and no objects."""
+    n = len(sample_times)
+
+    class Fake:
+        n_lines = 2 * n + 3
+        sample_lines = list(range(1, 2 * n, 2))
+        layers = [(line + 1, sample_times[(line - 1) // 2])
+                  for line in sorted(rng.sample(range(1, 2 * n, 2), n_layers))]
+        tail_lines: list[int] = []
+        tail_times: list[float] = []
+        object_remaining: list[tuple[int, float, dict[str, float]]] = []
+
+    Fake.total_s = total_s  # type: ignore[attr-defined]
+    Fake.sample_times = sample_times  # type: ignore[attr-defined]
+    return Fake()
+
+
 @pytest.mark.parametrize("seed", range(40))
 def test_select_stopping_a_walk_past_the_limit_keeps_the_points_whole_walks_keep(
         seed: int) -> None:
@@ -624,21 +644,12 @@ def test_select_stopping_a_walk_past_the_limit_keeps_the_points_whole_walks_keep
         t += rng.choice([0.0, 0.01, 0.3, 2.0, 40.0])
         sample_times.append(t)
 
-    class Fake:
-        total_s = t + rng.choice([0.0, 5.0])
-        n_lines = 2 * n + 3
-        sample_lines = list(range(1, 2 * n, 2))
-        layers = [(line + 1, sample_times[(line - 1) // 2])
-                  for line in sorted(rng.sample(range(1, 2 * n, 2), min(n, rng.randrange(50))))]
-        tail_lines: list[int] = []
-        tail_times: list[float] = []
-        object_remaining: list[tuple[int, float, dict[str, float]]] = []
-
-    Fake.sample_times = sample_times
+    est = _samples_estimate(sample_times, t + rng.choice([0.0, 5.0]),
+                            min(n, rng.randrange(50)), rng)
     for max_points in (2, 3, 10, 100, 5000):
         for precision in (0.1, 1.0):
-            got = select(Fake(), max_points=max_points, precision=precision)
-            assert got.lines == _select_lines_by_whole_walks(Fake(), max_points, precision)
+            got = select(est, max_points=max_points, precision=precision)
+            assert got.lines == _select_lines_by_whole_walks(est, max_points, precision)
             assert len(got.lines) <= max(2, max_points)
 
 
@@ -667,21 +678,12 @@ def test_select_lands_on_each_walk_as_whole_walks_do(seed: int) -> None:
         t += rng.expovariate(1.0) * rng.choice([0.01, 1.0, 30.0])
         sample_times.append(t)
 
-    class Fake:
-        total_s = t + rng.choice([0.0, 50.0])
-        n_lines = 2 * n + 3
-        sample_lines = list(range(1, 2 * n, 2))
-        layers = [(line + 1, sample_times[(line - 1) // 2])
-                  for line in sorted(rng.sample(range(1, 2 * n, 2), rng.randrange(1, 60)))]
-        tail_lines: list[int] = []
-        tail_times: list[float] = []
-        object_remaining: list[tuple[int, float, dict[str, float]]] = []
-
-    Fake.sample_times = sample_times
+    est = _samples_estimate(sample_times, t + rng.choice([0.0, 50.0]), rng.randrange(1, 60),
+                            rng)
     precision = rng.choice([0.01, 0.1, 1.0])
     limits = set()
-    for count in _walk_counts(Fake(), precision, 6):
+    for count in _walk_counts(est, precision, 6):
         limits.update((count, count - 1))
     for max_points in sorted(m for m in limits if m >= 2):
-        got = select(Fake(), max_points=max_points, precision=precision)
-        assert got.lines == _select_lines_by_whole_walks(Fake(), max_points, precision)
+        got = select(est, max_points=max_points, precision=precision)
+        assert got.lines == _select_lines_by_whole_walks(est, max_points, precision)

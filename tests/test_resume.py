@@ -309,18 +309,15 @@ def test_arrays_at_a_checkpoint_are_those_its_deltas_build_when_samples_thin_bet
     resumable = worker._resumable
     assert resumable is not None and len(resumable.checkpoints) > 10
     prefixes = 0
-    for index, checkpoint in enumerate(resumable.checkpoints):
-        expected = []
-        for i, last in enumerate(resumable._last):
-            values = array(last.typecode)
-            for earlier in resumable.checkpoints[:index + 1]:
-                kept, tail = earlier.deltas[i]
-                del values[kept:]
-                values.extend(tail)
-            expected.append(values)
-            length = checkpoint.deltas[i][0] + len(checkpoint.deltas[i][1])
-            prefixes += last[:length] == values
-        assert resumable._arrays_at(index) == expected
+    for index in range(len(resumable.checkpoints)):
+        expected: list[list[Any]] = [[] for _ in resumable._last]
+        for earlier in resumable.checkpoints[:index + 1]:  # each delta applied in turn
+            expected = [items[:kept] + tail.tolist()
+                        for items, (kept, tail) in zip(expected, earlier.deltas)]
+        got = resumable._arrays_at(index)
+        assert [values.tolist() for values in got] == expected
+        prefixes += sum(last[:len(items)].tolist() == items
+                        for last, items in zip(resumable._last, expected))
     assert 0 < prefixes < len(resumable.checkpoints) * len(resumable._last)
     event = [[path.stat().st_size * 6 // 10, "M220 S70"]]
     assert _answer(path, event) == _whole_pass(path, event)
