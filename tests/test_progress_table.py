@@ -681,7 +681,7 @@ def test_select_lands_on_each_walk_as_whole_walks_do(seed: int) -> None:
     est = _samples_estimate(sample_times, t + rng.choice([0.0, 50.0]), rng.randrange(1, 60),
                             rng)
     precision = rng.choice([0.01, 0.1, 1.0])
-    limits = set()
+    limits: set[int] = set()
     for count in _walk_counts(est, precision, 6):
         limits.update((count, count - 1))
     for max_points in sorted(m for m in limits if m >= 2):
