@@ -173,9 +173,13 @@ def test_the_package_has_no_way_to_run_code_or_a_shell() -> None:
            for path, call, name in _package_calls() if _runs_code(name)]
     assert bad == []
     calls = _package_calls()
-    # pickle: only loads of bytes in memory (no pickle.load of a file) and only in resume.py.
+    # pickle: only loads of bytes in memory (no pickle.load of a file, no Unpickler) and
+    # only in resume.py, which also writes its checkpoints with a Pickler (writing runs no
+    # code of the bytes).
     pickles = [(path.name, name) for path, _, name in calls if name.startswith("pickle.")]
-    assert pickles and set(pickles) == {("resume.py", "pickle.loads")}, pickles
+    assert pickles and set(pickles) <= {("resume.py", "pickle.loads"),
+                                        ("resume.py", "pickle.Pickler")}, pickles
+    assert ("resume.py", "pickle.loads") in pickles
     # subprocess: only in moonraker_labels.py, an argument list, never a shell.
     runs = [(path, call) for path, call, name in calls if name.startswith("subprocess.")]
     assert runs
