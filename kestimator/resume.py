@@ -98,7 +98,11 @@ def _common_prefix(a: array, b: array) -> int:
 
 def _has_dict(obj: object) -> bool:
     """Whether instances of `obj`'s class have a __dict__ (read without making one)."""
-    return getattr(type(obj), "__dictoffset__", 0) != 0
+    return _instances_have_dict(type(obj))
+
+
+def _instances_have_dict(cls: type) -> bool:
+    return getattr(cls, "__dictoffset__", 0) != 0
 
 
 def _new(cls: Any) -> object:
@@ -121,7 +125,7 @@ def _plain_reduce(obj: object) -> tuple[Any, ...]:
 def _is_plain(cls: type) -> bool:
     """Whether `cls` is a kestimator class whose instances keep their attributes in a
     __dict__ and pickle by it as object does."""
-    return (getattr(cls, "__dictoffset__", 0) != 0 and cls.__module__.startswith("kestimator.")
+    return (_instances_have_dict(cls) and cls.__module__.startswith("kestimator.")
             and not issubclass(cls, BaseException)
             and cls.__reduce_ex__ is object.__reduce_ex__
             and cls.__reduce__ is object.__reduce__

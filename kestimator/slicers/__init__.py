@@ -145,14 +145,14 @@ def read_slicer_settings(path: str | os.PathLike[str] | None,
     ``KestimatorError`` only if the file cannot be read. With a `cache`, the answer for the
     same bytes and environment as the last time is that answer (both parts are frozen).
     """
-    if cache is None or path is None:
-        return _read_slicer_settings(
-            FileEnds.from_bytes(*read_file_ends(path)) if path is not None else None, environ)
+    if path is None:
+        return _read_slicer_settings(None, environ)
     ends = read_file_ends(path)
+    if cache is None:
+        return _read_slicer_settings(FileEnds.from_bytes(*ends), environ)
     copied = None if environ is None else dict(environ)
     if cache.result is not None and cache.ends == ends and cache.environ == copied:
         return cache.result
-    cache.result = None
     result = _read_slicer_settings(FileEnds.from_bytes(*ends), environ)
     cache.ends, cache.environ, cache.result = ends, copied, result
     return result
