@@ -318,17 +318,13 @@ class Selection:
     candidates: list[int] = dataclasses.field(default_factory=list)
     """Every line a table of the estimate may hold a point at, less one, ascending (the
     points `lines` were chosen from: another total chooses others)."""
+    kept: list[int] = dataclasses.field(default_factory=list)
+    """The index in `candidates` of each of `lines` (lines[k] == candidates[kept[k]] + 1):
+    the worker, which keeps the candidates' offsets, reads the table's by index."""
 
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
         return sorted(set(self.lines) | set(self.object_lines))
-
-    def candidate_lines(self, after: int = 0) -> list[int]:
-        """The lines past `after` a table of the estimate may hold a point at, ascending:
-        the worker finds their offsets once, for the answers after a change whose new total
-        chooses other points before the change (kestimator.resume)."""
-        candidates = self.candidates
-        return [line + 1 for line in candidates[bisect_right(candidates, after - 1):]]
 
 
 def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
@@ -509,7 +505,7 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
                      lines=[lines[i] + 1 for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
                      object_remaining=remaining, objects_left_out=left_out,
-                     candidates=lines)
+                     candidates=lines, kept=kept)
 
 
 def name_bytes(name: str) -> bytes | None:
@@ -579,18 +575,24 @@ class ProgressTable:
                        content_crc32: int | None = None) -> ProgressTable:
         """The table once each selected line's byte offset is known (`offsets_of`: line
         -> offset; a line not in it is not in the file: it starts where the file ends),
-        made for the printer `settings` describes. (A dict, not a function: the compiled
-        build looks it up in C, where a call was a fifth of the worker's table.)"""
-        # The offset of a line, written out in both loops (a nested function is a closure
-        # object in the compiled build: a call by name for each of 16,500 lines).
+        made for the printer `settings` describes."""
+        return cls.from_offsets(
+            selection, [offsets_of.get(line, content_bytes) for line in selection.lines],
+            [offsets_of.get(line, content_bytes) for line in selection.object_lines],
+            content_bytes, settings, content_crc32)
+
+    @classmethod
+    def from_offsets(cls, selection: Selection, line_offsets: Sequence[int],
+                     object_offsets: Sequence[int], content_bytes: int,
+                     settings: Settings | None = None,
+                     content_crc32: int | None = None) -> ProgressTable:
+        """The table from the byte offset of each of the selection's lines (`line_offsets`,
+        aligned with selection.lines) and of its objects' (`object_offsets`, with
+        selection.object_lines); an offset past content_bytes is the file's end."""
         offsets: list[int] = []
         times: list[float] = []
-        for line, t in zip(selection.lines, selection.times):
-            if line <= 1:
-                offset = 0
-            else:
-                found = offsets_of.get(line)
-                offset = content_bytes if found is None or found > content_bytes else found
+        for line, t, found in zip(selection.lines, selection.times, line_offsets):
+            offset = 0 if line <= 1 else content_bytes if found > content_bytes else found
             if offsets and offset <= offsets[-1]:
                 if t > times[-1]:  # an empty line's end: the later time
                     times[-1] = t
@@ -607,19 +609,18 @@ class ProgressTable:
         elif offsets[-1] < content_bytes:
             offsets.append(content_bytes)
             times.append(max(selection.total_s, times[-1]))
-        object_offsets: list[int] = []
+        kept_offsets: list[int] = []
         keep_columns: list[int] = []
-        for j, line in enumerate(selection.object_lines):
-            found = offsets_of.get(line)
-            offset = content_bytes if found is None or found > content_bytes else found
-            if object_offsets and offset <= object_offsets[-1]:
+        for j, found in enumerate(object_offsets):
+            offset = content_bytes if found > content_bytes else found
+            if kept_offsets and offset <= kept_offsets[-1]:
                 continue
-            object_offsets.append(offset)
+            kept_offsets.append(offset)
             keep_columns.append(j)
         remaining = [[column[j] for j in keep_columns] for column in selection.object_remaining]
         return cls(total_s=selection.total_s, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=list(selection.object_names),
-                   object_offsets=object_offsets, object_remaining=remaining,
+                   object_offsets=kept_offsets, object_remaining=remaining,
                    settings=settings, content_crc32=content_crc32)
 
     @property
@@ -1092,8 +1093,7 @@ def _line_start(block: bytes, pos: int, n: int, line_bytes: float) -> int:
 
 def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int],
                       known: dict[int, int], known_lines: Sequence[int],
-                      line_bytes: float, block_bytes: int = 1 << 16,
-                      learn: bool = False) -> dict[int, int]:
+                      line_bytes: float, block_bytes: int = 1 << 16) -> dict[int, int]:
     """`line_offsets` of `lines` (ascending, a line maybe more than once), counting each
     line not in `known` (line -> byte offset of its start, line 1 -> 0 among them) from
     the closest line before it whose offset is known (`known_lines`: known's lines,
@@ -1101,8 +1101,7 @@ def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int]
     after a change reads a few thousand short stretches of the file, not all of it.
     `read_at(size, offset)` reads the file as os.pread does (fewer bytes only at its end),
     `block_bytes` at a time (the lines looked for in one block are found in it);
-    `line_bytes`: the file's mean line length. With `learn`, each line counted is also
-    added to `known`."""
+    `line_bytes`: the file's mean line length."""
     result: dict[int, int] = {}
     k = 0  # known_lines[:k] are at or before the line being looked for
     base_line, base = 1, 0  # the closest line before it with a known offset
@@ -1139,8 +1138,6 @@ def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int]
                 if pos < 0:
                     break  # past the file's last line: this one and every later one
             offset = start + pos
-            if learn:
-                known[line] = offset
         result[line] = offset
         if line >= base_line:
             base_line, base = line, offset

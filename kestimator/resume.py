@@ -96,6 +96,20 @@ def _common_prefix(a: array, b: array) -> int:
     return n // a.itemsize
 
 
+def _shared_prefix(a: list[int], b: list[int]) -> int:
+    """How many leading items lists `a` and `b` share (compared by slices, in C)."""
+    lo, hi = 0, min(len(a), len(b))  # a[:lo] == b[:lo]
+    if a[:hi] == b[:hi]:
+        return hi
+    while hi - lo > 1:  # a[:hi] != b[:hi]
+        mid = (lo + hi) // 2
+        if a[lo:mid] == b[lo:mid]:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
 def _has_dict(obj: object) -> bool:
     """Whether instances of `obj`'s class have a __dict__ (read without making one)."""
     return _instances_have_dict(type(obj))
@@ -206,9 +220,11 @@ class Resumable:
         # Whether the planner's pickle is still to be checked once; whether it cannot be.
         self.probe = True
         self.disabled = False
-        # Byte offsets of line starts found so far (line -> offset): the candidates' and
-        # tables' lines (`line_offsets`) and the checkpoints' next lines.
-        self.known_offsets: dict[int, int] = {1: 0}
+        # The last table's candidates (`Selection.candidates`: lines less one, ascending)
+        # and the byte offset of the line after each, aligned (`line_offsets`): empty
+        # where there were more than MAX_KNOWN_OFFSETS.
+        self.candidates: list[int] = []
+        self.candidate_offsets = array("q")
         # The line of each byte offset events were typed at (kestimator.worker.event_lines;
         # at most as many as one request's events).
         self.event_lines: dict[int, int] = {}
@@ -328,7 +344,6 @@ class Resumable:
             # whole array (320 KB of samples on the 40 MB file) took fresh pages each time.
             del last[kept:]
             last.extend(tail)
-        self.known_offsets[timeline.lineno + 1] = offset
         runner = timeline.events
         checkpoint = Checkpoint(timeline.lineno, offset,
                                 runner.next if runner is not None else 0, blob, deltas)
@@ -336,33 +351,21 @@ class Resumable:
         self.nbytes += checkpoint.nbytes
 
     def line_offsets(self, path: str, selection: Selection, line_bytes: float
-                     ) -> dict[int, int]:
-        """The byte offsets (`progress_table.line_offsets`) of the lines a table of
-        `selection` needs, among others; `line_bytes`: the file's mean line length. Each
-        line not known yet is counted from the line before it (`line_offsets_from`): a
-        dict of these lines alone, which the table reads faster than all the known ones.
+                     ) -> tuple[list[int], list[int]]:
+        """The byte offsets a table of `selection` needs (`ProgressTable.from_offsets`):
+        of its lines and of its objects' lines, each line past the file's end at its end;
+        `line_bytes`: the file's mean line length.
 
-        The offsets of every line a table of this estimate could hold past where this pass
-        went on from (`Selection.candidate_lines`) are found too, in the same walk, and
-        kept: a later change moves the total, and with it which points the table keeps
-        before the change, but those points are among the candidates the passes before
-        found (after a change at 90 % of the 40 MB file, 8,000 lines were new to count,
-        3,400 of them spread over the 89 % before the change). At most MAX_KNOWN_OFFSETS
-        are kept: where this answer's lines would pass it, the others kept are first cut
-        to the checkpoints' and the candidates' before where this pass went on from."""
+        The offset of every candidate (every line a table of this estimate could hold) is
+        kept, aligned with the candidates: a later change moves the total, and with it
+        which points the table keeps before the change, but the candidates before where
+        that pass went on from are this one's. So an answer after a change counts only
+        the candidates past its checkpoint (`line_offsets_from`, each from the one before
+        it) and reads the table's offsets by index: looked up by line in a dict of every
+        line found so far, they were 4 of the 90 ms of the answer after a change at 90 %
+        of the 40 MB file. A file of more than MAX_KNOWN_OFFSETS candidates (countless
+        layers) keeps none: each table counts its own lines, from the checkpoints'."""
         candidates = selection.candidates
-        more: list[int] = []
-        if len(candidates) - bisect_right(candidates, self.resumed_at - 1) \
-                <= MAX_KNOWN_OFFSETS // 2:  # else a file of countless layers: the table's only
-            more = selection.candidate_lines(self.resumed_at)
-        # Ascending runs, merged (not sorted) by sorted; a line in two of them is found once.
-        lines = sorted(selection.lines + selection.object_lines + more)
-        known = self.known_offsets
-        if len(known) + len(lines) > MAX_KNOWN_OFFSETS:
-            # Room first: the checkpoints' lines and, where they fit with this table's, the
-            # candidates before where this pass went on from (those past it are counted
-            # again: they are in `more`).
-            known = self.known_offsets = self._kept_offsets(selection, len(lines))
         with open(path, "rb", buffering=0) as f:
             read_at: Callable[[int, int], bytes]
             if hasattr(os, "pread"):  # one call (no seek), and no Python frame per read
@@ -371,25 +374,62 @@ class Resumable:
                 def read_at(size: int, offset: int) -> bytes:
                     f.seek(offset)
                     return f.read(size) or b""
-            # Without the known lines to bisect (sorting them took longer than the few
-            # lines it saves counting): the line before is at most a candidate away.
-            return line_offsets_from(read_at, lines, known, (), line_bytes, learn=True)
+            if len(candidates) > MAX_KNOWN_OFFSETS:
+                self.candidates, self.candidate_offsets = [], array("q")
+                lines = sorted(selection.lines + selection.object_lines)
+                known = self._anchors()
+                found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
+                return ([found.get(line, self.size) for line in selection.lines],
+                        [found.get(line, self.size) for line in selection.object_lines])
+            offsets = self._candidate_offsets(read_at, candidates, line_bytes)
+            self.candidates, self.candidate_offsets = candidates, offsets
+            objects = self._offsets_among_candidates(read_at, selection.object_lines,
+                                                     line_bytes)
+        return [offsets[i] for i in selection.kept], objects
 
-    def _kept_offsets(self, selection: Selection, room: int) -> dict[int, int]:
-        """The known offsets kept when `room` more must fit: the checkpoints', and the
-        candidates' before where this pass went on from if they fit too."""
-        known = self.known_offsets
-        kept = {1: 0}
+    def _anchors(self) -> dict[int, int]:
+        """Lines whose byte offsets the checkpoints give (line -> offset): line 1's and
+        each checkpoint's next line's."""
+        known = {1: 0}
         for checkpoint in self.checkpoints:
-            kept[checkpoint.lineno + 1] = checkpoint.offset
-        candidates = selection.candidates
-        before = bisect_right(candidates, self.resumed_at - 1)
-        if len(kept) + before + room <= MAX_KNOWN_OFFSETS:
-            for i in range(before):
-                offset = known.get(candidates[i] + 1)
-                if offset is not None:
-                    kept[candidates[i] + 1] = offset
-        return kept
+            known[checkpoint.lineno + 1] = checkpoint.offset
+        return known
+
+    def _candidate_offsets(self, read_at: Callable[[int, int], bytes],
+                           candidates: list[int], line_bytes: float) -> array:
+        """The byte offset of the line after each of `candidates` (the file's size past
+        its end): those the last table's candidates share with them, from before where
+        this pass went on from, as found then; the others looked up among the last
+        table's later candidates (after a change at 90 % of the 40 MB file, half of
+        them) or counted from the closest line before them whose offset is known."""
+        old = self.candidates
+        shared = bisect_right(candidates, self.resumed_at - 1)
+        if shared > len(old) or candidates[:shared] != old[:shared]:
+            shared = _shared_prefix(candidates, old)
+        offsets = self.candidate_offsets[:shared]
+        known = self._anchors()
+        if shared:
+            known[candidates[shared - 1] + 1] = offsets[-1]
+        for line, offset in zip(old[shared:], self.candidate_offsets[shared:]):
+            known[line + 1] = offset
+        lines = [line + 1 for line in candidates[shared:]]
+        found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
+        size = self.size
+        offsets.extend([found.get(line, size) for line in lines])
+        return offsets
+
+    def _offsets_among_candidates(self, read_at: Callable[[int, int], bytes],
+                                  lines: list[int], line_bytes: float) -> list[int]:
+        """The byte offsets of `lines` (ascending), each a candidate's line (an object
+        point is a layer's) or counted from the closest one before it."""
+        candidates, offsets = self.candidates, self.candidate_offsets
+        known = {1: 0}
+        for line in lines:
+            i = bisect_right(candidates, line - 1) - 1
+            if i >= 0:
+                known[candidates[i] + 1] = offsets[i]
+        found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
+        return [found.get(line, self.size) for line in lines]
 
     def _arrays_at(self, index: int) -> list[array]:
         """The GROWING arrays as at checkpoint `index`. Where no later checkpoint kept

@@ -298,9 +298,10 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         "%d bytes): their time counts in the total only"
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
-    offsets = resumable.line_offsets(path, selection, size / max(1, est.n_lines))
-    return ProgressTable.from_selection(selection, offsets, size,
-                                        printer.settings), warnings
+    offsets, object_offsets = resumable.line_offsets(path, selection,
+                                                     size / max(1, est.n_lines))
+    return ProgressTable.from_offsets(selection, offsets, object_offsets, size,
+                                      printer.settings), warnings
 
 
 # The checkpoints of the file estimated last (kestimator.resume): one file at a time.

@@ -188,36 +188,97 @@ def test_common_prefix_counts_the_items_two_arrays_share_bit_for_bit() -> None:
             assert resume._common_prefix(b, a) == expected
 
 
-def test_known_line_offsets_stay_bounded_and_answers_stay_those_of_a_whole_pass(
+def _assert_candidate_offsets_true(path: Path, resumable: resume.Resumable) -> None:
+    """Each kept candidate's offset is that of the line after it (the file's size past
+    its end)."""
+    data = path.read_bytes()
+    assert len(resumable.candidate_offsets) == len(resumable.candidates)
+    starts = [0] + [i + 1 for i, byte in enumerate(data) if byte == 10]
+    for line, offset in zip(resumable.candidates, resumable.candidate_offsets):
+        assert offset == (starts[line] if line < len(starts) else len(data))
+
+
+def test_candidate_offsets_are_kept_true_up_to_the_limit_and_answers_stay_a_whole_pass(
         corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
     _answer(path, [])
     resumable = worker._resumable
-    assert resumable is not None
-    first_known = len(resumable.known_offsets)
-    assert first_known > len(resumable.checkpoints)  # the table's lines and the checkpoints'
-    # With room for fewer lines than one table holds, each answer keeps only its own (and
-    # the checkpoints'), and is still the whole pass's.
-    monkeypatch.setattr(resume, "MAX_KNOWN_OFFSETS", first_known // 2)
+    assert resumable is not None and resumable.candidates
+    _assert_candidate_offsets_true(path, resumable)
+    n_candidates = len(resumable.candidates)
     size = path.stat().st_size
+    # With room for fewer lines than the candidates, none are kept: each table counts
+    # its own lines, and is still the whole pass's.
+    monkeypatch.setattr(resume, "MAX_KNOWN_OFFSETS", n_candidates // 2)
+    events: list[list[Any]] = []
     for fraction, command in ((0.3, "M220 S150"), (0.8, "M220 S60")):
-        events: list[list[Any]] = [[int(size * fraction), command]]
+        events.append([int(size * fraction), command])
         assert _answer(path, events) == _whole_pass(path, events)
-        assert worker._resumable is resumable
-        assert len(resumable.known_offsets) <= first_known + len(resumable.checkpoints) + 1
-    with open(path, "rb") as f:
-        data = f.read()
-    for line, offset in resumable.known_offsets.items():
-        assert offset == 0 if line <= 1 else data[offset - 1:offset] == b"\n"
-        assert data.count(b"\n", 0, offset) == line - 1
+        assert worker._resumable is resumable and resumable.resumed_at > 0
+        assert resumable.candidates == [] and len(resumable.candidate_offsets) == 0
+    # With room again, the next answer counts them all (no earlier ones to share) and
+    # keeps them.
+    monkeypatch.setattr(resume, "MAX_KNOWN_OFFSETS", 1 << 17)
+    events.append([int(size * 0.9), "M220 S80"])
+    assert _answer(path, events) == _whole_pass(path, events)
+    assert worker._resumable is resumable and resumable.candidates
+    _assert_candidate_offsets_true(path, resumable)
+
+
+@pytest.mark.parametrize("name", ["prusaslicer/gcodepreview_benchy_ps2.6.1.gcode",
+                                  "orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode"])
+def test_the_worker_tables_offsets_are_those_read_from_the_file(
+        corpus_root: Path, name: str) -> None:
+    """Read by candidate from the kept offsets, a table's offsets (its points' and its
+    objects') are those `line_offsets` reads from the file, in the first answer and in
+    those that go on from a checkpoint."""
+    from kestimator.progress_table import ProgressTable, line_offsets, select
+
+    path = corpus_files(name)[0]
+    size = path.stat().st_size
+    printer = worker.resolve_printer(str(path), str(CORPUS_CFG))
+    events: list[tuple[int, str]] = []
+    for fraction, command in ((0.0, ""), (0.4, "M220 S150"), (0.7, "M220 S60")):
+        if command:
+            events.append((int(size * fraction), command))
+        lines = worker.event_lines(str(path), [offset for offset, _ in events])
+        est, resumable = worker.estimate_resuming(
+            str(path), printer, list(zip(lines, (text for _, text in events))))
+        assert (resumable.resumed_at > 0) == bool(events)
+        selection = select(est, precision=worker.WORKER_PRECISION)
+        with open(path, "rb") as f:
+            expected = ProgressTable.from_selection(
+                selection, line_offsets(f.read, selection.wanted_lines()), size,
+                printer.settings)
+        offsets, object_offsets = resumable.line_offsets(str(path), selection,
+                                                         size / est.n_lines)
+        assert ProgressTable.from_offsets(selection, offsets, object_offsets, size,
+                                          printer.settings) == expected
+        assert len(offsets) == len(selection.lines) > 100
+        assert len(object_offsets) == len(selection.object_lines)
+        assert len(object_offsets) > 10
+
+
+def test_shared_prefix_counts_the_items_two_lists_share() -> None:
+    rng = random.Random(11)
+    for _ in range(200):
+        a = sorted(rng.sample(range(10_000), rng.randrange(0, 300)))
+        b = list(a[:rng.randrange(0, len(a) + 1)])
+        if rng.random() < 0.5:
+            b.append(rng.randrange(-5, 0))
+        b += sorted(rng.sample(range(10_000), rng.randrange(0, 30)))
+        expected = next((i for i, (x, y) in enumerate(zip(a, b)) if x != y),
+                        min(len(a), len(b)))
+        assert resume._shared_prefix(a, b) == expected
+        assert resume._shared_prefix(b, a) == expected
 
 
 def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_once(
         corpus_root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The first answer finds the offset of every line a later table may hold (the
-    candidates), so an answer after a change counts only lines past the checkpoint it went
-    on from, whichever points the new total keeps before it; and a change already answered
-    is not looked for again."""
+    candidates), so an answer after a change counts only the candidates past the
+    checkpoint it went on from, whichever points the new total keeps before it; and a
+    change already answered is not looked for again."""
     path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
     asked: list[tuple[list[int], dict[int, int]]] = []
     real = resume.line_offsets_from
@@ -237,6 +298,9 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
 
     monkeypatch.setattr(worker, "lines_at_offsets", spy_lines)
     _answer(path, [])
+    resumable = worker._resumable
+    assert resumable is not None
+    assert len(asked[0][0]) == len(resumable.candidates)  # all of them, once
     size = path.stat().st_size
     events: list[list[Any]] = []
     for fraction, command in ((0.3, "M220 S150"), (0.6, "SET_VELOCITY_LIMIT ACCEL=900"),
@@ -245,19 +309,16 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
         counted.clear()
         asked.clear()
         answer = _answer(path, events)
-        resumable = worker._resumable
-        assert resumable is not None and resumable.resumed_at > 0
+        assert worker._resumable is resumable and resumable.resumed_at > 0
         # Only the new change's line is counted.
         assert sum(len(offsets) for offsets in counted) == 1
-        (lines, known), = asked
-        before = [line for line in lines if line <= resumable.resumed_at]
-        assert before and all(line in known for line in before)
+        # The candidates past the checkpoint, and no line before it that is not known.
+        past = [line + 1 for line in resumable.candidates if line >= resumable.resumed_at]
+        assert past and asked[0][0] == past
+        for lines, known in asked:
+            assert all(line in known or line > resumable.resumed_at for line in lines)
         assert answer == _whole_pass(path, events)
-    # Every line kept is at its true offset.
-    with open(path, "rb") as f:
-        data = f.read()
-    for line, offset in resumable.known_offsets.items():
-        assert data.count(b"\n", 0, offset) == line - 1
+    _assert_candidate_offsets_true(path, resumable)
 
 
 class _Elsewhere:
