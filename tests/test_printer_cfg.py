@@ -6,6 +6,7 @@ import configparser
 import dataclasses
 import os
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -15,6 +16,7 @@ from kestimator.config.printer_cfg import (
     REQUIRED_FALLBACK,
     ConfigValue,
     limits_from_printer_cfg,
+    printer_cfg_values,
     read_printer_cfg,
 )
 from kestimator.errors import KestimatorError
@@ -460,3 +462,44 @@ def test_a_config_of_comments_only_is_a_config_without_sections(
     for command in ("estimate", "check", "limits"):
         assert cli.main([command, str(gcode), "--printer-cfg", str(cfg)]) == 0, command
     assert "internal error" not in capsys.readouterr().err
+
+
+def test_the_last_values_are_kept_while_every_file_and_include_pattern_reads_the_same(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from kestimator.config import printer_cfg
+
+    parsed: list[str] = []
+    real = printer_cfg._printer_cfg_values
+
+    def counting(path: str, config: Any) -> Any:
+        parsed.append(path)
+        return real(path, config)
+
+    monkeypatch.setattr(printer_cfg, "_printer_cfg_values", counting)
+    monkeypatch.setattr(printer_cfg, "_last", None)
+    main = write(tmp_path, "printer.cfg",
+                 CORPUS_CFG.read_text().replace("max_accel: 3000", "max_accel: 3000\n"
+                                                "[include extra/*.cfg]\n[printer]"))
+    extra = write(tmp_path, "extra/speed.cfg", "[printer]\nmax_velocity: 250\n")
+
+    def velocity() -> object:
+        values, provenance, _machine = printer_cfg_values(main)
+        values["max_velocity"] = -1.0  # the caller's copy: the next answer is unchanged
+        provenance.clear()
+        return printer_cfg_values(main)[0]["max_velocity"]
+
+    assert velocity() == 250.0 and len(parsed) == 1
+    assert velocity() == 250.0 and len(parsed) == 1  # kept: nothing changed
+    stat = extra.stat()
+    extra.write_text("[printer]\nmax_velocity: 260\n")  # same size, same times
+    os.utime(extra, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert velocity() == 260.0 and len(parsed) == 2
+    write(tmp_path, "extra/zz_more.cfg", "[printer]\nmax_velocity: 270\n")  # a new match
+    assert velocity() == 270.0 and len(parsed) == 3
+    (tmp_path / "extra" / "zz_more.cfg").unlink()
+    assert velocity() == 260.0 and len(parsed) == 4
+    main.write_text(main.read_text().replace("max_accel: 3000", "max_accel: 2500"))
+    assert printer_cfg_values(main)[0]["max_accel"] == 2500.0 and len(parsed) == 5
+    main.unlink()  # gone: read again, and the error raised
+    with pytest.raises(KestimatorError):
+        printer_cfg_values(main)

@@ -93,6 +93,8 @@ class _Config:
     # What the [include]s have read so far (each inclusion counted, see MAX_INCLUDED_FILES).
     files_included: int = 0
     chars_included: int = 0
+    # What was read, in order: ("file", path, its bytes) and ("glob", pattern, matches).
+    reads: list[tuple[str, str, object]] = dataclasses.field(default_factory=list)
 
     def section(self, name: str, path: str, line: int) -> dict[str, ConfigValue]:
         """The section called `name` (any case), created at path:line if new."""
@@ -128,7 +130,9 @@ def read_printer_cfg(path: str | os.PathLike[str]) -> Sections:
     Raises KestimatorError for an unreadable file, a missing include, an include cycle or
     a line that is not config syntax.
     """
-    return _read_config(os.fspath(path)).sections
+    config = _Config()
+    _read_config(os.fspath(path), config)
+    return config.sections
 
 
 def limits_from_printer_cfg(path: str | os.PathLike[str]) -> tuple[Limits, dict[str, str]]:
@@ -153,8 +157,13 @@ def _machine_config(path: str, config: _Config) -> MachineConfig:
         for name, options in config.sections.items()})
 
 
-def printer_cfg_values(path: str | os.PathLike[str]
-                       ) -> tuple[dict[str, object], dict[str, str], MachineConfig]:
+_Values = tuple[dict[str, object], dict[str, str], MachineConfig]
+
+# The last printer_cfg_values: its path, what it read (_Config.reads) and its result.
+_last: tuple[str, list[tuple[str, str, object]], _Values] | None = None
+
+
+def printer_cfg_values(path: str | os.PathLike[str]) -> _Values:
     """Only the Limits fields the config sets, the "<file>:<line>" each came from, and the
     sections the kinematics reads (`MachineConfig`), from one reading of the files.
 
@@ -163,12 +172,45 @@ def printer_cfg_values(path: str | os.PathLike[str]
     section is declared; ``klipper_generation`` where a comment of the main file says
     ``kestimator: klipper_generation = <name>``. Raises KestimatorError (file and line) for
     values Klipper rejects.
+
+    The last result is kept with what it read: asked again for the same path, when every
+    file read then reads the same bytes and every [include] pattern matches the same
+    files, it is that result again (the worker resolves the printer for each answer: the
+    parse was 1 of its 3 ms).
     """
-    config = _read_config(os.fspath(path))
+    global _last
+    name = os.fspath(path)
+    last = _last
+    if last is not None and last[0] == name and _reads_again(last[1]):
+        values, provenance, machine = last[2]
+        return dict(values), dict(provenance), machine
+    config = _Config()
+    result = _printer_cfg_values(name, config)
+    _last = (name, config.reads, (dict(result[0]), dict(result[1]), result[2]))
+    return result
+
+
+def _reads_again(reads: list[tuple[str, str, object]]) -> bool:
+    """Whether the files and patterns read give what they gave (`_Config.reads`)."""
+    for kind, name, seen in reads:
+        if kind == "glob":
+            if sorted(glob.glob(name)) != seen:
+                return False
+        else:
+            try:
+                if read_config_bytes(name, "config") != seen:
+                    return False
+            except KestimatorError:
+                return False
+    return True
+
+
+def _printer_cfg_values(path: str, config: _Config) -> _Values:
+    _read_config(path, config)
     values: dict[str, object] = {}
     provenance: dict[str, str] = {}
     read_from: dict[str, ConfigValue] = {}
-    directive = _generation_directive(os.fspath(path))
+    directive = _generation_directive(path, config)
     check_options(config.sections)
     if directive is not None:
         values["klipper_generation"] = directive.value
@@ -226,7 +268,7 @@ def printer_cfg_values(path: str | os.PathLike[str]
                 f"got {raw.value}", raw.path, raw.line)
     for field, raw in read_from.items():
         provenance[field] = raw.location
-    return values, provenance, _machine_config(os.fspath(path), config)
+    return values, provenance, _machine_config(path, config)
 
 
 def check_options(sections: Sections) -> None:
@@ -400,9 +442,9 @@ MAX_EXTRUDERS = 99
 STEPPER_OPTIONS = ("step_pin", "dir_pin", "rotation_distance")
 
 
-def _generation_directive(path: str) -> ConfigValue | None:
+def _generation_directive(path: str, config: _Config) -> ConfigValue | None:
     """The Klipper generation a comment of the main file names, checked, with its line."""
-    for number, text in enumerate(_read_lines(path, None), start=1):
+    for number, text in enumerate(_read_lines(path, None, config), start=1):
         stripped = text.lstrip()
         if not stripped.startswith(("#", ";")):
             continue
@@ -533,10 +575,10 @@ ABSENT_PROVENANCE = {
 }
 
 
-def _read_config(path: str) -> _Config:
-    """The whole configuration: the main file, its includes, then its SAVE_CONFIG block."""
-    regular, autosave = _split_autosave(_read_lines(path, None))
-    config = _Config()
+def _read_config(path: str, config: _Config) -> None:
+    """The whole configuration into `config`: the main file, its includes, then its
+    SAVE_CONFIG block."""
+    regular, autosave = _split_autosave(_read_lines(path, None, config))
     _parse_file(path, regular, config, [])
     saved = _Config()
     _parse_chunk([(number, _strip_hash(text)) for number, text in autosave], path, saved)
@@ -547,7 +589,6 @@ def _read_config(path: str) -> _Config:
             config.headers[name] = saved.headers[name]
         for option, value in options.items():
             config.sections[name].setdefault(option, value)
-    return config
 
 
 _CANNOT_READ = "cannot read file: "
@@ -560,8 +601,10 @@ MAX_INCLUDED_CHARS = 16 * 1024 * 1024
 """How much text [include]s may read in all: as much as one config file may hold."""
 
 
-def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
-    """The file's lines (universal newlines); errors name the include line if any."""
+def _read_lines(path: str, included_from: tuple[str, int] | None,
+               config: _Config) -> list[str]:
+    """The file's lines (universal newlines), its bytes noted in `config.reads`; errors
+    name the include line if any."""
     try:
         # Bounded, and refusing devices and FIFOs: /dev/zero as an [include] must not
         # read forever or block.
@@ -576,6 +619,7 @@ def _read_lines(path: str, included_from: tuple[str, int] | None) -> list[str]:
         if exc.message.startswith(_CANNOT_READ):
             raise KestimatorError(f"cannot read config file: {reason}", path) from None
         raise
+    config.reads.append(("file", path, data))
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -664,6 +708,7 @@ def _include(path: str, line: int, spec: str, config: _Config,
     """Parse the files `[include spec]` on path:line names, in sorted order."""
     pattern = os.path.join(os.path.dirname(path), spec)
     names = sorted(glob.glob(pattern))
+    config.reads.append(("glob", pattern, names))
     if not names and not any(c in pattern for c in "*?["):
         raise KestimatorError(f"include file {pattern} does not exist: copy the whole config "
                               "folder (printer.cfg and the files it includes, e.g. "
@@ -679,7 +724,7 @@ def _include(path: str, line: int, spec: str, config: _Config,
                 f"this [include] passes {MAX_INCLUDED_FILES} files read in all: a file "
                 "included more than once is read each time, so files that each include the "
                 "next one twice read 2^depth files", path, line)
-        lines = _read_lines(name, (path, line))
+        lines = _read_lines(name, (path, line), config)
         # The text's length: its lines and the line breaks between them.
         config.chars_included += sum(len(text) for text in lines) + len(lines) - 1
         if config.chars_included > MAX_INCLUDED_CHARS:

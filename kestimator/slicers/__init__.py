@@ -91,6 +91,12 @@ def read_file_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
     """The first and last MiB of the file at ``path`` in whole lines (the same bytes twice if
     it is small). Raises ``KestimatorError`` if the file cannot be read or is not a regular
     file (`kestimator.files.open_regular`)."""
+    return _whole_lines(_raw_ends(path))
+
+
+def _raw_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
+    """The file's first MiB and its last MiB and a byte (the same bytes twice, the whole
+    file, if it is small)."""
     with open_regular(path) as gcode:
         try:
             size = gcode.seek(0, os.SEEK_END)
@@ -98,13 +104,20 @@ def read_file_ends(path: str | os.PathLike[str]) -> tuple[bytes, bytes]:
             if size <= DETECT_WINDOW_BYTES:
                 whole = gcode.read()
                 return whole, whole
-            head = _whole_lines_from_start(gcode.read(DETECT_WINDOW_BYTES))
+            head = gcode.read(DETECT_WINDOW_BYTES)
             # One byte more than the window shows whether the window starts a line.
             gcode.seek(size - DETECT_WINDOW_BYTES - 1)
-            tail = gcode.read()
+            return head, gcode.read()
         except OSError as exc:
             raise KestimatorError(f"cannot read G-code: {exc.strerror or exc}", path) from exc
-    return head, _whole_lines_to_end(tail)
+
+
+def _whole_lines(raw: tuple[bytes, bytes]) -> tuple[bytes, bytes]:
+    """`_raw_ends` in whole lines."""
+    head, tail = raw
+    if head is tail:
+        return raw
+    return _whole_lines_from_start(head), _whole_lines_to_end(tail)
 
 
 def detect_file(path: str | os.PathLike[str]) -> SlicerInfo:
@@ -121,7 +134,8 @@ FILE_ORIGIN = "settings in the file"
 
 
 class SettingsCache:
-    """The last file's `read_slicer_settings`, by the very bytes it read (both ends) and the
+    """The last file's `read_slicer_settings`, by the very bytes it read (both ends, before
+    they are cut to whole lines: cutting copies them) and the
     environment it was given: a process that asks again and again about one file (the
     worker, after each change typed during a print) reads the ends, but decodes and parses
     them only when they differ (1.2 of 1.7 ms). Holds one file's ends, 2 MiB at most."""
@@ -147,14 +161,14 @@ def read_slicer_settings(path: str | os.PathLike[str] | None,
     """
     if path is None:
         return _read_slicer_settings(None, environ)
-    ends = read_file_ends(path)
+    raw = _raw_ends(path)
     if cache is None:
-        return _read_slicer_settings(FileEnds.from_bytes(*ends), environ)
+        return _read_slicer_settings(FileEnds.from_bytes(*_whole_lines(raw)), environ)
     copied = None if environ is None else dict(environ)
-    if cache.result is not None and cache.ends == ends and cache.environ == copied:
+    if cache.result is not None and cache.ends == raw and cache.environ == copied:
         return cache.result
-    result = _read_slicer_settings(FileEnds.from_bytes(*ends), environ)
-    cache.ends, cache.environ, cache.result = ends, copied, result
+    result = _read_slicer_settings(FileEnds.from_bytes(*_whole_lines(raw)), environ)
+    cache.ends, cache.environ, cache.result = raw, copied, result
     return result
 
 
