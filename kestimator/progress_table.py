@@ -98,6 +98,8 @@ _CHUNK_RE = re.compile(rb"; kt ([A-Za-z0-9+/=]{1,%d})\r?\n?\Z" % CHUNK_CHARS)
 MIN_SPACING_S: Final = 0.4
 SPACING_FRACTION: Final = 0.0015
 MAX_TIME_POINTS = 20000
+# common_prefix compares arrays this many bytes at a time.
+COMPARE_BYTES: Final = 1 << 15
 MAX_OBJECT_POINTS = 500
 MAX_OBJECTS = 200
 # An object name's bytes (UTF-8) at most: Klipper's names come from EXCLUDE_OBJECT_DEFINE
@@ -321,6 +323,8 @@ class Selection:
     kept: list[int] = dataclasses.field(default_factory=list)
     """The index in `candidates` of each of `lines` (lines[k] == candidates[kept[k]] + 1):
     the worker, which keeps the candidates' offsets, reads the table's by index."""
+    made_from: Candidates | None = dataclasses.field(default=None, compare=False)
+    """The candidates with what they were made from (`select`'s `previous`)."""
 
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
@@ -430,8 +434,115 @@ def _listed(values: Iterable[Any]) -> list[Any]:
     return list(values)
 
 
-def _candidates(est: _EstimateLike, total_s: float
-                ) -> tuple[list[int], list[float], list[bool]]:
+@dataclasses.dataclass(frozen=True)
+class Candidates:
+    """`_candidates`' points (lines, times, keep) with copies of what they were made from:
+    the next select of an estimate that shares a first part with this one (the worker's,
+    after a change: the samples and layers before its checkpoint) goes on from them
+    (`_candidates`' `previous`)."""
+
+    lines: list[int]
+    times: list[float]
+    keep: list[bool]
+    total_s: float
+    n_lines: int
+    ordered: bool
+    """Whether the samples and the layers came in line order (none negative)."""
+    sample_lines: array
+    sample_times: array
+    tail_lines: array
+    tail_times: array
+    layer_lines: array
+    layer_times: array
+
+
+def common_prefix(a: array, b: array) -> int:
+    """How many leading items arrays `a` and `b` (of one typecode) share, bit for bit.
+    Compared in blocks of COMPARE_BYTES: whole copies of large arrays (tobytes) cost fresh
+    pages each time, ten times the comparison (0.25 ms for two 320 KB arrays)."""
+    x, y = memoryview(a).cast("B"), memoryview(b).cast("B")
+    n = min(len(x), len(y))
+    start = 0
+    while start < n:
+        end = min(n, start + COMPARE_BYTES)
+        if x[start:end].tobytes() != y[start:end].tobytes():
+            lo, hi = start, end  # x[:lo] == y[:lo], x[:hi] != y[:hi]
+            while hi - lo > 1:
+                mid = (lo + hi) // 2
+                if x[lo:mid].tobytes() == y[lo:mid].tobytes():
+                    lo = mid
+                else:
+                    hi = mid
+            return lo // a.itemsize
+        start = end
+    return n // a.itemsize
+
+
+def _arrays(est: _EstimateLike) -> tuple[array, array, array, array, array, array] | None:
+    """The estimate's samples, tail and layers as arrays of lines ('q') and times ('d')
+    (an Estimate's are), else None."""
+    layers = est.layers
+    found: list[array] = []
+    for values, typecode in zip((est.sample_lines, est.sample_times, est.tail_lines,
+                                 est.tail_times, getattr(layers, "lines", None),
+                                 getattr(layers, "times", None)), "qdqdqd"):
+        if not isinstance(values, array) or values.typecode != typecode:
+            return None
+        found.append(values)
+    return found[0], found[1], found[2], found[3], found[4], found[5]
+
+
+def _ascending_from(values: array, start: int) -> bool:
+    """Whether values[start - 1:] never descends."""
+    for i in range(max(1, start), len(values)):
+        if values[i] < values[i - 1]:
+            return False
+    return True
+
+
+def _go_on_from(previous: Candidates, inputs: tuple[array, array, array, array, array,
+                                                    array],
+                n_lines: int, total_s: float) -> tuple[int, int, int] | None:
+    """Where `_candidates` of these inputs may go on from `previous`: (how many of its
+    points are kept, the samples and the layers already in them), or None.
+
+    Its points before line B are kept when every input before B is the same in both and
+    nothing before B was held to the total: B is the first line where the samples or the
+    layers of the two differ (compared bit for bit), or a tail sample of either begins.
+    Both must be in line order (else a whole walk sorts them, and a later one could move
+    before B), and have as many lines."""
+    sample_lines, sample_times, tail_lines, tail_times, layer_lines, layer_times = inputs
+    if previous.n_lines != n_lines or not previous.ordered:
+        return None
+    samples = min(common_prefix(previous.sample_lines, sample_lines),
+                  common_prefix(previous.sample_times, sample_times))
+    layers = min(common_prefix(previous.layer_lines, layer_lines),
+                 common_prefix(previous.layer_times, layer_times))
+    # Both in line order: the previous one's were, these from where they part.
+    if not (_ascending_from(sample_lines, samples) and _ascending_from(layer_lines, layers)):
+        return None
+    bounds = [n_lines + 1]
+    for values, shared in ((previous.sample_lines, samples), (sample_lines, samples)):
+        if shared < len(values):
+            bounds.append(values[shared])
+    for values, shared in ((previous.layer_lines, layers), (layer_lines, layers)):
+        if shared < len(values):
+            bounds.append(values[shared] - 1)  # a layer's point is at its line less one
+    for values in (previous.tail_lines, tail_lines):
+        if values:
+            bounds.append(min(values))
+    bound = min(bounds)
+    kept = bisect_left(previous.lines, bound)
+    if kept == 0 or bound <= 0:  # (line 0's point, the start, is always a sample's)
+        return None
+    latest = previous.times[kept - 1]  # the greatest time so far, if it was not held
+    if not (latest < previous.total_s and latest <= total_s):
+        return None
+    return kept, bisect_left(sample_lines, bound), bisect_left(layer_lines, bound + 1)
+
+
+def _candidates(est: _EstimateLike, total_s: float, previous: Candidates | None = None
+                ) -> Candidates:
     """The lines a table may hold a point at, less one (so the samples' own lines), in
     ascending order, once each: line 1, each layer's line and the line after each
     progress sample's (and tail sample's) move, up to the file's end (line n_lines + 1:
@@ -442,17 +553,54 @@ def _candidates(est: _EstimateLike, total_s: float
     The lists come ordered, merged rather than sorted, and runs of samples that need no
     change are copied as slices (tests/test_progress_table.py holds the result to a dict
     by line's): select was 21 ms of the worker's answer after a change, most of it spent
-    boxing each sample's line and time again."""
-    after_lines, after_times = _merged(
-        *_by_line([0] + _listed(est.sample_lines), [0.0] + _listed(est.sample_times)),
-        *_by_line(_listed(est.tail_lines), _listed(est.tail_times)))
-    layer_lines, layer_times = _by_line([line - 1 for line, _ in est.layers],
-                                        [float(t) for _, t in est.layers])
-    last = est.n_lines  # line n_lines + 1, less one
-    lines: list[int] = []
-    times: list[float] = []
-    keep: list[bool] = []
-    latest = 0.0
+    boxing each sample's line and time again. With `previous` (the candidates of an
+    estimate of the same file), the points before where the two estimates' inputs part
+    are taken from it (`_go_on_from`) and the walk goes on from there: 3.5 of the 7 ms
+    select took after a change at 90 % of the 40 MB file."""
+    inputs = _arrays(est)
+    start = None
+    if previous is not None and inputs is not None:
+        start = _go_on_from(previous, inputs, est.n_lines, total_s)
+    if start is not None and previous is not None and inputs is not None:
+        kept, first_sample, first_layer = start
+        lines, times, keep = (previous.lines[:kept], previous.times[:kept],
+                              previous.keep[:kept])
+        latest = times[-1]
+        sample_lines, sample_times = (inputs[0][first_sample:].tolist(),
+                                      inputs[1][first_sample:].tolist())
+        layer_lines = [line - 1 for line in inputs[4][first_layer:]]
+        layer_times = inputs[5][first_layer:].tolist()
+    else:
+        lines, times, keep = [], [], []
+        latest = 0.0
+        sample_lines = [0] + _listed(est.sample_lines)
+        sample_times = [0.0] + _listed(est.sample_times)
+        layer_lines = [line - 1 for line, _ in est.layers]
+        layer_times = [float(t) for _, t in est.layers]
+    by_line_samples = _by_line(sample_lines, sample_times)
+    by_line_layers = _by_line(layer_lines, layer_times)
+    # (_by_line gives the very lists it was given when they are in line order.)
+    ordered = by_line_samples[0] is sample_lines and by_line_layers[0] is layer_lines
+    tail_lines, tail_times = _by_line(_listed(est.tail_lines), _listed(est.tail_times))
+    after_lines, after_times = _merged(by_line_samples[0], by_line_samples[1], tail_lines,
+                                       tail_times)
+    _walk(after_lines, after_times, by_line_layers[0], by_line_layers[1], est.n_lines,
+          total_s, lines, times, keep, latest)
+    if inputs is None:
+        copies = [array(typecode) for typecode in "qdqdqd"]
+        ordered = False
+    else:
+        copies = [array(values.typecode, values) for values in inputs]
+    return Candidates(lines, times, keep, total_s, est.n_lines, ordered, copies[0],
+                      copies[1], copies[2], copies[3], copies[4], copies[5])
+
+
+def _walk(after_lines: list[int], after_times: list[float], layer_lines: list[int],
+          layer_times: list[float], last: int, total_s: float, lines: list[int],
+          times: list[float], keep: list[bool], latest: float) -> None:
+    """`_candidates`' walk: add the points of the samples (`after_*`) and the layers, in
+    line order (a layer first on a tie), up to line `last`, after those in `lines`
+    (`latest`: the greatest time so far)."""
     i = j = 0
     n_layers, n_after = len(layer_lines), len(after_lines)
     while True:
@@ -477,17 +625,21 @@ def _candidates(est: _EstimateLike, total_s: float
                                 latest, total_s)
             i += 1
         elif j >= n_after or after_lines[j] > last:
-            return lines, times, keep
+            return
 
 
 def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
            max_object_points: int = MAX_OBJECT_POINTS,
-           max_objects: int = MAX_OBJECTS, precision: float = 1.0) -> Selection:
+           max_objects: int = MAX_OBJECTS, precision: float = 1.0,
+           previous: Candidates | None = None) -> Selection:
     """The table's points from an estimate made with progress samples (sample=True), at
     most `precision` x spacing_bound apart while they fit in `max_points` (a table that
-    never goes into a file, the worker's, can afford more points than a file's footer)."""
+    never goes into a file, the worker's, can afford more points than a file's footer).
+    `previous`: the candidates (`Selection.made_from`) of an estimate of the same file,
+    to go on from where they still hold."""
     total_s = float(est.total_s)
-    lines, times, keep = _candidates(est, total_s)
+    made_from = _candidates(est, total_s, previous)
+    lines, times, keep = made_from.lines, made_from.times, made_from.keep
     factor = precision
     forced = True
     while True:
@@ -505,7 +657,7 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
                      lines=[lines[i] + 1 for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
                      object_remaining=remaining, objects_left_out=left_out,
-                     candidates=lines, kept=kept)
+                     candidates=lines, kept=kept, made_from=made_from)
 
 
 def name_bytes(name: str) -> bytes | None:

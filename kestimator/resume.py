@@ -46,7 +46,12 @@ from kestimator.estimate import (
     line_batches_at,
     run_timeline,
 )
-from kestimator.progress_table import Selection, line_offsets_from
+from kestimator.progress_table import (
+    Candidates,
+    Selection,
+    common_prefix,
+    line_offsets_from,
+)
 
 # The gap after a checkpoint: this share of the rest of the file, at least MIN_GAP_RATIO of
 # the file and MIN_GAP_BYTES (a small file has fewer checkpoints).
@@ -56,8 +61,6 @@ MIN_GAP_BYTES: Final = 1 << 14
 MAX_CHECKPOINTS: Final = 100
 # All checkpoints of a file together hold at most this many bytes.
 MAX_CHECKPOINT_BYTES: Final = 64 << 20
-# _common_prefix compares arrays this many bytes at a time.
-COMPARE_BYTES: Final = 1 << 15
 # Line offsets kept between answers (`Resumable.line_offsets`): at most this many lines.
 MAX_KNOWN_OFFSETS: Final = 1 << 17
 # The timeline's arrays that grow with the file, kept outside the pickles: (attribute of
@@ -72,28 +75,6 @@ CACHES: Final = ("_commands",)
 
 def _owner(timeline: Timeline, name: str) -> object:
     return getattr(timeline, name) if name else timeline
-
-
-def _common_prefix(a: array, b: array) -> int:
-    """How many leading items `a` and `b` share, bit for bit. Compared in blocks of
-    COMPARE_BYTES: whole copies of large arrays (tobytes) cost fresh pages each time, ten
-    times the comparison (0.25 ms for two 320 KB arrays, at every checkpoint)."""
-    x, y = memoryview(a).cast("B"), memoryview(b).cast("B")
-    n = min(len(x), len(y))
-    start = 0
-    while start < n:
-        end = min(n, start + COMPARE_BYTES)
-        if x[start:end].tobytes() != y[start:end].tobytes():
-            lo, hi = start, end  # x[:lo] == y[:lo], x[:hi] != y[:hi]
-            while hi - lo > 1:
-                mid = (lo + hi) // 2
-                if x[lo:mid].tobytes() == y[lo:mid].tobytes():
-                    lo = mid
-                else:
-                    hi = mid
-            return lo // a.itemsize
-        start = end
-    return n // a.itemsize
 
 
 def _shared_prefix(a: list[int], b: list[int]) -> int:
@@ -225,6 +206,9 @@ class Resumable:
         # where there were more than MAX_KNOWN_OFFSETS.
         self.candidates: list[int] = []
         self.candidate_offsets = array("q")
+        # The last table's candidates with what they were made from (`select`'s
+        # `previous`), under the same limit.
+        self.made_from: Candidates | None = None
         # The line of each byte offset events were typed at (kestimator.worker.event_lines;
         # at most as many as one request's events).
         self.event_lines: dict[int, int] = {}
@@ -337,7 +321,7 @@ class Resumable:
             self.live = copy
         deltas = []
         for last, values in zip(self._last, growing):
-            kept = _common_prefix(last, values)
+            kept = common_prefix(last, values)
             tail = values[kept:]
             deltas.append((kept, tail))
             # The copy as at this checkpoint, mended where it differs: a new copy of the
@@ -376,6 +360,7 @@ class Resumable:
                     return f.read(size) or b""
             if len(candidates) > MAX_KNOWN_OFFSETS:
                 self.candidates, self.candidate_offsets = [], array("q")
+                self.made_from = None
                 lines = sorted(selection.lines + selection.object_lines)
                 known = self._anchors()
                 found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
@@ -383,6 +368,7 @@ class Resumable:
                         [found.get(line, self.size) for line in selection.object_lines])
             offsets = self._candidate_offsets(read_at, candidates, line_bytes)
             self.candidates, self.candidate_offsets = candidates, offsets
+            self.made_from = selection.made_from
             objects = self._offsets_among_candidates(read_at, selection.object_lines,
                                                      line_bytes)
         return [offsets[i] for i in selection.kept], objects

@@ -292,7 +292,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
     est, resumable = estimate_resuming(path, printer,
                                        list(zip(lines, (text for _, text in events))))
     warnings += est.warnings
-    selection = select(est, precision=WORKER_PRECISION)
+    selection = select(est, precision=WORKER_PRECISION, previous=resumable.made_from)
     if selection.objects_left_out:
         warnings.append("%d objects left out of the table (over %d objects, or a name over "
                         "%d bytes): their time counts in the total only"

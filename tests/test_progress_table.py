@@ -10,6 +10,7 @@ import os
 import random
 import shutil
 import tracemalloc
+from array import array
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ import pytest
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.estimate import estimate_file
 from kestimator.progress_table import (
+    COMPARE_BYTES,
     HEADER_PREFIX,
     MAX_NAME_BYTES,
     MAX_OBJECT_POINTS,
@@ -32,6 +34,7 @@ from kestimator.progress_table import (
     TableError,
     _candidates,
     _thin,
+    common_prefix,
     decode_block,
     describe_differences,
     line_offsets,
@@ -554,7 +557,8 @@ def test_select_merges_its_candidates_as_a_dict_by_line_finds_them(seed: int) ->
         layers = list(zip(*points(rng.randrange(0, 50), seed % 5 != 0)))
         object_remaining: list[tuple[int, float, dict[str, float]]] = []
 
-    lines, times, keep = _candidates(Fake(), Fake.total_s)
+    made = _candidates(Fake(), Fake.total_s)
+    lines, times, keep = made.lines, made.times, made.keep
     assert ([line + 1 for line in lines], times, keep) == _candidates_by_dict(Fake(),
                                                                              Fake.total_s)
 
@@ -594,7 +598,8 @@ def _select_lines_by_whole_walks(est: Any, max_points: int, precision: float) ->
     """select's lines as it chose them before it stopped a walk past max_points: each
     walk to the end, its points counted after."""
     total_s = float(est.total_s)
-    lines, times, keep = _candidates(est, total_s)
+    made = _candidates(est, total_s)
+    lines, times, keep = made.lines, made.times, made.keep
     factor, forced = precision, True
     while True:
         kept = [0] if len(times) > 2 else list(range(len(times)))
@@ -657,7 +662,8 @@ def _walk_counts(est: Any, precision: float, walks: int) -> list[int]:
     """How many points select's first `walks` whole walks keep: forced, then unforced at
     precision, 2x, 4x, ... (the limits at which select stops at each of them)."""
     total_s = float(est.total_s)
-    _lines, times, keep = _candidates(est, total_s)
+    made = _candidates(est, total_s)
+    times, keep = made.times, made.keep
     counts = [len(_thin(times, keep, total_s, precision, True, 10**9) or [])]
     factor = precision
     for _ in range(walks - 1):
@@ -687,3 +693,106 @@ def test_select_lands_on_each_walk_as_whole_walks_do(seed: int) -> None:
     for max_points in sorted(m for m in limits if m >= 2):
         got = select(est, max_points=max_points, precision=precision)
         assert got.lines == _select_lines_by_whole_walks(est, max_points, precision)
+
+
+def test_common_prefix_counts_the_items_two_arrays_share_bit_for_bit() -> None:
+    rng = random.Random(37)
+    for typecode, size in (("q", 8), ("d", 8), ("b", 1)):
+        for _ in range(100):
+            n = rng.choice([0, 1, 5, COMPARE_BYTES // size, 3 * COMPARE_BYTES])
+            a = array(typecode, rng.randbytes(n * size))
+            b = array(typecode, a)
+            b.extend(array(typecode, [1] * rng.randrange(0, 3)))
+            expected = min(len(a), len(b))
+            if n and rng.random() < 0.7:
+                expected = rng.randrange(n)
+                raw = bytearray(b.tobytes())
+                raw[expected * size + rng.randrange(size)] ^= 1 << rng.randrange(8)
+                b = array(typecode, bytes(raw))
+            assert common_prefix(a, b) == expected
+            assert common_prefix(b, a) == expected
+
+
+def test_candidates_going_on_from_an_earlier_estimates_are_a_whole_walks() -> None:
+    """`_candidates` with `previous` (the worker's, after a change) gives bit for bit what a
+    whole walk gives, whether it goes on from the earlier points or cannot: estimates that
+    share their first samples and layers, then part; tails; totals that hold times back;
+    samples out of order; another file length."""
+    from kestimator import progress_table
+    from kestimator.timedlines import TimedLines
+
+    went_on = []
+    real = progress_table._go_on_from
+
+    def spy(*args: Any) -> Any:
+        start = real(*args)
+        went_on.append(start is not None)
+        return start
+
+    def estimate(rng: random.Random, lines: list[int], times: list[float],
+                 layers: list[tuple[int, float]], n_lines: int, total_s: float) -> Any:
+        class Fake:
+            pass
+        est = Fake()
+        est.sample_lines, est.sample_times = array("q", lines), array("d", times)  # type: ignore[attr-defined]
+        tail_from = rng.choice([max(1, n_lines - 60), rng.randrange(1, n_lines + 2)])
+        tail = sorted(rng.sample(range(tail_from, n_lines + 3),
+                                 min(n_lines + 3 - tail_from, rng.choice([0, 5]))))
+        est.tail_lines = array("q", tail)  # type: ignore[attr-defined]
+        est.tail_times = array("d", [total_s - rng.uniform(0, 9) for _ in tail])  # type: ignore[attr-defined]
+        est.layers = TimedLines(layers)  # type: ignore[attr-defined]
+        est.n_lines, est.total_s = n_lines, total_s  # type: ignore[attr-defined]
+        return est
+
+    def points(rng: random.Random, first_line: int, first_t: float, n: int
+               ) -> tuple[list[int], list[float]]:
+        lines, times, line, t = [], [], first_line, first_t
+        for _ in range(n):
+            line += rng.choice([0, 1, 1, 3, 9])
+            t += rng.choice([0.0, 0.5, rng.uniform(0, 4)])
+            lines.append(line)
+            times.append(t)
+        return lines, times
+
+    original = progress_table._go_on_from
+    progress_table._go_on_from = spy
+    try:
+        for seed in range(300):
+            rng = random.Random(seed)
+            lines, times = points(rng, 1, 0.0, rng.randrange(1, 400))
+            n_lines = lines[-1] + rng.randrange(0, 20)
+            layers = sorted(rng.sample(list(zip(lines, times)), min(len(lines), 12)))
+            total = times[-1] + rng.uniform(0, 5)
+            first = _candidates(estimate(rng, lines, times, layers, n_lines, total), total)
+            # A second estimate: the first `shared` samples, then others.
+            shared = rng.randrange(0, len(lines) + 1)
+            more_lines, more_times = points(rng, lines[shared - 1] if shared else 1,
+                                            times[shared - 1] if shared else 0.0,
+                                            rng.randrange(0, 300))
+            lines2, times2 = lines[:shared] + more_lines, times[:shared] + more_times
+            if rng.random() < 0.1 and len(lines2) > 3:
+                lines2[-2], lines2[-1] = lines2[-1] + 1, lines2[-2]  # out of order
+            if rng.random() < 0.1 and shared > 2:  # a later sample of an earlier line
+                lines2.append(rng.randrange(1, lines[shared - 1]))
+                times2.append(times2[-1])
+            layers2 = [p for p in layers if p[0] <= (lines[shared - 1] if shared else 0)]
+            if layers2 and rng.random() < 0.3:  # one of them differs
+                k = rng.randrange(len(layers2))
+                layers2[k] = (layers2[k][0], layers2[k][1] + rng.choice([0.0, 1.0]))
+                if rng.random() < 0.5:
+                    del layers2[k]
+            layers2 += sorted(rng.sample(list(zip(more_lines, more_times)),
+                                         min(len(more_lines), 5)))
+            total2 = rng.choice([total, (times2 or [0.0])[-1] + 1.0,
+                                 rng.uniform(0, total)])
+            n_lines2 = rng.choice([n_lines, n_lines, n_lines, n_lines + 1])
+            n_lines2 = max(n_lines2, (lines2 or [0])[-1])
+            second = estimate(rng, lines2, times2, layers2, n_lines2, total2)
+            got = _candidates(second, total2, first)
+            whole = _candidates(second, total2)
+            assert got.lines == whole.lines and got.keep == whole.keep
+            assert array("d", got.times).tobytes() == array("d", whole.times).tobytes()
+            assert got.ordered == whole.ordered
+    finally:
+        progress_table._go_on_from = original
+    assert went_on.count(True) > 40 and went_on.count(False) > 30

@@ -170,24 +170,6 @@ def test_event_lines_counted_from_each_events_checkpoint_are_those_counted_from_
     assert worker.event_lines(str(path), offsets) == expected
 
 
-def test_common_prefix_counts_the_items_two_arrays_share_bit_for_bit() -> None:
-    rng = random.Random(37)
-    for typecode, size in (("q", 8), ("d", 8), ("b", 1)):
-        for _ in range(100):
-            n = rng.choice([0, 1, 5, resume.COMPARE_BYTES // size, 3 * resume.COMPARE_BYTES])
-            a = array(typecode, rng.randbytes(n * size))
-            b = array(typecode, a)
-            b.extend(array(typecode, [1] * rng.randrange(0, 3)))
-            expected = min(len(a), len(b))
-            if n and rng.random() < 0.7:
-                expected = rng.randrange(n)
-                raw = bytearray(b.tobytes())
-                raw[expected * size + rng.randrange(size)] ^= 1 << rng.randrange(8)
-                b = array(typecode, bytes(raw))
-            assert resume._common_prefix(a, b) == expected
-            assert resume._common_prefix(b, a) == expected
-
-
 def _assert_candidate_offsets_true(path: Path, resumable: resume.Resumable) -> None:
     """Each kept candidate's offset is that of the line after it (the file's size past
     its end)."""
@@ -297,10 +279,20 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
         return real_lines_at(read, offsets, *args)
 
     monkeypatch.setattr(worker, "lines_at_offsets", spy_lines)
+    from kestimator import progress_table
+    went_on: list[object] = []
+    real_go_on = progress_table._go_on_from
+
+    def spy_go_on(*args: Any) -> Any:
+        went_on.append(real_go_on(*args))
+        return went_on[-1]
+
+    monkeypatch.setattr(progress_table, "_go_on_from", spy_go_on)
     _answer(path, [])
     resumable = worker._resumable
     assert resumable is not None
     assert len(asked[0][0]) == len(resumable.candidates)  # all of them, once
+    assert went_on == []  # nothing to go on from
     size = path.stat().st_size
     events: list[list[Any]] = []
     for fraction, command in ((0.3, "M220 S150"), (0.6, "SET_VELOCITY_LIMIT ACCEL=900"),
@@ -308,8 +300,12 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
         events.append([int(size * fraction), command])
         counted.clear()
         asked.clear()
+        went_on.clear()
         answer = _answer(path, events)
         assert worker._resumable is resumable and resumable.resumed_at > 0
+        # The table's candidates went on from the last answer's (the whole pass's below
+        # has none to go on from).
+        assert len(went_on) == 1 and went_on[0] is not None
         # Only the new change's line is counted.
         assert sum(len(offsets) for offsets in counted) == 1
         # The candidates past the checkpoint, and no line before it that is not known.
