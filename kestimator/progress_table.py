@@ -1246,53 +1246,66 @@ def _line_start(block: bytes, pos: int, n: int, line_bytes: float) -> int:
 def line_offsets_from(read_at: Callable[[int, int], bytes], lines: Sequence[int],
                       known: dict[int, int], known_lines: Sequence[int],
                       line_bytes: float, block_bytes: int = 1 << 16) -> dict[int, int]:
-    """`line_offsets` of `lines` (ascending, a line maybe more than once), counting each
-    line not in `known` (line -> byte offset of its start, line 1 -> 0 among them) from
-    the closest line before it whose offset is known (`known_lines`: known's lines,
-    ascending) or was just found, rather than from the file's start: the worker's answer
+    """`line_offsets` of `lines` (ascending, a line maybe more than once), each counted
+    from the closest line before it whose offset is known (`known`: line -> byte offset of
+    its start; `known_lines`: its lines, ascending) or was just found
+    (`line_offsets_along`), as a dict."""
+    found = line_offsets_along(read_at, lines, known_lines,
+                               [known[line] for line in known_lines], line_bytes,
+                               block_bytes)
+    return {line: offset for line, offset in zip(lines, found) if offset >= 0}
+
+
+def line_offsets_along(read_at: Callable[[int, int], bytes], lines: Sequence[int],
+                       known_lines: Sequence[int], known_offsets: Sequence[int],
+                       line_bytes: float, block_bytes: int = 1 << 16,
+                       base_line: int = 1, base: int = 0, missing: int = -1) -> list[int]:
+    """The byte offset of the start of each of `lines` (ascending, a line maybe more than
+    once), aligned with them (`missing` for a line past the file's last), counting each
+    line not among `known_lines` (ascending; `known_offsets`: their offsets) from the
+    closest line before it whose offset is known or was just found (at first line
+    `base_line`, at byte `base`), rather than from the file's start: the worker's answer
     after a change reads a few thousand short stretches of the file, not all of it.
     `read_at(size, offset)` reads the file as os.pread does (fewer bytes only at its end),
     `block_bytes` at a time (the lines looked for in one block are found in it);
     `line_bytes`: the file's mean line length."""
-    result: dict[int, int] = {}
+    result = [missing] * len(lines)
     k = 0  # known_lines[:k] are at or before the line being looked for
-    base_line, base = 1, 0  # the closest line before it with a known offset
+    n_known = len(known_lines)
     data = b""  # the file from byte `start` on
     start = 0
-    for line in lines:
-        if line == base_line or line <= 1:  # line 1, or the line just before again
-            result[line] = base if line == base_line else 0
+    for i, line in enumerate(lines):
+        if line <= 1:
+            result[i] = 0
             continue
-        offset = known.get(line)
-        if offset is None:
-            # The closest known line before it, found only for a line not known (a
-            # bisection: a walk through every known line cost as much as the counting).
-            k = bisect_right(known_lines, line, k)
-            if k and known_lines[k - 1] >= base_line:
-                base_line = known_lines[k - 1]
-                base = known[base_line]
-            n = line - base_line  # LFs from `base` to the line's start
-            pos = -1
-            if start <= base <= start + len(data):
-                pos = _line_start(data, base - start, n, line_bytes)
-            if pos < 0:  # read on from `base`: a block, more where its lines run out
-                size = max(block_bytes, int(n * line_bytes * 2.0) + 256)
-                data = read_at(size, base)
-                start = base
+        while k < n_known and known_lines[k] <= line:
+            k += 1
+        if k and known_lines[k - 1] > base_line:
+            base_line = known_lines[k - 1]
+            base = known_offsets[k - 1]
+        if line == base_line:  # known, or the line just before again
+            result[i] = base
+            continue
+        n = line - base_line  # LFs from `base` to the line's start
+        pos = -1
+        if start <= base <= start + len(data):
+            pos = _line_start(data, base - start, n, line_bytes)
+        if pos < 0:  # read on from `base`: a block, more where its lines run out
+            size = max(block_bytes, int(n * line_bytes * 2.0) + 256)
+            data = read_at(size, base)
+            start = base
+            pos = _line_start(data, 0, n, line_bytes)
+            while pos < 0 and len(data) == size:
+                more = read_at(size, start + size)
+                if not more:
+                    break
+                data += more
+                size = len(data)
                 pos = _line_start(data, 0, n, line_bytes)
-                while pos < 0 and len(data) == size:
-                    more = read_at(size, start + size)
-                    if not more:
-                        break
-                    data += more
-                    size = len(data)
-                    pos = _line_start(data, 0, n, line_bytes)
-                if pos < 0:
-                    break  # past the file's last line: this one and every later one
-            offset = start + pos
-        result[line] = offset
-        if line >= base_line:
-            base_line, base = line, offset
+            if pos < 0:
+                break  # past the file's last line: this one and every later one
+        base_line, base = line, start + pos
+        result[i] = base
     return result
 
 

@@ -50,6 +50,7 @@ from kestimator.progress_table import (
     Candidates,
     Selection,
     common_prefix,
+    line_offsets_along,
     line_offsets_from,
 )
 
@@ -385,23 +386,19 @@ class Resumable:
                            candidates: list[int], line_bytes: float) -> array:
         """The byte offset of the line after each of `candidates` (the file's size past
         its end): those the last table's candidates share with them, from before where
-        this pass went on from, as found then; the others looked up among the last
-        table's later candidates (after a change at 90 % of the 40 MB file, half of
-        them) or counted from the closest line before them whose offset is known."""
+        this pass went on from, as found then; the others found among the last table's
+        later candidates (after a change at 90 % of the 40 MB file, half of them) or
+        counted from the closest line before them whose offset is known."""
         old = self.candidates
         shared = bisect_right(candidates, self.resumed_at - 1)
         if shared > len(old) or candidates[:shared] != old[:shared]:
             shared = _shared_prefix(candidates, old)
         offsets = self.candidate_offsets[:shared]
-        known = self._anchors()
-        if shared:
-            known[candidates[shared - 1] + 1] = offsets[-1]
-        for line, offset in zip(old[shared:], self.candidate_offsets[shared:]):
-            known[line + 1] = offset
-        lines = [line + 1 for line in candidates[shared:]]
-        found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
-        size = self.size
-        offsets.extend([found.get(line, size) for line in lines])
+        base_line, base = (candidates[shared - 1] + 1, offsets[-1]) if shared else (1, 0)
+        offsets.extend(line_offsets_along(
+            read_at, [line + 1 for line in candidates[shared:]],
+            [line + 1 for line in old[shared:]], self.candidate_offsets[shared:],
+            line_bytes, base_line=base_line, base=base, missing=self.size))
         return offsets
 
     def _offsets_among_candidates(self, read_at: Callable[[int, int], bytes],
@@ -409,13 +406,15 @@ class Resumable:
         """The byte offsets of `lines` (ascending), each a candidate's line (an object
         point is a layer's) or counted from the closest one before it."""
         candidates, offsets = self.candidates, self.candidate_offsets
-        known = {1: 0}
+        known_lines: list[int] = []
+        known_offsets: list[int] = []
         for line in lines:
             i = bisect_right(candidates, line - 1) - 1
             if i >= 0:
-                known[candidates[i] + 1] = offsets[i]
-        found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
-        return [found.get(line, self.size) for line in lines]
+                known_lines.append(candidates[i] + 1)
+                known_offsets.append(offsets[i])
+        return line_offsets_along(read_at, lines, known_lines, known_offsets, line_bytes,
+                                  missing=self.size)
 
     def _arrays_at(self, index: int) -> list[array]:
         """The GROWING arrays as at checkpoint `index`. Where no later checkpoint kept

@@ -38,6 +38,7 @@ from kestimator.progress_table import (
     decode_block,
     describe_differences,
     line_offsets,
+    line_offsets_along,
     line_offsets_from,
     lines_at_offsets,
     read_table,
@@ -592,6 +593,13 @@ def test_line_offsets_from_known_lines_are_those_counted_from_the_start(seed: in
     repeated = sorted(wanted + rng.sample(wanted, len(wanted) // 3))
     assert line_offsets_from(read_at, repeated, known, sorted(known),
                              len(data) / n_lines) == expected
+    # Aligned, from a known line on (the worker's candidates past its checkpoint), a line
+    # past the file's end given as `missing`.
+    base_line = rng.choice(sorted(everything))
+    after = [line for line in repeated if line > base_line]
+    assert line_offsets_along(read_at, after, [], [], len(data) / n_lines,
+                              base_line=base_line, base=everything[base_line],
+                              missing=-7) == [expected.get(line, -7) for line in after]
 
 
 def _select_lines_by_whole_walks(est: Any, max_points: int, precision: float) -> list[int]:

@@ -262,15 +262,15 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
     checkpoint it went on from, whichever points the new total keeps before it; and a
     change already answered is not looked for again."""
     path = corpus_files("prusaslicer/gcodepreview_benchy_ps2.6.1.gcode")[0]
-    asked: list[tuple[list[int], dict[int, int]]] = []
-    real = resume.line_offsets_from
+    asked: list[tuple[list[int], list[int]]] = []
+    real = resume.line_offsets_along
 
-    def spy(read_at: Any, lines: Any, known: Any, *args: Any, **kwargs: Any
-            ) -> dict[int, int]:
-        asked.append((list(lines), dict(known)))
-        return real(read_at, lines, known, *args, **kwargs)
+    def spy(read_at: Any, lines: Any, known_lines: Any, *args: Any, **kwargs: Any
+            ) -> list[int]:
+        asked.append((list(lines), list(known_lines)))
+        return real(read_at, lines, known_lines, *args, **kwargs)
 
-    monkeypatch.setattr(resume, "line_offsets_from", spy)
+    monkeypatch.setattr(resume, "line_offsets_along", spy)
     counted: list[list[int]] = []
     real_lines_at = worker.lines_at_offsets
 
@@ -311,7 +311,8 @@ def test_after_a_change_only_lines_past_the_checkpoint_are_counted_and_events_on
         # The candidates past the checkpoint, and no line before it that is not known.
         past = [line + 1 for line in resumable.candidates if line >= resumable.resumed_at]
         assert past and asked[0][0] == past
-        for lines, known in asked:
+        for lines, known_lines in asked:
+            known = set(known_lines)
             assert all(line in known or line > resumable.resumed_at for line in lines)
         assert answer == _whole_pass(path, events)
     _assert_candidate_offsets_true(path, resumable)
