@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import errno
+import io
 import json
 import os
 import stat
@@ -63,7 +64,7 @@ Write = Callable[[bytes], object]
 """Where content goes: `out.write` of the temporary file (or of the device)."""
 
 
-def open_regular(path: str | os.PathLike[str], what: str = "G-code") -> BinaryIO:
+def open_regular(path: str | os.PathLike[str], what: str = "G-code") -> io.BufferedReader:
     """Open `path` for binary reading, refusing (one line) anything but a regular file.
 
     Raises `KestimatorError` naming the file; never blocks on a FIFO.

@@ -318,3 +318,24 @@ def test_the_settings_cache_answers_again_only_for_the_same_bytes_and_environmen
     # Another environment: parsed again.
     _info, third = read_slicer_settings(path, {}, cache)
     assert third.origin == "settings in the file" and len(parsed) == 4
+    # A large file (ends of a MiB each, read again a block at a time): an edit between the
+    # ends changes nothing read; one in the last MiB is parsed again; the file cut short
+    # too.
+    middle = b"; padding line of a large file\n" * 100_000
+    head, tail = data[:4000], data[4000:]
+    path.write_bytes(head + middle + tail)
+    big = read_slicer_settings(path, environ, cache)
+    assert big == read_slicer_settings(path, environ) and len(parsed) == 6
+    half = len(middle) // 2  # 1.5 MiB from either end
+    path.write_bytes(head + middle[:half] + middle[half:].replace(b"padding", b"PADDING", 9)
+                     + tail)
+    assert read_slicer_settings(path, environ, cache) is big and len(parsed) == 6
+    path.write_bytes(head + middle + tail.replace(b"max_feedrate_z = 40",
+                                                  b"max_feedrate_z = 42"))
+    _info, edited = read_slicer_settings(path, environ, cache)
+    assert edited.by_field()["max_z_velocity"].value == 42.0 and len(parsed) == 7
+    path.write_bytes(data)
+    assert read_slicer_settings(path, environ, cache) == first and len(parsed) == 8
+    path.write_bytes(data + b"; one line more\n")  # a small file grown: read again
+    read_slicer_settings(path, environ, cache)
+    assert len(parsed) == 9
