@@ -62,7 +62,8 @@ MIN_GAP_BYTES: Final = 1 << 14
 MAX_CHECKPOINTS: Final = 100
 # All checkpoints of a file together hold at most this many bytes.
 MAX_CHECKPOINT_BYTES: Final = 64 << 20
-# Line offsets kept between answers (`Resumable.line_offsets`): at most this many lines.
+# The candidates kept between answers with their offsets and what they were made from
+# (`Resumable.line_offsets`): none when a table has more than this many.
 MAX_KNOWN_OFFSETS: Final = 1 << 17
 # The timeline's arrays that grow with the file, kept outside the pickles: (attribute of
 # the timeline or "" for the timeline itself, attribute of that holding the array).
@@ -345,11 +346,12 @@ class Resumable:
         kept, aligned with the candidates: a later change moves the total, and with it
         which points the table keeps before the change, but the candidates before where
         that pass went on from are this one's. So an answer after a change counts only
-        the candidates past its checkpoint (`line_offsets_from`, each from the one before
-        it) and reads the table's offsets by index: looked up by line in a dict of every
-        line found so far, they were 4 of the 90 ms of the answer after a change at 90 %
-        of the 40 MB file. A file of more than MAX_KNOWN_OFFSETS candidates (countless
-        layers) keeps none: each table counts its own lines, from the checkpoints'."""
+        the candidates past its checkpoint that the last one did not have
+        (`line_offsets_along`, each from the line before it) and reads the table's offsets
+        by index (after a change at 90 % of the 40 MB file, the offsets and the table took
+        8 ms, against 12 when each line was looked up in a dict of the 80,000 found so
+        far). A file of more than MAX_KNOWN_OFFSETS candidates (countless layers) keeps
+        none: each table counts its own lines, from the checkpoints'."""
         candidates = selection.candidates
         with open(path, "rb", buffering=0) as f:
             read_at: Callable[[int, int], bytes]
