@@ -555,8 +555,8 @@ def _candidates(est: _EstimateLike, total_s: float, previous: Candidates | None 
     by line's): select was 21 ms of the worker's answer after a change, most of it spent
     boxing each sample's line and time again. With `previous` (the candidates of an
     estimate of the same file), the points before where the two estimates' inputs part
-    are taken from it (`_go_on_from`) and the walk goes on from there: 3.5 of the 7 ms
-    select took after a change at 90 % of the 40 MB file."""
+    are taken from it (`_go_on_from`) and the walk goes on from there (select after a
+    change at 90 % of the 40 MB file: 5.2 ms, against 7.5 ms making them all again)."""
     inputs = _arrays(est)
     start = None
     if previous is not None and inputs is not None:
