@@ -143,7 +143,8 @@ class SettingsCache:
     they are cut to whole lines: cutting copies them) and the
     environment it was given: a process that asks again and again about one file (the
     worker, after each change typed during a print) reads the ends, but decodes and parses
-    them only when they differ (1.2 of 1.7 ms). Holds one file's ends, 2 MiB at most."""
+    them only when they differ (1.2 of 1.7 ms). Holds one file's ends, 2 MiB at most, and
+    the 64 KiB block it reads them again into (`holds`)."""
 
     def __init__(self) -> None:
         self.ends: tuple[bytes, bytes] | None = None
