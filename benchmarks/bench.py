@@ -36,6 +36,7 @@ which costs RSS and time on every run (a desktop CPU's L3 gives 4-16 MiB).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -186,9 +187,25 @@ def installed_package_dir(python: str) -> str:
     return out.stdout.strip()
 
 
+# What a run gives: wall seconds (the least of the runs), peak RSS in MiB (the greatest),
+# and the CPU seconds of the run with the least wall time.
+Run = tuple[float, float, float]
+
+
+@dataclasses.dataclass
+class Case:
+    """One file's measurements: each run by name ("copy", "estimate", "inject compiled",
+    "klipper_estimator estimate", ...) and what the estimates said of the file."""
+
+    size_mb: float
+    runs: dict[str, Run]
+    n_moves: int = 0
+    total_s: float = 0.0
+
+
 def bench_case(python: str, path: str, tmpdir: str, repeat: int,
                extra_env: dict[str, str] | None = None,
-               compiled_python: str | None = None) -> dict[str, object]:
+               compiled_python: str | None = None) -> Case:
     size_mb = os.path.getsize(path) / 1e6
     out = os.path.join(tmpdir, "out.gcode")
     stdout_path = os.path.join(tmpdir, "stdout")
@@ -210,8 +227,9 @@ def bench_case(python: str, path: str, tmpdir: str, repeat: int,
                                                      "-f", "json", path], False)
         runs["klipper_estimator post-process"] = (PEER, ["--config_file", PEER_CONFIG,
                                                          "post-process", peer_file], False)
-    res: dict[str, object] = {"size_mb": size_mb}
-    best: dict[str, tuple[float, float, float]] = {}
+    res = Case(size_mb, {})
+    best = res.runs
+    said: tuple[int, float] | None = None
     samples = [name for name in runs for _ in range(COPY_RUNS if name == "copy" else 1)]
     for _ in range(repeat):
         for name in samples:
@@ -228,48 +246,44 @@ def bench_case(python: str, path: str, tmpdir: str, repeat: int,
             if name.startswith("estimate"):
                 with open(stdout_path, encoding="utf-8") as f:
                     doc = json.load(f)
-                if "n_moves" in res and (res["n_moves"], res["total_s"]) != (
-                        doc["n_moves"], doc["total_s"]):
+                this = (doc["n_moves"], doc["total_s"])
+                if said is not None and this != said:
                     sys.exit("the builds disagree: %r" % name)
-                res["n_moves"] = doc["n_moves"]
-                res["total_s"] = doc["total_s"]
+                said = this
+                res.n_moves, res.total_s = this
             if os.path.exists(out):
                 os.unlink(out)
-    res.update(best)
     return res
 
 
-def for_build(res: dict[str, object], build: str) -> dict[str, object]:
+def for_build(res: Case, build: str) -> Case:
     """`res` with the given build's estimate and inject under the plain names."""
     if build == "pure":
         return res
-    picked = dict(res)
-    picked["estimate"] = res["estimate " + build]
-    picked["inject"] = res["inject " + build]
-    return picked
+    runs = dict(res.runs)
+    runs["estimate"] = res.runs["estimate " + build]
+    runs["inject"] = res.runs["inject " + build]
+    return dataclasses.replace(res, runs=runs)
 
 
-def report(label: str, res: dict[str, object]) -> list[str]:
-    copy_t = res["copy"][0]  # type: ignore[index]
-    rows = []
+def report(label: str, res: Case) -> list[str]:
+    runs = res.runs
+    copy_t, _rss, copy_cpu = runs["copy"]
+    lines = ["%s: %.1f MB, %d moves, total_s %r" % (label, res.size_mb, res.n_moves,
+                                                   res.total_s)]
     for name in ("copy", "estimate", "inject", "estimate compiled", "inject compiled",
                  "klipper_estimator estimate", "klipper_estimator post-process"):
-        if name not in res:
+        if name not in runs:
             continue
-        wall, rss, cpu = res[name]  # type: ignore[misc]
-        rows.append((name, wall, res["n_moves"] / wall, res["size_mb"] / wall,  # type: ignore[operator]
-                     wall / copy_t, rss, cpu))
-    lines = ["%s: %.1f MB, %d moves, total_s %r" % (label, res["size_mb"], res["n_moves"],
-                                                   res["total_s"])]
-    for name, wall, mps, mbs, ratio, rss, cpu in rows:
+        wall, rss, cpu = runs[name]
         lines.append("  %-30s %7.2f s  %9.0f moves/s  %6.1f MB/s  %5.2fx copy  %6.1f MiB"
-                     "  (CPU %.2f s, %.2fx copy's CPU)" % (name, wall, mps, mbs, ratio, rss,
-                                                          cpu, cpu / res["copy"][2]))  # type: ignore[index]
+                     "  (CPU %.2f s, %.2fx copy's CPU)" % (
+                         name, wall, res.n_moves / wall, res.size_mb / wall, wall / copy_t,
+                         rss, cpu, cpu / copy_cpu))
     for ours, theirs in (("estimate compiled", "klipper_estimator estimate"),
                          ("inject compiled", "klipper_estimator post-process")):
-        if ours in res and theirs in res:
-            lines.append("  CPU %s / %s: %.2f" % (ours, theirs, res[ours][2]  # type: ignore[index]
-                                                  / res[theirs][2]))  # type: ignore[index]
+        if ours in runs and theirs in runs:
+            lines.append("  CPU %s / %s: %.2f" % (ours, theirs, runs[ours][2] / runs[theirs][2]))
     return lines
 
 
@@ -344,17 +358,16 @@ def append_answer_rows(rows: list[str]) -> None:
         f.write(text[:end] + "".join(row + "\n" for row in rows) + text[end:])
 
 
-def md_row(label: str, python: str, res: dict[str, object], note: str,
-           build: str = "pure") -> str:
-    copy_t = res["copy"][0]  # type: ignore[index]
-    est_t, est_rss, _cpu = res["estimate"]  # type: ignore[misc]
-    inj_t, inj_rss, _cpu = res["inject"]  # type: ignore[misc]
+def md_row(label: str, python: str, res: Case, note: str, build: str = "pure") -> str:
+    copy_t = res.runs["copy"][0]
+    est_t, est_rss, _cpu = res.runs["estimate"]
+    inj_t, inj_rss, _cpu = res.runs["inject"]
     return ("| %s | %s | %s | %.1f | %.2f | %.2f (%.1fx) | %.2f (%.1fx) | %.0f / %.0f | "
             "%.0f | %s |" % (
                 datetime.date.today().isoformat(),
                 python_name(python) + (" compiled" if build == "compiled" else ""), label,
-                res["size_mb"], copy_t, est_t, est_t / copy_t, inj_t, inj_t / copy_t,
-                est_rss, inj_rss, res["n_moves"] / est_t, note))  # type: ignore[operator]
+                res.size_mb, copy_t, est_t, est_t / copy_t, inj_t, inj_t / copy_t,
+                est_rss, inj_rss, res.n_moves / est_t, note))
 
 
 def python_name(python: str) -> str:

@@ -49,6 +49,11 @@ def test_klipper_module_type_checks_with_mypy() -> None:
     _mypy_finds_nothing("plugins/klipper/kestimator.py")
 
 
+def test_benchmarks_type_check_with_mypy() -> None:
+    """benchmarks/: the numbers the issues' targets are read from."""
+    _mypy_finds_nothing("benchmarks")
+
+
 def test_klipper_config_section_tool_type_checks_with_mypy() -> None:
     """plugins/klipper/config_section.py, which install.sh --uninstall runs."""
     _mypy_finds_nothing("plugins/klipper/config_section.py")
