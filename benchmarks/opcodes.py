@@ -54,7 +54,7 @@ def window(path: str, head: int, lines: int, at: float) -> tuple[list[bytes], li
     return [line for line in first if line], [line for line in body if line]
 
 
-def name(frame: FrameType) -> str:
+def function_name(frame: FrameType) -> str:
     """The frame's function, as `Class.method` (its bare name before Python 3.11)."""
     code = frame.f_code
     return getattr(code, "co_qualname", code.co_name)
@@ -70,10 +70,10 @@ def count(path: str) -> tuple[collections.Counter[str], collections.Counter[str]
 
     def trace(frame: FrameType, event: str, _arg: Any) -> Any:
         if event == "opcode":
-            ops[name(frame)] += 1
+            ops[function_name(frame)] += 1
         elif event == "call":
             frame.f_trace_opcodes = True
-            calls[name(frame)] += 1
+            calls[function_name(frame)] += 1
         return trace
 
     argv = sys.argv
@@ -95,8 +95,8 @@ def per_line(head: list[bytes], body: list[bytes], tmpdir: str
              ) -> tuple[dict[str, float], dict[str, float]]:
     """Bytecodes and calls per body line, by function."""
     runs = []
-    for name, lines in (("head.gcode", head), ("both.gcode", head + body)):
-        path = os.path.join(tmpdir, name)
+    for file_name, lines in (("head.gcode", head), ("both.gcode", head + body)):
+        path = os.path.join(tmpdir, file_name)
         with open(path, "wb") as f:
             f.writelines(lines)
         runs.append(count(path))
@@ -113,9 +113,9 @@ def report(ops: dict[str, float], calls: dict[str, float], top: int) -> list[str
     out = ["%.1f bytecodes per line (%.2f Python calls per line)"
            % (total, sum(calls.values()))]
     out.append("  %8s %6s %7s  %s" % ("per line", "share", "calls", "function"))
-    for name, value in sorted(ops.items(), key=lambda kv: -kv[1])[:top]:
+    for function, value in sorted(ops.items(), key=lambda kv: -kv[1])[:top]:
         out.append("  %8.1f %5.1f%% %7.2f  %s" % (value, 100.0 * value / total,
-                                                  calls.get(name, 0.0), name))
+                                                  calls.get(function, 0.0), function))
     return out
 
 
