@@ -23,6 +23,7 @@ ALLOW_ROOT=0
 RESTART=1
 FRONTEND_SETTINGS=0
 MOONRAKER_URL="http://127.0.0.1:7125"
+MOONRAKER_GIVEN=0
 SETTINGS_TOOL="$REPO/plugins/klipper/frontend_settings.py"
 STATE_NAME="kestimator-install.state"
 
@@ -31,6 +32,7 @@ usage() {
 Usage: ./install.sh [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
                     [--frontend-settings [--moonraker URL]]
        ./install.sh --uninstall [-d DIR] [-k DIR] [-y] [--no-restart] [--allow-root]
+                    [--moonraker URL]
 
 Installs kestimator in its own virtualenv ($VENV), compiled
 when gcc and Python's headers are there, and makes Moonraker's [analysis] run it
@@ -52,7 +54,10 @@ Run it again after any change: it changes nothing twice.
                  set Mainsail's progress, estimate and ETA settings (and Fluidd's
                  progress) so they show the Klipper module's time, through
                  Moonraker's database API; --uninstall puts back what was there
-  --moonraker URL  Moonraker's address for that (default: http://127.0.0.1:7125)
+                 (it needs Moonraker running, and stops before changing anything
+                 when it is not)
+  --moonraker URL  Moonraker's address for that (default: http://127.0.0.1:7125;
+                 --uninstall uses the one --frontend-settings last used)
   -h, --help     this text
 
 KESTIMATOR_BUILD=pure installs the pure-Python build without trying to compile.
@@ -60,6 +65,8 @@ EOF
 }
 
 say() { printf '%s\n' "$*"; }
+# $1 as one sh word: in single quotes, each ' written as '\''.
+sh_quote() { printf "'%s'" "${1//\'/\'\\\'\'}"; }
 die() { printf 'install.sh: %s\n' "$*" >&2; exit 1; }
 
 while [ $# -gt 0 ]; do
@@ -71,7 +78,8 @@ while [ $# -gt 0 ]; do
         --allow-root) ALLOW_ROOT=1 ;;
         --no-restart) RESTART=0 ;;
         --frontend-settings) FRONTEND_SETTINGS=1 ;;
-        --moonraker) [ $# -ge 2 ] || die "--moonraker needs a URL"; MOONRAKER_URL="$2"; shift ;;
+        --moonraker) [ $# -ge 2 ] || die "--moonraker needs a URL"; MOONRAKER_URL="$2"
+                     MOONRAKER_GIVEN=1; shift ;;
         -h|--help) usage; exit 0 ;;
         *) usage >&2; die "unknown option: $1" ;;
     esac
@@ -85,6 +93,12 @@ Run ./install.sh as Moonraker's user (it uses sudo only for apt-get), or add
 --allow-root if Moonraker itself runs as root."
 fi
 
+# pip cannot build or run a checkout whose path holds one of " $ ` \ (setuptools takes
+# '$name' for a variable; pip's scripts start through sh, in double quotes, when the path
+# is long or has a space), and neither could an update: refused before anything changes.
+case "$REPO" in
+    *[\"\$\`\\]*) [ "$UNINSTALL" = 1 ] || die "the checkout's path $REPO holds one of \" \$ \` \\, which pip cannot build or run from: move (or clone) it to a folder without them, then run install.sh there. Nothing was changed." ;;
+esac
 [ -d "$DATA" ] || die "no Moonraker data folder at $DATA (give it with -d DIR)"
 DATA=$(cd "$DATA" && pwd -P)
 CONF="$DATA/config/moonraker.conf"
@@ -93,6 +107,14 @@ TOOLS="$DATA/tools/klipper_estimator"
 STATE="$TOOLS/$STATE_NAME"
 PRINTER_CFG="$DATA/config/printer.cfg"
 PROFILE="${XDG_CONFIG_HOME:-$HOME/.config}/kestimator/config.toml"
+case "$MOONRAKER_URL" in
+    *$'\n'*|*$'\r'*) die "--moonraker: the URL has a line break in it" ;;
+esac
+# The Moonraker --frontend-settings last used (its settings are put back through it).
+if [ "$MOONRAKER_GIVEN" = 0 ] && [ -f "$STATE" ]; then
+    recorded=$(sed -n 's/^moonraker_url=//p' "$STATE" | tail -n 1)
+    [ -z "$recorded" ] || MOONRAKER_URL=$recorded
+fi
 command -v python3 >/dev/null || die "python3 is missing (sudo apt-get install python3)"
 
 as_root() {
@@ -210,7 +232,7 @@ conf_writable() {
         && [ "$(stat -c %A "$real" | cut -c 3)" = w ]
 }
 
-state_has() { [ -f "$STATE" ] && grep -qx "$1" "$STATE"; }
+state_has() { [ -f "$STATE" ] && grep -qxF "$1" "$STATE"; }
 state_add() { state_has "$1" || printf '%s\n' "$1" >> "$STATE"; }
 
 # The Klipper module: klippy/extras/kestimator.py, a link to this checkout's file (as
@@ -274,9 +296,14 @@ PYTHON
 }
 
 # Mainsail's and Fluidd's settings, through Moonraker's database API (never their files).
+# Putting them back (--undo) comes before anything else --uninstall changes: without
+# Moonraker it stops there, keeping all it needs to put them back on a later --uninstall.
 frontend_settings() {
     if python3 "$SETTINGS_TOOL" --moonraker "$MOONRAKER_URL" "$@"; then
         return 0
+    fi
+    if [ "${1:-}" = --undo ]; then
+        die "Mainsail's and Fluidd's settings are not put back yet: Moonraker at $MOONRAKER_URL did not answer (see above). Start Moonraker (or give its address with --moonraker URL), then run --uninstall again. Nothing was changed."
     fi
     say "WARNING: Mainsail's and Fluidd's settings were not changed (Moonraker at $MOONRAKER_URL: see above); run again with --frontend-settings when Moonraker runs."
 }
@@ -317,13 +344,13 @@ uninstall() {
     if [ -f "$CONF" ] && conf_tool has-block "$CONF" && ! conf_writable; then
         die "cannot write $CONF (or its folder): make it writable, then run --uninstall again. Nothing was changed."
     fi
+    if state_has frontend_settings; then
+        frontend_settings --undo
+    fi
     if [ "$COMMENT_SECTION" = 1 ]; then
         local commented
         commented=$(python3 "$SECTION_TOOL" comment "$PRINTER_CFG" 2>&1) || die "$commented"
         say "$commented"
-    fi
-    if state_has frontend_settings; then
-        frontend_settings --undo
     fi
     unlink_module
     if [ -f "$CONF" ] && [ "$(conf_tool remove "$CONF")" = removed ]; then
@@ -423,7 +450,9 @@ if [ -n "$hook" ]; then
         say "WARNING: $hook is not kestimator's: updates from Moonraker will not rebuild kestimator (run ./install.sh after one)."
     else
         mkdir -p "$(dirname "$hook")"
-        printf '#!/bin/sh\n%s\nexec "%s" --as-installed\n' "$HOOK_MARK" "$BUILDER" > "$hook"
+        # The builder's path quoted for sh: a quote, '$' or '`' in the checkout's path
+        # stays a character of the name.
+        printf '#!/bin/sh\n%s\nexec %s --as-installed\n' "$HOOK_MARK" "$(sh_quote "$BUILDER")" > "$hook"
         chmod +x "$hook"
     fi
 fi
@@ -563,6 +592,11 @@ fi
 link_module
 if [ "$FRONTEND_SETTINGS" = 1 ]; then
     state_add frontend_settings
+    # Its address kept for --uninstall (the last one given replaces an earlier one).
+    if ! state_has "moonraker_url=$MOONRAKER_URL"; then
+        sed -i '/^moonraker_url=/d' "$STATE"
+        printf 'moonraker_url=%s\n' "$MOONRAKER_URL" >> "$STATE"
+    fi
     frontend_settings
 fi
 

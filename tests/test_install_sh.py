@@ -704,3 +704,74 @@ def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_ver
     (checkout / ".venv-host" / "kestimator-commit").write_text("0" * 40 + "\n")
     version, where = _worker_build(checkout)
     assert version == new_version and where.startswith(str(checkout / "kestimator"))
+
+
+def _mainsail_general(base: str) -> dict:
+    query = urllib.parse.urlencode({"namespace": "mainsail"})
+    return dict(_request(base + "/server/database/item?" + query)["result"]["value"]
+                .get("general", {}))
+
+
+def test_uninstall_without_moonraker_keeps_what_puts_the_frontend_settings_back_later(
+        moonraker_python: str, tmp_path: Path) -> None:  # noqa: F811
+    """--frontend-settings through a Moonraker on a port of its own; --uninstall while that
+    Moonraker is down stops before changing anything and says Moonraker must run; once it
+    runs, --uninstall (without --moonraker: the address is remembered) puts Mainsail's
+    settings back and removes kestimator."""
+    checkout = _checkout(tmp_path)
+    port = _free_port()
+    data, conf_before = _host(tmp_path / "home", port)
+    base = "http://127.0.0.1:%d" % port
+    ours = {"calcPrintProgress": "slicer", "calcEstimateTime": ["file"],
+            "calcEtaTime": ["file"]}
+    with _moonraker(moonraker_python, data, port) as process:
+        _wait_ready(base, process, data / "logs" / "stdout.log")
+        _request(base + "/server/database/item", "POST",
+                 b'{"namespace": "mainsail", "key": "general.calcEtaTime", '
+                 b'"value": ["file", "slicer"]}', {"Content-Type": "application/json"})
+        installed = _install(checkout, data, "--frontend-settings", "--moonraker", base)
+        assert installed.returncode == 0, installed.stdout + installed.stderr
+        assert _mainsail_general(base) == ours
+    link = data / "tools" / "klipper_estimator" / "klipper_estimator_linux"
+    conf = data / "config" / "moonraker.conf"
+    installed_conf = conf.read_bytes()
+
+    refused = _install(checkout, data, "--uninstall")
+    assert refused.returncode == 1
+    assert "Moonraker at %s did not answer" % base in refused.stderr
+    assert "Nothing was changed." in refused.stderr
+    assert link.is_symlink() and conf.read_bytes() == installed_conf
+    assert (checkout / ".venv-host").is_dir()
+
+    with _moonraker(moonraker_python, data, port) as process:
+        _wait_ready(base, process, data / "logs" / "stdout.log")
+        removed = _install(checkout, data, "--uninstall")
+        assert removed.returncode == 0, removed.stdout + removed.stderr
+        assert _mainsail_general(base) == {"calcEtaTime": ["file", "slicer"]}
+        kept = _request(base + "/server/database/list")["result"]
+    assert "kestimator" not in kept.get("namespaces", [])
+    assert "calcEtaTime back to" in removed.stdout
+    assert conf.read_bytes() == conf_before
+    assert not link.is_symlink() and link.read_bytes() == FAKE_ESTIMATOR
+    assert not (data / "tools" / "klipper_estimator" / "kestimator-install.state").exists()
+
+
+@pytest.mark.parametrize("name", ['kest"imator', "kest$imator", "kest`x`imator"])
+def test_install_sh_refuses_a_checkout_path_pip_and_the_update_hook_break_on(
+        tmp_path: Path, name: str) -> None:
+    """A '"' or '$' in the checkout's path broke every update (git's hook, and pip: '$name'
+    is a variable to setuptools, and its scripts start through sh in double quotes): the
+    install stops at once, naming the path, with nothing changed."""
+    cloned = _checkout(tmp_path)
+    checkout = cloned.parent / name
+    cloned.rename(checkout)
+    home = tmp_path / "home"
+    data, _ = _host(home, 7125)
+    before = _tree(home, None)
+    refused = _install(checkout, data, "-y", "--frontend-settings")
+    assert refused.returncode == 1
+    assert refused.stdout == ""
+    assert "path %s holds one of" % checkout in refused.stderr
+    assert "Nothing was changed." in refused.stderr
+    assert len(refused.stderr.strip().splitlines()) == 1
+    assert _tree(home, None) == before  # type: ignore[arg-type]
