@@ -10,12 +10,15 @@ import base64
 import logging
 import os
 import sys
+import time
 from typing import Any
 
 import pytest
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
 import stubs  # noqa: E402
+
+from tests.conftest import CORPUS, CORPUS_CFG  # noqa: E402
 
 MOD = stubs.load_module()
 
@@ -44,12 +47,13 @@ class FakeWorker:
 
     def __init__(self) -> None:
         self.requests: list[dict[str, Any]] = []
+        self.killed = False
 
     def send(self, request: dict[str, Any]) -> None:
         self.requests.append(request)
 
-    def close(self) -> None:
-        pass
+    def close(self, kill: bool = False) -> None:
+        self.killed = kill
 
 
 def printing(options: dict[str, str] | None = None) -> tuple[Any, stubs.Printer, FakeWorker]:
@@ -345,14 +349,23 @@ def test_a_speed_factor_set_before_the_print_is_in_its_estimate() -> None:
     assert worker.requests[-1]["use_table"] is False
 
 
-def test_a_late_answer_for_an_earlier_print_is_not_taken_for_this_ones() -> None:
+def test_a_new_print_stops_the_worker_busy_with_the_last_and_asks_a_fresh_one(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """x.gcode's estimate is still running when y.gcode starts: that worker is killed (its
+    answer is of no use) and y's request goes at once to a new one, not counted as a
+    restart; an answer for x arriving late all the same is not taken for y's."""
     kest, printer, worker = printing()
+    fresh = FakeWorker()
+    monkeypatch.setattr(MOD, "Worker", lambda *args, **kw: fresh)
     printer.send_event("virtual_sdcard:reset_file")
+    assert worker.killed and kest.worker is fresh
     printer.objects["virtual_sdcard"].path = "/sd/y.gcode"
     printer.reactor.advance(1.)
+    assert [r["file"] for r in fresh.requests] == ["/sd/y.gcode"]
+    assert kest.restarts == 0
     kest.on_answer(answer(1))                       # x.gcode's, arriving late
     assert kest.table is None
-    kest.on_answer(answer(worker.requests[-1]["id"]))
+    kest.on_answer(answer(fresh.requests[-1]["id"]))
     assert kest.table is not None
 
 
@@ -774,3 +787,42 @@ def test_the_modules_limits_are_the_table_writers() -> None:
     assert MOD.MAX_OBJECTS == progress_table.MAX_OBJECTS
     assert MOD.MAX_NAME_CHARS >= progress_table.MAX_NAME_BYTES
     assert worker.MAX_ANSWER_BYTES < MOD.MAX_ANSWER_BYTES
+
+
+def _table_after(kest: Any, printer: stubs.Printer, path: str) -> float:
+    """Seconds from the start of the print of `path` until the module has its table."""
+    started = time.monotonic()
+    start_print(printer, path)
+    printer.reactor.pump_fds(lambda: kest.table is not None or kest.error is not None,
+                             timeout=600.)
+    assert kest.error is None and kest.table is not None, kest.error
+    return time.monotonic() - started
+
+
+def test_a_print_started_after_a_cancel_gets_its_time_without_waiting_for_the_last_file(
+        tmp_path: Any) -> None:
+    """A 40 MB file's print is cancelled while its file is being estimated and a 4-layer
+    print starts: its time comes within 3 s of what its own estimate takes alone (the
+    cancelled file's estimate, tens of seconds, is stopped)."""
+    big = CORPUS / "gcode" / "prusaslicer" / "ps25_bunny120_fast_fwretract_large.gcode"
+    small = CORPUS / "gcode" / "prusaslicer" / "ps25_nut_accelA_small.gcode"
+    printer = stubs.Printer(config_file=str(CORPUS_CFG))
+    kest = MOD.load_config(stubs.Config(printer, {"python": sys.executable}))
+    printer.send_event("klippy:ready")
+    try:
+        alone = _table_after(kest, printer, str(small))
+        printer.send_event("virtual_sdcard:reset_file")
+        start_print(printer, str(big))
+        printer.reactor.pump_fds(lambda: False, timeout=2.)  # the worker is reading it
+        assert kest.in_flight is not None and kest.table is None
+        busy = kest.worker.proc
+        printer.objects["print_stats"].state = "cancelled"
+        printer.objects["virtual_sdcard"].active = False
+        printer.reactor.advance(1.)
+        printer.send_event("virtual_sdcard:reset_file")
+        after_cancel = _table_after(kest, printer, str(small))
+        assert kest.path == str(small)
+        assert after_cancel <= alone + 3.0, (after_cancel, alone)
+        assert busy.wait(timeout=10) is not None  # the cancelled file's worker is gone
+    finally:
+        kest._stop_worker()

@@ -360,7 +360,9 @@ class Worker:
             return "%s (%s)" % (lines[-1][:300], status)
         return status
 
-    def close(self) -> None:
+    def close(self, kill: bool = False) -> None:
+        """Stop it (`kill`: at once, SIGKILL, as when its work is of no use any more: it
+        writes nothing but its answers)."""
         self.closed = True
         for attr in ("fd_handle", "err_handle"):
             handle = getattr(self, attr)
@@ -379,7 +381,10 @@ class Worker:
                 pass
         if proc.poll() is None:
             try:
-                proc.terminate()
+                if kill:
+                    proc.kill()
+                else:
+                    proc.terminate()
             except OSError:
                 pass
         # Reap it later without waiting now.
@@ -586,11 +591,11 @@ class Kestimator:
         self.want_anchor = False
         self.anchor_here(vsd.file_position)
 
-    def _stop_worker(self) -> None:
+    def _stop_worker(self, kill: bool = False) -> None:
         worker, self.worker = self.worker, None
         self.in_flight = None
         if worker is not None:
-            worker.close()
+            worker.close(kill)
 
     def _start_worker(self) -> Worker | None:
         """The worker, started if it is not running (None if it cannot be:
@@ -606,6 +611,9 @@ class Kestimator:
             self.restarts += 1
             logging.info("kestimator: restarting the worker (restart %d of at "
                          "most %d for this print)", self.restarts, MAX_RESTARTS)
+        return self._spawn_worker()
+
+    def _spawn_worker(self) -> Worker | None:
         try:
             self.worker = Worker(self.reactor, self.python, self._guard,
                                  self.on_line, self._guard(self._worker_exit))
@@ -642,6 +650,14 @@ class Kestimator:
         self.reactor.update_timer(self.worker_timer, self.retry_at)
 
     def _reset_print(self, path: str | None) -> None:
+        # A request still in flight is an earlier print's (cancelled, or another file):
+        # the worker estimating it is stopped, so this print never waits behind it, and
+        # a fresh one takes its place (not a restart: nothing went wrong).
+        busy = getattr(self, "in_flight", None) is not None and self.worker is not None
+        if busy:
+            logging.info("kestimator: a new print: the estimate of %s is of no use any "
+                         "more, its worker stopped", self.path)
+            self._stop_worker(kill=True)
         self.path = path
         self.table: Table | None = None
         self.pending_id: int | None = None
@@ -668,6 +684,8 @@ class Kestimator:
         self.excluded: list[str] = []
         self.speed_factor: float | None = None
         self.status = self._idle_status()
+        if busy:
+            self._spawn_worker()
 
     def _idle_status(self) -> dict[str, Any]:
         return {"state": "idle", "remaining_s": None, "eta": None,
