@@ -428,6 +428,8 @@ class Kestimator:
         # time: a change while it works is asked once it answers, with the latest
         # events), and whether this print's state changed since that request.
         self.in_flight: int | None = None
+        # The file of the print followed (set by _reset_print).
+        self.path: str | None = None
         self.want_request = False
         self.error: str | None = None
         self.disabled = False
