@@ -61,8 +61,9 @@ from kestimator.api import (
 from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.errors import fixed
-from kestimator.files import Terminated, spooled_stdin
+from kestimator.files import Terminated, remove_abandoned_folders, spooled_stdin
 from kestimator.moonraker_labels import (
+    LABELS_FOLDER_PREFIX,
     Prelabel,
     moonraker_labeller,
     table_for_labelled_file,
@@ -243,6 +244,9 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         raise KestimatorError("post-process rewrites a file in place: standard input cannot "
                               "be; give the file's path")
     check_gcode_file(path)
+    # What a run killed at Moonraker's time limit left (the copy beside PATH goes with the
+    # next write into its folder: `write_atomically`).
+    remove_abandoned_folders(LABELS_FOLDER_PREFIX)
     resolved, macros = _limits_and_macros(_request(args, path))
     _warn(resolved, err)
     options: dict[str, Any] = dict(limits_source=resolved.marker_source,

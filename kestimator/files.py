@@ -19,6 +19,10 @@ untouched and the temporary file is removed; a hard link's other names keep the 
 files are created with SIGTERM/SIGHUP held back (`make_temp_file`), and
 `cleanup_on_termination` (installed by the console entry points only, `kestimator.entry`)
 turns those signals into `Terminated`, so a stopped run leaves no temporary file behind.
+A run killed outright (SIGKILL: Moonraker's time limit) cannot clean up: each temporary
+file is flock'ed by its writer for as long as it lives (`lock_as_ours`), and the next write
+into that folder removes the ones whose writer is gone (`remove_abandoned_temp_files`);
+private temporary folders work the same way (`private_folder`, `remove_abandoned_folders`).
 """
 
 from __future__ import annotations
@@ -50,6 +54,11 @@ NOT_REGULAR = ("is not a regular file (a device, FIFO or socket): give the %s as
 TEMP_SUFFIX = ".kestimator-tmp"
 TEMP_RANDOM_CHARS = 8
 DEFAULT_NAME_MAX = 255
+# A temporary file (or folder) no process holds locked is a dead run's, except an empty one
+# younger than this: its writer may be between creating and locking it.
+ABANDONED_EMPTY_AGE_S = 60.0
+# The lock file in a private temporary folder (`private_folder`).
+FOLDER_LOCK_NAME = ".kestimator-lock"
 # Extended attributes that must survive a rewrite (others, like security.selinux, are the
 # system's to set and are kept where the kernel lets us).
 KEPT_XATTR_NAMESPACES = ("user.", "system.posix_acl_")
@@ -300,6 +309,124 @@ def exclusive(path: str) -> Iterator[None]:
             locked.close()
 
 
+def lock_as_ours(fd: int) -> bool:
+    """Hold an exclusive flock on the open file `fd` until it is closed (or the process
+    dies): a mark no other run removes the file under. False where flock is missing."""
+    if fcntl is None:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False
+    return True
+
+
+def _abandoned(path: str, st: os.stat_result, empty_may_be_new: bool = True) -> bool:
+    """True when no process holds `path` (a regular file) flock'ed and (`empty_may_be_new`)
+    it is not an empty file a writer may be about to lock. Never True where flock cannot
+    tell."""
+    if fcntl is None:
+        return False
+    if empty_may_be_new and st.st_size == 0 and _age(st) < ABANDONED_EMPTY_AGE_S:
+        return False
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0)
+                     | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        return False  # held: its writer lives (or flock is refused here)
+    finally:
+        os.close(fd)
+    return True
+
+
+def _age(st: os.stat_result) -> float:
+    import time
+
+    return time.time() - st.st_mtime
+
+
+def remove_abandoned_temp_files(directory: str) -> list[str]:
+    """Remove from `directory` the temporary files (`.NAME.*.kestimator-tmp`) of runs that
+    died without cleaning up; returns their names. Files of live runs are held locked
+    (`write_atomically` locks its own) and stay; so does anything not a regular file."""
+    removed: list[str] = []
+    try:
+        entries = list(os.scandir(directory))
+    except OSError:
+        return removed
+    for entry in entries:
+        if not (entry.name.startswith(".") and entry.name.endswith(TEMP_SUFFIX)):
+            continue
+        try:
+            st = entry.stat(follow_symlinks=False)
+            if stat.S_ISREG(st.st_mode) and _abandoned(entry.path, st):
+                os.unlink(entry.path)
+                removed.append(entry.name)
+        except OSError:
+            continue
+    return removed
+
+
+@contextlib.contextmanager
+def private_folder(prefix: str) -> Iterator[str]:
+    """A new folder (0700) in the temporary directory, removed with all in it afterwards;
+    locked while it lives, so that `remove_abandoned_folders(prefix)` removes it only once
+    the process that made it is gone (killed before it could remove it)."""
+    import shutil
+    import tempfile
+
+    remove_abandoned_folders(prefix)
+    folder = tempfile.mkdtemp(prefix=prefix)
+    try:
+        # Locked under another name first: the lock file is never there unlocked.
+        with open(os.path.join(folder, FOLDER_LOCK_NAME + "-new"), "wb") as lock:
+            lock_as_ours(lock.fileno())
+            os.rename(lock.name, os.path.join(folder, FOLDER_LOCK_NAME))
+            yield folder
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def remove_abandoned_folders(prefix: str) -> list[str]:
+    """Remove the folders `private_folder(prefix)` made in the temporary directory whose
+    process died without removing them; returns their names."""
+    import shutil
+    import tempfile
+
+    removed: list[str] = []
+    top = tempfile.gettempdir()
+    try:
+        entries = list(os.scandir(top))
+    except OSError:
+        return removed
+    for entry in entries:
+        if not entry.name.startswith(prefix):
+            continue
+        try:
+            if not entry.is_dir(follow_symlinks=False) or entry.stat().st_uid != os.getuid():
+                continue
+            lock = os.path.join(entry.path, FOLDER_LOCK_NAME)
+            try:
+                st = os.stat(lock, follow_symlinks=False)
+            except FileNotFoundError:
+                # Made, not yet locked (or by a run from before the lock): by age.
+                if _age(entry.stat()) < ABANDONED_EMPTY_AGE_S:
+                    continue
+            else:
+                # Empty for its whole life: its lock alone tells.
+                if not stat.S_ISREG(st.st_mode) or not _abandoned(lock, st, False):
+                    continue
+        except OSError:
+            continue
+        shutil.rmtree(entry.path, ignore_errors=True)
+        removed.append(entry.name)
+    return removed
+
+
 def temp_name_prefix(dest: str) -> str:
     """``.<name>.`` for a temporary file beside `dest`, cut so that the whole temporary
     name (random part and suffix added) fits the directory's name limit."""
@@ -342,6 +469,9 @@ def write_atomically(target: OutputTarget, fill: Callable[[Write], object], *,
         raise KestimatorError("cannot write next to the output: %s"
                               % (exc.strerror or exc), name) from None
     try:
+        # Ours while we live; what dead runs left beside it goes.
+        lock_as_ours(fd)
+        remove_abandoned_temp_files(dest_dir or ".")
         with os.fdopen(fd, "wb") as out:
             fill(out.write)
             out.flush()

@@ -22,23 +22,25 @@ says why. Files Moonraker will not label (no objects, already labelled, object p
 another parent) are left as they are.
 
 The labelled copies live in a private temporary folder (as Moonraker's own labelling does),
-one copy at a time; the labelling program runs with a time limit.
+one copy at a time; the labelling program runs with a time limit, its own temporary files in
+that folder. Killed outright (Moonraker's time limit is a SIGKILL), we leave nothing running
+and nothing for long: the labelling program reads a pipe only we hold and exits when it
+closes, and the next run removes the folder (`kestimator.files.private_folder`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
 import re
 import shutil
 import subprocess
-import tempfile
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
+from kestimator.files import private_folder
 from kestimator.limits import Limits
 from kestimator.macros import MacroTimes
 from kestimator.progress_table import (
@@ -51,6 +53,7 @@ from kestimator.progress_table import (
 from kestimator.rewrite import plan_file
 
 METADATA_SCRIPT = ("file_manager", "metadata.py")
+LABELS_FOLDER_PREFIX = "kestimator-labels-"
 MAX_CMDLINE_BYTES = 1 << 16
 MAX_CONFIG_BYTES = 1 << 22
 LABEL_TIMEOUT_S = 240.0
@@ -60,8 +63,15 @@ TABLE_LINES_RE = re.compile(rb"; kestimator_table v\d+ [^\n]*\blines=(\d+)\b")
 # Run by Moonraker's interpreter: its metadata.py's own labelling, with the slicer it
 # identified from the uploaded file (argv: metadata.py, the uploaded file, the copy to label).
 # Prints "labelled" or "unchanged"; exit status 3: this Moonraker has another interface.
+# Its standard input is a pipe whose other end only we hold: at its end (we are gone, even
+# killed) it exits at once.
 _LABEL_PROGRAM = r"""
-import importlib.util, sys
+import importlib.util, os, sys, threading
+def _orphaned():
+    while os.read(0, 1 << 16):
+        pass
+    os._exit(4)
+threading.Thread(target=_orphaned, daemon=True).start()
 spec = importlib.util.spec_from_file_location("moonraker_metadata", sys.argv[1])
 module = importlib.util.module_from_spec(spec)
 spec.loader.exec_module(module)
@@ -84,14 +94,21 @@ class Labeller:
     def label(self, uploaded: str, copy: str) -> bool:
         """Label `copy` in place as Moonraker will label the file uploaded as `uploaded`;
         True if it changed. Raises OSError/ValueError when the labelling cannot run."""
+        # Its temporary files (Moonraker's labelling makes one) go beside the copy, into
+        # our private folder.
+        env = dict(os.environ, TMPDIR=os.path.dirname(os.path.abspath(copy)))
+        ours, theirs = os.pipe()[::-1]
         try:
             done = subprocess.run(
                 [self.python, "-c", _LABEL_PROGRAM, self.metadata_script,
                  os.path.abspath(uploaded), os.path.abspath(copy)],
-                cwd=os.path.dirname(self.metadata_script), stdin=subprocess.DEVNULL,
+                cwd=os.path.dirname(self.metadata_script), stdin=theirs, env=env,
                 capture_output=True, timeout=LABEL_TIMEOUT_S)
         except subprocess.TimeoutExpired:
             raise ValueError("Moonraker's labelling took over %d s" % LABEL_TIMEOUT_S) from None
+        finally:
+            os.close(theirs)
+            os.close(ours)
         answer = done.stdout.strip()
         if done.returncode != 0 or answer not in (b"labelled", b"unchanged"):
             raise ValueError("Moonraker's labelling could not run here (status %d)"
@@ -239,39 +256,42 @@ def table_for_labelled_file(output: str, uploaded: str, labeller: Labeller,
     writes every line. Kept only when labelling our output with the new table gives exactly
     L + new table + what follows.
     """
-    work = tempfile.mkdtemp(prefix="kestimator-labels-")
     try:
-        copy = os.path.join(work, os.path.basename(uploaded))
-        shutil.copyfile(output, copy)
-        if not labeller.label(uploaded, copy):
-            return Prelabel(False)
-        start = read_table_file(output).content_bytes
-        ours, after = _split_table(_tail(output, start))
-        old_lines, after_lines = _text_mode(ours), _text_mode(after)
-        labelled_bytes = os.path.getsize(copy) - len(old_lines) - len(after_lines)
-        if labelled_bytes < 0 or _tail(copy, labelled_bytes) != old_lines + after_lines:
-            return Prelabel(False, "Moonraker's labelling changes the table's lines: the "
-                                   "table holds for the unlabelled file only")
-        selection, settings = plan(copy)
-        with open(copy, "rb") as f:
-            offsets = line_offsets(f.read, selection.wanted_lines())
-        table = ProgressTable.from_selection(selection, offsets, labelled_bytes, settings,
-                                             _crc32(copy, labelled_bytes))
-        new_lines = table.encode(b"\n")
-        expected = _digest(copy, labelled_bytes, new_lines + after_lines)
-        _copy_head(output, copy, start, new_lines + after)
-        if not labeller.label(uploaded, copy) or _digest(copy) != expected:
-            return Prelabel(False, "Moonraker's labelling of this file moves the table's "
-                                   "lines: the table holds for the unlabelled file only")
-        with open(output, "rb+") as f:
-            f.seek(start)
-            f.truncate()
-            f.write(new_lines + after)
-            f.flush()
-            os.fsync(f.fileno())
-        return Prelabel(True)
+        with private_folder(LABELS_FOLDER_PREFIX) as work:
+            return _table_for_labelled_file(output, uploaded, labeller, plan,
+                                            os.path.join(work, os.path.basename(uploaded)))
     except (OSError, ValueError) as exc:
         return Prelabel(False, str(exc))
-    finally:
-        with contextlib.suppress(OSError):
-            shutil.rmtree(work)
+
+
+def _table_for_labelled_file(output: str, uploaded: str, labeller: Labeller,
+                             plan: Callable[[str], tuple[Selection, Settings | None]],
+                             copy: str) -> Prelabel:
+    shutil.copyfile(output, copy)
+    if not labeller.label(uploaded, copy):
+        return Prelabel(False)
+    start = read_table_file(output).content_bytes
+    ours, after = _split_table(_tail(output, start))
+    old_lines, after_lines = _text_mode(ours), _text_mode(after)
+    labelled_bytes = os.path.getsize(copy) - len(old_lines) - len(after_lines)
+    if labelled_bytes < 0 or _tail(copy, labelled_bytes) != old_lines + after_lines:
+        return Prelabel(False, "Moonraker's labelling changes the table's lines: the "
+                               "table holds for the unlabelled file only")
+    selection, settings = plan(copy)
+    with open(copy, "rb") as f:
+        offsets = line_offsets(f.read, selection.wanted_lines())
+    table = ProgressTable.from_selection(selection, offsets, labelled_bytes, settings,
+                                         _crc32(copy, labelled_bytes))
+    new_lines = table.encode(b"\n")
+    expected = _digest(copy, labelled_bytes, new_lines + after_lines)
+    _copy_head(output, copy, start, new_lines + after)
+    if not labeller.label(uploaded, copy) or _digest(copy) != expected:
+        return Prelabel(False, "Moonraker's labelling of this file moves the table's "
+                               "lines: the table holds for the unlabelled file only")
+    with open(output, "rb+") as f:
+        f.seek(start)
+        f.truncate()
+        f.write(new_lines + after)
+        f.flush()
+        os.fsync(f.fileno())
+    return Prelabel(True)

@@ -12,8 +12,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Any
 
@@ -179,3 +181,104 @@ def test_the_labeller_is_moonrakers_only_when_its_metadata_run_processes_objects
     assert (got == Labeller("/venv/bin/python", str(script))) is found
     monkeypatch.setattr(moonraker_labels, "_parent_args", lambda pid: ["/bin/sh", "-c", "x"])
     assert moonraker_labels.moonraker_labeller(os.getpid()) is None
+
+
+# Moonraker's metadata run as far as kestimator-compat sees it: a `metadata.py -c CONFIG`
+# parent (with object processing on) that runs the estimator on the file, and a labelling
+# (its BaseSlicer/process_objects) that takes long: Moonraker's time limit kills the
+# estimator (SIGKILL) while it labels.
+_SLOW_METADATA = r'''
+import json, os, subprocess, sys, time
+if __name__ == "__main__":
+    config = json.load(open(sys.argv[2]))
+    estimator = subprocess.Popen(config["command"])
+    with open(config["pid_file"], "w") as f:
+        f.write(str(estimator.pid))
+    estimator.wait()
+else:
+    class BaseSlicer:
+        @classmethod
+        def from_file(cls, path):
+            return cls()
+
+    def process_objects(path, slicer):
+        import tempfile
+        tempfile.mkstemp(prefix="labelling-")  # as Moonraker's does, in TMPDIR
+        with open(os.environ["LABELLER_PID_FILE"], "w") as f:
+            f.write(str(os.getpid()))
+        time.sleep(300)
+        return False
+'''
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open("/proc/%d/stat" % pid) as f:
+            return f.read().rsplit(")", 1)[1].split()[0] in ("Z", "X")
+    except FileNotFoundError:
+        return True
+
+
+def _wait_for(path: Path, timeout: float = 120.0) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if path.exists() and path.read_text().strip():
+            return int(path.read_text())
+        time.sleep(0.05)
+    pytest.fail("%s was never written" % path)
+
+
+def test_a_post_process_killed_while_labelling_leaves_nothing_behind(tmp_path: Path) -> None:
+    """Killed (SIGKILL) while Moonraker's labelling runs ahead: the labelling program exits
+    with it, and the next run into the folder removes the copy beside the file (hidden, full
+    size) and the private folder in TMPDIR; the uploaded file is as it was."""
+    script = tmp_path / "moonraker" / "components" / "file_manager" / "metadata.py"
+    script.parent.mkdir(parents=True)
+    script.write_text(_SLOW_METADATA)
+    gcodes = tmp_path / "gcodes"
+    gcodes.mkdir()
+    temp = tmp_path / "tmp"
+    temp.mkdir()
+    source = CORPUS / "gcode" / UPLOADS[1]
+    upload = gcodes / source.name
+    shutil.copyfile(source, upload)
+    machine = resolve_limits(LimitRequest(printer_cfg=CORPUS_CFG, use_profile=False))
+    estimator_cfg = tmp_path / "estimator.json"
+    estimator_cfg.write_text(json.dumps(dump_config(machine.limits, machine.sources)))
+    config = tmp_path / "md.json"
+    config.write_text(json.dumps({
+        "check_objects": True, "pid_file": str(tmp_path / "estimator.pid"),
+        "command": [sys.executable, "-m", "kestimator.compat", "--config_file",
+                    str(estimator_cfg), "post-process", str(upload)]}))
+    env = dict(os.environ, PYTHONPATH=str(PROJECT), TMPDIR=str(temp),
+               LABELLER_PID_FILE=str(tmp_path / "labeller.pid"),
+               XDG_CONFIG_HOME=str(tmp_path / "config"), XDG_CACHE_HOME=str(tmp_path / "cache"))
+    metadata = subprocess.Popen([sys.executable, str(script), "-c", str(config)], env=env,
+                                cwd=str(tmp_path))
+    try:
+        estimator = _wait_for(tmp_path / "estimator.pid")
+        labeller = _wait_for(tmp_path / "labeller.pid")
+        hidden = [p for p in gcodes.iterdir() if p.name.endswith(".kestimator-tmp")]
+        assert hidden and [p.name for p in temp.iterdir()]
+        os.kill(estimator, signal.SIGKILL)  # Moonraker's time limit
+        metadata.wait(timeout=30)
+        deadline = time.monotonic() + 5.0
+        while not _gone(labeller) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert _gone(labeller), "the labelling runs on without its parent"
+    finally:
+        metadata.kill()
+        metadata.wait(timeout=30)
+        if (tmp_path / "labeller.pid").exists() and not _gone(int(
+                (tmp_path / "labeller.pid").read_text())):
+            os.kill(int((tmp_path / "labeller.pid").read_text()), signal.SIGKILL)
+    assert upload.read_bytes() == source.read_bytes()
+    # The next upload's run (not labelling: no Moonraker above it) into the same folder.
+    other = gcodes / "other.gcode"
+    shutil.copyfile(CORPUS / "gcode" / UPLOADS[0], other)
+    done = subprocess.run([sys.executable, "-m", "kestimator.compat", "--config_file",
+                           str(estimator_cfg), "post-process", str(other)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert sorted(p.name for p in gcodes.iterdir()) == sorted([upload.name, other.name])
+    assert list(temp.iterdir()) == []

@@ -417,3 +417,44 @@ def test_only_kestimator_files_replaces_or_creates_temporary_files() -> None:
                 offenders.append("%s:%d: %s.%s" % (relative, node.lineno, node.func.value.id,
                                                    node.func.attr))
     assert not offenders
+
+
+_HOLD_LOCKED = r"""
+import fcntl, sys, time
+f = open(sys.argv[1], "rb")
+fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+print("locked", flush=True)
+time.sleep(300)
+"""
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="flock")
+def test_a_write_removes_the_temp_files_of_dead_runs_beside_it_never_a_live_ones(
+        tmp_path: Path, limits) -> None:  # type: ignore[no-untyped-def]
+    """A run killed outright leaves `.NAME.*.kestimator-tmp` (full size, hidden): the next
+    write into that folder removes it. One whose writer lives (it holds it flock'ed) stays,
+    as does a just-made empty one (its writer may not have locked it yet)."""
+    gcode = tmp_path / "a.gcode"
+    gcode.write_bytes(BODY)
+    dead = tmp_path / ".big.gcode.x1y2z3w4.kestimator-tmp"
+    dead.write_bytes(BODY * 1000)
+    live = tmp_path / ".b.gcode.a1b2c3d4.kestimator-tmp"
+    live.write_bytes(BODY)
+    just_made = tmp_path / ".c.gcode.e5f6g7h8.kestimator-tmp"
+    just_made.write_bytes(b"")
+    other = tmp_path / ".not-ours.tmp"
+    other.write_bytes(b"x")
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD_LOCKED, str(live)],
+                              stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == b"locked\n"
+        inject_file(gcode, limits)
+        assert not dead.exists()
+        assert live.read_bytes() == BODY and just_made.exists() and other.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    inject_file(gcode, limits)
+    assert not live.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [gcode.name, just_made.name, other.name])
