@@ -34,10 +34,12 @@ command line.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import os
 import sys
+import time
 from collections import defaultdict
 from collections.abc import Sequence
 from typing import Any, BinaryIO, TextIO
@@ -61,13 +63,23 @@ from kestimator.api import (
 from kestimator.cli_output import parts_to_json, printable, quiet_stdout
 from kestimator.config.klipper_estimator import dump_config
 from kestimator.errors import fixed
-from kestimator.files import Terminated, remove_abandoned_folders, spooled_stdin
+from kestimator.files import (
+    Terminated,
+    private_folder,
+    remove_abandoned_folders,
+    spooled_stdin,
+)
 from kestimator.moonraker_labels import (
     LABELS_FOLDER_PREFIX,
+    MARGIN_SHARE,
+    MIN_MARGIN_S,
+    Labeller,
+    LabelRun,
     Prelabel,
+    extra_share,
     moonraker_labeller,
-    table_for_labelled_file,
-    table_points,
+    run_started,
+    table_for_labelled_output,
 )
 
 EXIT_OK = 0
@@ -95,6 +107,9 @@ STDIN_SHOWN = "<stdin>"
 COMPAT_GUESS_FIX = ("name the printer in kestimator's profile (printer_cfg or moonraker in "
                     "~/.config/kestimator/config.toml of the user Moonraker runs as), or pass "
                     "--config_moonraker_url URL")
+# Of the labelling ahead's share (`extra_share()`), what placing the labels in our output
+# and moving the table takes at most; the rest is for waiting on Moonraker's labelling.
+TRANSFER_SHARE = 0.4
 # An internal error's text is cut to this many characters (it may quote a file or a server).
 MAX_ERROR_CHARS = 300
 
@@ -239,6 +254,7 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     checks, owner/mode/xattrs kept, the directory synced); the ident line is appended to the
     temporary file before it replaces PATH, and that file exists only while it is written.
     """
+    started = run_started()
     path = args.filename
     if path == STDIN_NAME:
         raise KestimatorError("post-process rewrites a file in place: standard input cannot "
@@ -252,17 +268,36 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
     options: dict[str, Any] = dict(limits_source=resolved.marker_source,
                                    homing_time=resolved.homing_time_s or 0.0,
                                    heat_time=resolved.heat_time_s or 0.0, macros=macros)
-    labeller = moonraker_labeller()
     labelled: list[Prelabel] = []
-
-    def finish(temp: str) -> None:
-        append_ident_line(temp)
+    with contextlib.ExitStack() as stack:
+        labeller = moonraker_labeller()
+        run: LabelRun | None = None
         if labeller is not None:
-            labelled.append(table_for_labelled_file(
-                temp, path, labeller, lambda copy: table_points(copy, resolved.limits,
-                                                                **options)))
+            # Moonraker's labelling of the upload runs beside our estimate.
+            work = stack.enter_context(private_folder(LABELS_FOLDER_PREFIX))
+            try:
+                run = labeller.start(path, work)
+            except OSError as exc:
+                labelled.append(Prelabel(False, "Moonraker's labelling could not start: %s"
+                                                % (exc.strerror or exc)))
+            else:
+                stack.callback(run.stop)
 
-    result = inject_file(path, resolved.limits, finish=finish, **options)
+        def finish(temp: str) -> None:
+            append_ident_line(temp)
+            if run is None or labeller is None:
+                return
+            until = labelling_deadline(labeller, started, run)
+            if until <= time.monotonic():
+                run.stop()
+                labelled.append(Prelabel(False, (
+                    "the objects Moonraker labels after us are not labelled ahead: that "
+                    "does not fit in the time left (its limit: %.0f s): the table is "
+                    "estimated at print start") % labeller.processor_timeout_s))
+                return
+            labelled.append(table_for_labelled_output(temp, run, until))
+
+        result = inject_file(path, resolved.limits, finish=finish, **options)
     out.write("kestimator-compat: %s: Klipper time %.3f s, %d M73 lines (limits: %s)%s\n"
               % (_printable(path), result.estimate.total_s, result.m73_written,
                  _printable(resolved.summary),
@@ -272,6 +307,21 @@ def cmd_post_process(args: argparse.Namespace, out: TextIO, err: TextIO) -> int:
         err.write("kestimator-compat: %s: %s\n" % (_printable(path),
                                                    _printable(labelled[0].why)))
     return EXIT_OK
+
+
+def labelling_deadline(labeller: Labeller, started: float, run: LabelRun) -> float:
+    """Until when (monotonic) labelling ahead may go on, asked once the plain post-process
+    that began at `started` has its output: at most `extra_share()` of the time that took
+    more, and ending a margin before Moonraker's limit for us, and before the metadata
+    run's own limit less what its own labelling after us will take (as long as ours)."""
+    now = time.monotonic()
+    plain = now - started
+    limit = labeller.processor_timeout_s
+    margin = max(MIN_MARGIN_S, MARGIN_SHARE * limit)
+    metadata_end = started - labeller.metadata_ago_s + labeller.metadata_timeout_s
+    theirs = now - run.started  # their labelling takes as long as ours, at least this
+    return min(now + extra_share() * plain * (1.0 - TRANSFER_SHARE),
+               started + limit - margin, metadata_end - margin - theirs)
 
 
 def _printable(text: str) -> str:
