@@ -216,6 +216,8 @@ class LabelRun:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait()
+        if self.proc.stdout is not None:
+            self.proc.stdout.close()
         self._close_pipe()
 
     def _close_pipe(self) -> None:
