@@ -53,7 +53,7 @@ import shutil
 import subprocess
 import time
 import zlib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 from kestimator.progress_table import ProgressTable, read_table_file
 
@@ -189,7 +189,6 @@ class LabelRun:
     pipe: int
     copy: str
     started: float
-    took_s: float | None = field(default=None)
 
     def wait(self, until: float) -> str:
         """The labelling's rules ("slicer", "cura", ...; "" when it leaves the file as it
@@ -199,11 +198,9 @@ class LabelRun:
             out, _ = self.proc.communicate(timeout=max(0.0, until - time.monotonic()))
         except subprocess.TimeoutExpired:
             self.stop()
-            raise ValueError("Moonraker's labelling of this file takes longer than there "
-                             "is time for") from None
+            raise ValueError("its labelling takes longer than there is time for") from None
         finally:
             self._close_pipe()
-        self.took_s = time.monotonic() - self.started
         answer = out.strip()
         if self.proc.returncode != 0 or not (answer == b"unchanged"
                                              or answer.startswith(b"labelled ")):
@@ -584,7 +581,8 @@ def table_for_labelled_output(output: str, run: LabelRun, until: float) -> Prela
             os.fsync(f.fileno())
         return Prelabel(True)
     except (OSError, ValueError) as exc:
-        return Prelabel(False, str(exc))
+        return Prelabel(False, "the objects Moonraker labels after us are not labelled "
+                               "ahead (%s): the table is estimated at print start" % exc)
     finally:
         run.stop()
 
