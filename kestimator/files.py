@@ -468,9 +468,12 @@ def write_atomically(target: OutputTarget, fill: Callable[[Write], object], *,
     except OSError as exc:
         raise KestimatorError("cannot write next to the output: %s"
                               % (exc.strerror or exc), name) from None
+    held = -1
     try:
-        # Ours while we live; what dead runs left beside it goes.
-        lock_as_ours(fd)
+        # Ours while we live (a second descriptor keeps the lock until the rename is
+        # done); what dead runs left beside it goes.
+        if lock_as_ours(fd):
+            held = os.dup(fd)
         remove_abandoned_temp_files(dest_dir or ".")
         with os.fdopen(fd, "wb") as out:
             fill(out.write)
@@ -501,6 +504,9 @@ def write_atomically(target: OutputTarget, fill: Callable[[Write], object], *,
     except BaseException:
         _remove_quietly(tmp)
         raise
+    finally:
+        if held >= 0:
+            os.close(held)
     _fsync_dir(dest_dir)
 
 
