@@ -41,6 +41,99 @@ def find_generation_directive(text: str) -> str | None:
     return None if match is None else match.group(1)
 
 
+# "kestimator: klipper_version = v0.12.0-455-g5f2d7bc8" (or "= Kalico v2026.07.00-0-g30c65e09").
+VERSION_DIRECTIVE_RE = re.compile(
+    r"\bkestimator\s*:\s*klipper_version\s*[=:]\s*((?:[A-Za-z][\w-]*[ \t]+)?[^\s,;\"']+)")
+
+
+def find_version_directive(text: str) -> str | None:
+    """The version a ``kestimator: klipper_version = <version>`` directive in ``text`` names
+    (not checked), or None."""
+    match = VERSION_DIRECTIVE_RE.search(text)
+    return None if match is None else match.group(1)
+
+
+# A version as Moonraker's printer.info reports it (`software_version`, what `git describe`
+# said when klippy started), the app's name first where it is not Klipper:
+# "v0.12.0-455-g5f2d7bc8", "v0.13.0-730-g84104bbbd-dirty", "Kalico v2026.07.00-0-g30c65e09".
+_VERSION_RE = re.compile(r"(?:(?P<app>[A-Za-z][\w-]*)\s+)?v?(?P<release>\d+(?:\.\d+)+)"
+                         r"(?:-(?P<commits>\d+))?(?:-g[0-9a-fA-F]+)?(?:-dirty)?")
+
+# Each app's releases, oldest first, as (git describe position, the generation from there
+# on, what that position is). Klipper's history is linear, so "v0.12.0-119" means every
+# commit up to Klipper's 119th after v0.12.0. The last row of an app is the newest its
+# semantics are known for; a version past it is taken as that one.
+KLIPPER_RELEASE_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str], ...]] = {
+    "klipper": (
+        ((0,), 0, "absolute", "Klipper before 0105aa330 (v0.12.0-119, 2024-03): "
+                              "max_accel_to_decel, ACCEL_TO_DECEL absolute"),
+        ((0, 12, 0), 119, "mcr", "Klipper 0105aa330 (v0.12.0-119, 2024-03) to v0.13.0-191: "
+                                 "minimum_cruise_ratio, max_accel_to_decel converted to it"),
+        ((0, 13, 0), 192, "mainline", "Klipper 3ef760c18 (v0.13.0-192, 2025-08) on: "
+                                      "minimum_cruise_ratio only"),
+        ((0, 13, 0), 730, "mainline", "Klipper 84104bbbd (v0.13.0-730, 2026-08)"),
+    ),
+    # Kalico keeps Klipper's 2024-03 rules (toolhead.py of v2026.07.00 reads both options).
+    "kalico": (
+        ((0,), 0, "mcr", "Kalico: minimum_cruise_ratio, max_accel_to_decel converted to it"),
+        ((2026, 7, 0), 0, "mcr", "Kalico v2026.07.00"),
+    ),
+}
+APP_NAMES = {"klipper": "Klipper", "kalico": "Kalico"}
+
+
+@dataclasses.dataclass(frozen=True)
+class KlipperRelease:
+    """What a ``klipper_version`` means: the app, its release and the generation (the
+    meaning of max_accel_to_decel / ACCEL_TO_DECEL) it has; ``note`` is the one line said
+    when the version is newer than the newest known."""
+
+    app: str
+    release: tuple[int, ...]
+    commits: int
+    generation: str
+    rule: str
+    note: str | None = None
+
+    @property
+    def accepts_max_accel_to_decel(self) -> bool:
+        """Whether [printer] max_accel_to_decel is an option this release reads."""
+        return self.generation != "mainline"
+
+    @property
+    def accepts_minimum_cruise_ratio(self) -> bool:
+        """Whether [printer] minimum_cruise_ratio is an option this release reads."""
+        return self.generation != "absolute"
+
+
+def klipper_release(version: str) -> KlipperRelease:
+    """The semantics of ``version`` (Moonraker's printer.info ``software_version``, with the
+    app's name first where it is not Klipper). Raises ValueError for text that is not such a
+    version, or an app kestimator does not know."""
+    match = _VERSION_RE.fullmatch(version.strip())
+    if match is None:
+        raise ValueError(f"klipper_version {version!r} is not a version as Moonraker's "
+                         "printer.info reports it (e.g. v0.12.0-455-g5f2d7bc8, or "
+                         "Kalico v2026.07.00-0-g30c65e09)")
+    app = (match.group("app") or "Klipper").lower()
+    rules = KLIPPER_RELEASE_RULES.get(app)
+    if rules is None:
+        raise ValueError(f"klipper_version {version!r}: unknown app {match.group('app')!r} "
+                         "(known: " + ", ".join(APP_NAMES.values()) + ")")
+    release = tuple(int(part) for part in match.group("release").split("."))
+    commits = int(match.group("commits") or 0)
+    name = APP_NAMES[app]
+    newest_release, newest_commits, generation, rule = rules[-1]
+    if (release, commits) > (newest_release, newest_commits):
+        return KlipperRelease(name, release, commits, generation, rule,
+                              f"klipper_version {version.strip()} is newer than the newest "
+                              f"{name} kestimator knows: taken as {rule}")
+    for start, start_commits, start_generation, start_rule in rules:
+        if (release, commits) >= (start, start_commits):
+            generation, rule = start_generation, start_rule
+    return KlipperRelease(name, release, commits, generation, rule)
+
+
 # Options of an [extruderN] section that change motion time (kinematics/extruder.py).
 EXTRUDER_FIELDS = ("nozzle_diameter", "filament_diameter", "max_extrude_cross_section",
                    "max_extrude_only_velocity", "max_extrude_only_accel",
@@ -283,6 +376,9 @@ class Limits:
     unretract_speed: float = 10.0
     # Which meaning ACCEL_TO_DECEL has (see KLIPPER_GENERATIONS).
     klipper_generation: str = "mainline"
+    # The Klipper the printer runs, as Moonraker's printer.info reports it ("" unknown): it
+    # selects klipper_generation where that is not given (`klipper_release`).
+    klipper_version: str = ""
     # Only read by the "absolute" and "mcr" generations; 0 means "not set".
     max_accel_to_decel: float = 0.0
     # The printer's [printer] / [stepper_*] / [dual_carriage] sections, for the kinematics
@@ -334,6 +430,8 @@ class Limits:
         if v.get("klipper_generation", "mainline") not in KLIPPER_GENERATIONS:
             raise ValueError(
                 "klipper_generation must be one of " + ", ".join(KLIPPER_GENERATIONS))
+        if v.get("klipper_version"):
+            klipper_release(str(v["klipper_version"]))
         sections = v.get("configured_sections", ())
         if not isinstance(sections, tuple) or not all(isinstance(x, str) for x in sections):
             raise ValueError("configured_sections must be a tuple of section names")

@@ -3,7 +3,8 @@
 It listens on 127.0.0.1 only, shuts itself down after SERVER_LIFETIME_S whatever happens,
 and answers ``GET /printer/objects/query?configfile=settings`` in Moonraker's format:
 ``{"result": {"eventtime": ..., "status": {"configfile": {"settings": ...}}}}`` with Klipper's
-lower-case, typed settings, refusing a wrong ``X-Api-Key`` with 401 and
+lower-case, typed settings (and ``GET /printer/info`` with ``{"result": info}`` when given an
+``info``; else 404 as a Moonraker without it), refusing a wrong ``X-Api-Key`` with 401 and
 ``{"error": {"code": 401, "message": "Unauthorized"}}`` as Moonraker's app.py writes errors.
 """
 
@@ -19,6 +20,13 @@ TIMEOUT_S = 2.0
 POLL_S = 0.02
 API_KEY = "0123456789abcdef0123456789abcdef"
 QUERY = "/printer/objects/query?configfile=settings"
+INFO = "/printer/info"
+# Moonraker's printer.info as a Klipper v0.12.0 host answers it (klippy's webhooks "info").
+V0_12_INFO: dict[str, Any] = {
+    "state": "ready", "state_message": "Printer is ready", "hostname": "printer",
+    "klipper_path": "/home/pi/klipper", "python_path": "/home/pi/klippy-env/bin/python",
+    "log_file": "/tmp/klippy.log", "config_file": "/home/pi/printer_data/config/printer.cfg",
+    "software_version": "v0.12.0-0-g0d67d9c4", "cpu_info": "4 core ARMv7"}
 
 # What Klipper reports for ../shared/corpus/printer.cfg (values typed, defaults it read
 # included), plus sections kestimator must neither read nor cache.
@@ -53,8 +61,10 @@ class FakeMoonraker:
     """A bounded local HTTP server speaking Moonraker's printer-object query."""
 
     def __init__(self, settings: dict[str, dict[str, Any]], api_key: str | None = None,
-                 status: int = 200, redirect_to: str | None = None) -> None:
+                 status: int = 200, redirect_to: str | None = None,
+                 info: dict[str, Any] | None = None) -> None:
         self.settings = settings
+        self.info = info
         self.api_key = api_key
         self.status = status
         self.redirect_to = redirect_to
@@ -75,6 +85,8 @@ class FakeMoonraker:
                 elif fake.status != 200:
                     self._answer(fake.status, {"error": {"code": fake.status,
                                                          "message": "Klippy Disconnected"}})
+                elif self.path == INFO and fake.info is not None:
+                    self._answer(200, {"result": fake.info})
                 elif self.path != QUERY:
                     self._answer(404, {"error": {"code": 404, "message": "Not Found"}})
                 else:

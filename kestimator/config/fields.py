@@ -15,7 +15,7 @@ from collections.abc import Mapping
 
 from kestimator.config.machine import MachineConfig, arithmetic_violation
 from kestimator.config.printer_cfg import FLOAT_OPTIONS
-from kestimator.limits import KLIPPER_GENERATIONS, Limits, tuple_field_value
+from kestimator.limits import KLIPPER_GENERATIONS, Limits, klipper_release, tuple_field_value
 
 _BOUNDS = {option.field: option for option in FLOAT_OPTIONS}
 _TRUE_WORDS = frozenset(("1", "true", "yes", "on"))
@@ -51,7 +51,8 @@ def check_limit_value(field: str, value: object) -> object:
     """``value`` for ``field`` as ``Limits`` holds it (ints become floats).
 
     Raises ValueError saying what is wrong: an unknown field, a wrong type, a number Klipper
-    would refuse, a Klipper generation that is not one of ``KLIPPER_GENERATIONS``.
+    would refuse, a Klipper generation that is not one of ``KLIPPER_GENERATIONS``, a
+    ``klipper_version`` that is not a version (`klipper_release`).
     """
     try:
         kind = field_kind(field)
@@ -73,6 +74,9 @@ def check_limit_value(field: str, value: object) -> object:
         if field == "klipper_generation" and value not in KLIPPER_GENERATIONS:
             raise ValueError("klipper_generation must be one of "
                              + ", ".join(KLIPPER_GENERATIONS) + f", not {value!r}")
+        if field == "klipper_version":
+            klipper_release(value)
+            return value.strip()
         return value
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ValueError(f"{field} must be a number, not {value!r}")

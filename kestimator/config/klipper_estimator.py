@@ -289,11 +289,12 @@ def dump_config(limits: Limits, sources: Mapping[str, str] | None = None) -> dic
             "retract_speed": limits.retract_speed,
             "lift_z": 0.0,
         }
-    # max_accel_to_decel 0 means "not set" in Limits, a value no config may hold.
+    # max_accel_to_decel 0 and klipper_version "" mean "not set" in Limits, values no
+    # config may hold.
     document[KESTIMATOR_KEY] = {field: json_value(getattr(limits, field))
                                 for field in Limits.field_names()
-                                if not (field == "max_accel_to_decel"
-                                        and not limits.max_accel_to_decel)}
+                                if not (field in ("max_accel_to_decel", "klipper_version")
+                                        and not getattr(limits, field))}
     if sources is not None:
         document["kestimator_sources"] = dict(sources)
     return document

@@ -1,6 +1,7 @@
 """A live printer's Klipper settings, read from Moonraker, with a cache for when it is offline.
 
-Owns the request (``GET <url>/printer/objects/query?configfile=settings``, the API key in the
+Owns the requests (``GET <url>/printer/objects/query?configfile=settings``, then
+``GET <url>/printer/info`` for the Klipper version it runs, the API key in the
 ``X-Api-Key`` header when there is one, a timeout, no proxy and no redirects so the key goes to
 that host only), the answer's shape (Moonraker wraps Klipper's status as ``{"result":
 {"eventtime": ..., "status": {"configfile": {"settings": {section: {option: value}}}}}}``;
@@ -41,6 +42,7 @@ from kestimator.limits import (
     ExtruderStepperLimits,
     heater_limits,
     heater_sections,
+    klipper_release,
 )
 
 if TYPE_CHECKING:
@@ -52,6 +54,7 @@ if TYPE_CHECKING:
 
 DEFAULT_TIMEOUT_S = 3.0
 QUERY_PATH = "/printer/objects/query?configfile=settings"
+INFO_PATH = "/printer/info"
 API_KEY_HEADER = "X-Api-Key"
 CACHED_SECTIONS = ("printer", "extruder", "gcode_arcs", "firmware_retraction",
                    "input_shaper")
@@ -158,6 +161,39 @@ def fetch_settings(url: str, api_key: str | None = None,
                    timeout_s: float = DEFAULT_TIMEOUT_S) -> Settings:
     """Klipper's ``configfile.settings`` from the Moonraker at (normalised) ``url``.
 
+    Raises as `_fetch` does."""
+    return _settings_from_answer(_fetch(url, QUERY_PATH, api_key, timeout_s), url)
+
+
+def fetch_klipper_version(url: str, api_key: str | None = None,
+                          timeout_s: float = DEFAULT_TIMEOUT_S) -> tuple[str | None, str | None]:
+    """(the Klipper version, a warning): ``software_version`` of Moonraker's printer.info
+    (``GET <url>/printer/info``), the app's name first where it is not Klipper ("Kalico
+    v2026.07.00-0-g30c65e09"). (None, None) where Moonraker does not answer it; (None, a
+    line saying so, its text sanitised) where it is not a version kestimator reads."""
+    try:
+        body = _fetch(url, INFO_PATH, api_key, timeout_s)
+        info = json.loads(body)["result"]
+        version, app = info["software_version"], info.get("app", "Klipper")
+    except KestimatorError:
+        return None, None
+    except (ValueError, KeyError, TypeError, AttributeError, RecursionError):
+        return None, f"Moonraker at {url} answered printer.info without a software_version"
+    if not isinstance(version, str) or not isinstance(app, str):
+        return None, f"Moonraker at {url} answered printer.info without a software_version"
+    text = version if app.strip().lower() in ("", "klipper") else f"{app.strip()} {version}"
+    try:
+        klipper_release(text)
+    except ValueError:
+        return None, (f"Moonraker at {url}: printer.info reports {server_text(text)!r}, not "
+                      "a Klipper version kestimator knows; the settings decide "
+                      "klipper_generation")
+    return text.strip(), None
+
+
+def _fetch(url: str, path: str, api_key: str | None, timeout_s: float) -> bytes:
+    """The body of Moonraker's answer to ``GET <url><path>``.
+
     ``timeout_s`` bounds the whole request (connect, headers and body), not each socket
     read: a server dripping one byte a second is cut off at the deadline. Raises
     MoonrakerUnreachableError when Moonraker does not answer in time or answers that Klipper
@@ -179,7 +215,7 @@ def fetch_settings(url: str, api_key: str | None = None,
             return None
 
     deadline = _Deadline(timeout_s)
-    request = urllib.request.Request(url + QUERY_PATH, headers={"Accept": "application/json"})
+    request = urllib.request.Request(url + path, headers={"Accept": "application/json"})
     if key:
         request.add_header(API_KEY_HEADER, key)
     opener = urllib.request.build_opener(urllib.request.ProxyHandler({}), NoRedirect(),
@@ -219,7 +255,7 @@ def fetch_settings(url: str, api_key: str | None = None,
             f"Moonraker at {url} did not answer within {timeout_s:g} s")
     if len(body) > MAX_ANSWER_BYTES:
         raise KestimatorError(f"Moonraker at {url} answered more than {MAX_ANSWER_BYTES} bytes")
-    return _settings_from_answer(body, url)
+    return body
 
 
 def _read_bounded(response: Any, deadline: _Deadline, limit: int = MAX_ANSWER_BYTES) -> bytes:
@@ -343,15 +379,17 @@ def _settings_from_answer(body: bytes, url: str) -> Settings:
     return settings
 
 
-def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
-                    ) -> SourcedValues:
+def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str,
+                    klipper_version: str | None = None) -> SourcedValues:
     """The ``Limits`` fields Klipper's settings give, each sourced as
-    ``<description>: [section] option``.
+    ``<description>: [section] option``, and ``klipper_version`` (printer.info's, sourced
+    ``<description>: printer.info software_version``) where it is known.
 
-    The Klipper generation is inferred where the settings tell it: ``max_accel_to_decel``
-    without ``minimum_cruise_ratio`` is only read by Klipper before 2024-03 ("absolute"), both
-    together only by Klipper from 2024-03 to 2025-08 ("mcr"). Raises KestimatorError for a
-    value Klipper could not have accepted (a damaged cache).
+    Where the version is not known, the Klipper generation is inferred where the settings
+    tell it: ``max_accel_to_decel`` without ``minimum_cruise_ratio`` is only read by Klipper
+    before 2024-03 ("absolute"), both together only by Klipper from 2024-03 to 2025-08
+    ("mcr"). Raises KestimatorError for a value Klipper could not have accepted (a damaged
+    cache).
     """
     values: dict[str, object] = {}
     sources: dict[str, str] = {}
@@ -393,7 +431,10 @@ def settings_values(settings: Mapping[str, Mapping[str, Any]], description: str
         if section in settings:
             values[field] = True
             sources[field] = f"{description}: [{section}]"
-    if "max_accel_to_decel" in printer:
+    if klipper_version is not None:
+        values["klipper_version"] = klipper_version
+        sources["klipper_version"] = f"{description}: printer.info software_version"
+    elif "max_accel_to_decel" in printer:
         both = "minimum_cruise_ratio" in printer
         values["klipper_generation"] = "mcr" if both else "absolute"
         sources["klipper_generation"] = (
@@ -559,32 +600,40 @@ def moonraker_values(url: str, api_key: str | None = None,
         if cached is None:
             raise KestimatorError(f"{exc.message}, and no settings of it are cached in "
                                   f"{directory}") from None
-        settings, fetched = cached
+        settings, fetched, cached_version = cached
         shown = fetched.strftime(_TIME_SHOWN)
-        found = settings_values(settings, f"moonraker {url} (cached {shown}, printer offline)")
+        found = settings_values(settings, f"moonraker {url} (cached {shown}, printer offline)",
+                                cached_version)
         return SourcedValues(found.description, found.values, found.sources,
                              (f"{exc.message}: using its settings cached at {shown}",),
                              machine=found.machine)
-    found = settings_values(settings, f"moonraker {url}")
-    problem = _write_cache(path, url, settings, now())
+    version, version_warning = fetch_klipper_version(url, api_key, timeout_s)
+    found = settings_values(settings, f"moonraker {url}", version)
+    warnings: tuple[str, ...] = () if version_warning is None else (version_warning,)
+    problem = _write_cache(path, url, settings, now(), version)
     if problem is not None:
-        return SourcedValues(found.description, found.values, found.sources, (problem,),
+        warnings += (problem,)
+    if warnings:
+        return SourcedValues(found.description, found.values, found.sources, warnings,
                              machine=found.machine)
     return found
 
 
 def _write_cache(path: Path, url: str, settings: Settings,
-                 fetched: datetime.datetime) -> str | None:
-    """Store the sections kestimator reads (atomically); a warning text if that failed."""
+                 fetched: datetime.datetime, version: str | None = None) -> str | None:
+    """Store the sections kestimator reads and the Klipper version (atomically); a warning
+    text if that failed."""
     import datetime
 
-    document = {
+    document: dict[str, object] = {
         "format": CACHE_FORMAT,
         "url": url,
         "fetched": fetched.astimezone(datetime.timezone.utc).strftime(_TIME_STORED),
         "settings": {name: _cached_options(name, options)
                      for name, options in settings.items()},
     }
+    if version is not None:
+        document["klipper_version"] = version
     try:
         write_json_privately(path, document)
     except OSError as exc:
@@ -604,8 +653,10 @@ def _cached_options(name: str, options: Mapping[str, Any]) -> dict[str, Any]:
     return {}
 
 
-def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | None:
-    """(settings, when fetched) from the cache file of ``url``, None if there is none.
+def _read_cache(path: Path, url: str
+                ) -> tuple[Settings, datetime.datetime, str | None] | None:
+    """(settings, when fetched, the Klipper version if known) from the cache file of ``url``,
+    None if there is none.
 
     Raises KestimatorError for a cache file that is there but damaged (not our JSON, another
     URL's, sections that are not tables): reported as such, not as "nothing cached".
@@ -619,8 +670,12 @@ def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | No
         fetched = datetime.datetime.strptime(document["fetched"], _TIME_STORED).replace(
             tzinfo=datetime.timezone.utc)
         settings = document["settings"]
+        version = document.get("klipper_version")
         usable = (document.get("url") == url and isinstance(settings, dict)
-                  and all(isinstance(options, dict) for options in settings.values()))
+                  and all(isinstance(options, dict) for options in settings.values())
+                  and (version is None or isinstance(version, str)))
+        if version is not None:
+            klipper_release(version)
     except KestimatorError as exc:
         raise KestimatorError(f"the settings cache is unusable: {exc.message}", path) from None
     except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError):
@@ -628,4 +683,4 @@ def _read_cache(path: Path, url: str) -> tuple[Settings, datetime.datetime] | No
     if not usable:
         raise KestimatorError("the settings cache is corrupt (delete it; the next run with "
                               "the printer online writes it again)", path)
-    return settings, fetched
+    return settings, fetched, version

@@ -7,7 +7,8 @@ motion options kestimator models onto `Limits` fields, checked against the same 
 Klipper enforces. Defaults for absent options stay in `kestimator.limits`.
 
 Klipper has no option for the Klipper generation a printer runs; a comment
-``# kestimator: klipper_generation = mcr`` in the main file names it (Klipper ignores comments).
+``# kestimator: klipper_generation = mcr`` in the main file names it (Klipper ignores comments),
+as ``# kestimator: klipper_version = v0.12.0`` names the Klipper the printer runs.
 
 The rules follow mainline Klipper at commit 84104bbbd, klippy/configfile.py (Python's
 configparser as Klipper configures it: no interpolation, later duplicates win, `#` and `;`
@@ -40,8 +41,10 @@ from kestimator.limits import (
     HeaterLimits,
     Limits,
     find_generation_directive,
+    find_version_directive,
     heater_limits,
     heater_sections,
+    klipper_release,
 )
 from kestimator.stepgen import (
     DEFAULT_DAMPING_RATIO,
@@ -211,10 +214,14 @@ def _printer_cfg_values(path: str, config: _Config) -> _Values:
     provenance: dict[str, str] = {}
     read_from: dict[str, ConfigValue] = {}
     directive = _generation_directive(path, config)
+    version = _version_directive(path, config)
     check_options(config.sections)
     if directive is not None:
         values["klipper_generation"] = directive.value
         read_from["klipper_generation"] = directive
+    if version is not None:
+        values["klipper_version"] = version.value
+        read_from["klipper_version"] = version
     for spec in FLOAT_OPTIONS:
         raw = config.sections.get(spec.section, {}).get(spec.option)
         if raw is not None:
@@ -442,6 +449,24 @@ MAX_EXTRUDERS = 99
 STEPPER_OPTIONS = ("step_pin", "dir_pin", "rotation_distance")
 
 
+def _version_directive(path: str, config: _Config) -> ConfigValue | None:
+    """The Klipper version a ``kestimator: klipper_version = <version>`` comment of the main
+    file names, checked (`klipper_release`), with its line."""
+    for number, text in enumerate(_read_lines(path, None, config), start=1):
+        stripped = text.lstrip()
+        if not stripped.startswith(("#", ";")):
+            continue
+        version = find_version_directive(stripped)
+        if version is None:
+            continue
+        try:
+            klipper_release(version)
+        except ValueError as exc:
+            raise KestimatorError(str(exc), path, number) from None
+        return ConfigValue(version, path, number)
+    return None
+
+
 def _generation_directive(path: str, config: _Config) -> ConfigValue | None:
     """The Klipper generation a comment of the main file names, checked, with its line."""
     for number, text in enumerate(_read_lines(path, None, config), start=1):
@@ -572,6 +597,8 @@ ABSENT_PROVENANCE = {
     "max_extrude_only_velocity": "derived from max_velocity",
     "max_extrude_only_accel": "derived from max_accel",
     "klipper_generation": KESTIMATOR_DEFAULT,
+    "klipper_version": "kestimator default: not known (no klipper_version set): "
+                       "klipper_generation decides",
 }
 
 

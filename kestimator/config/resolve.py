@@ -49,7 +49,7 @@ from kestimator.config.profile import (
 )
 from kestimator.errors import KestimatorError
 from kestimator.kinematics import load_kinematics
-from kestimator.limits import FALLBACK_MAX_ACCEL, Limits
+from kestimator.limits import FALLBACK_MAX_ACCEL, Limits, klipper_release
 from kestimator.macros import MacroTime
 from kestimator.slicers import (
     FILE_ORIGIN,
@@ -73,6 +73,8 @@ NO_CONFIG_FALLBACK = ("kestimator fallback: Klipper requires it and no printer.c
                       "Moonraker gives it")
 GENERATION_DEFAULT = ("kestimator default: mainline Klipper (SET_VELOCITY_LIMIT "
                       "ACCEL_TO_DECEL is ignored)")
+VERSION_UNKNOWN = ("kestimator default: not known (no Moonraker asked, no klipper_version "
+                   "set): klipper_generation decides")
 ASSUMPTIONS = {
     "arcs_enabled": "kestimator assumption: no printer config known, and a file using G2/G3 "
                     "is meant for a printer with [gcode_arcs]",
@@ -80,7 +82,7 @@ ASSUMPTIONS = {
                                    "file using G10/G11 is meant for a printer with "
                                    "[firmware_retraction]",
 }
-MACHINE_FIELDS = frozenset(Limits.field_names()) - {"klipper_generation"}
+MACHINE_FIELDS = frozenset(Limits.field_names()) - {"klipper_generation", "klipper_version"}
 """What a printer.cfg or Moonraker decides, by its values or Klipper's defaults."""
 
 # Ranks of the sources, highest first.
@@ -258,6 +260,7 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         if usable:
             chosen[field] = usable[0]
         shadowed[field] = tuple(c for c in proposed if not usable or c is not usable[0])
+    _apply_klipper_version(chosen, warnings)
     _convert_accel_to_decel(chosen)
     limits, chosen = _build(chosen)
     if machine is not None and machine.machine is not None:
@@ -404,6 +407,33 @@ def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
     return found
 
 
+def _apply_klipper_version(chosen: dict[str, Candidate], warnings: list[str]) -> None:
+    """The generation the chosen ``klipper_version`` has, where no source at least as high
+    gives ``klipper_generation`` (the low-level knob); one line for a version newer than the
+    newest known; a KestimatorError for a [printer] option that release refuses to start
+    with, as Klipper would."""
+    version = chosen.get("klipper_version")
+    if version is None:
+        return
+    text = str(version.value)
+    release = klipper_release(text)
+    if release.note is not None:
+        warnings.append(release.note)
+    generation = chosen.get("klipper_generation")
+    if generation is None or generation.level > version.level:
+        chosen["klipper_generation"] = Candidate(
+            release.generation, f"klipper_version {text} ({version.source}): {release.rule}",
+            version.level)
+    for option, accepted in (("max_accel_to_decel", release.accepts_max_accel_to_decel),
+                             ("minimum_cruise_ratio", release.accepts_minimum_cruise_ratio)):
+        given = chosen.get(option)
+        if accepted or given is None or given.level != LEVEL_MACHINE:
+            continue
+        raise KestimatorError(f"{given.source}: [printer] has no option '{option}': "
+                              f"{release.app} {text} refuses to start with it (Option "
+                              f"'{option}' is not valid in section 'printer')")
+
+
 def _convert_accel_to_decel(chosen: dict[str, Candidate]) -> None:
     """Klipper 2024-03..2025-08 turned [printer] max_accel_to_decel into minimum_cruise_ratio
     when the config gave no minimum_cruise_ratio (klippy/toolhead.py of that time)."""
@@ -450,6 +480,8 @@ def _default_source(field: str, have_machine: bool) -> str:
     """Where a value no source set comes from."""
     if field == "klipper_generation":
         return GENERATION_DEFAULT
+    if field == "klipper_version":
+        return VERSION_UNKNOWN
     text = ABSENT_PROVENANCE.get(field, KLIPPER_DEFAULT)
     if text == REQUIRED_FALLBACK and not have_machine:
         return NO_CONFIG_FALLBACK

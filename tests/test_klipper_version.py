@@ -1,0 +1,249 @@
+"""`klipper_version`: the Klipper a printer runs, as Moonraker's printer.info reports it, selects
+that release's semantics (the klipper_generation: what max_accel_to_decel and ACCEL_TO_DECEL
+mean, and which of the two [printer] options it accepts). Set by --set, the profile, a
+printer.cfg comment, or read from Moonraker; held to real Klipper v0.12.0 by the references in
+tests/oracle_refs_releases/klipper-v0.12.0 (made by make_refs.sh there)."""
+
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import pytest
+
+from kestimator.config.moonraker import moonraker_values
+from kestimator.config.resolve import LimitRequest, resolve_limits
+from kestimator.errors import KestimatorError
+from kestimator.estimate import estimate_file
+from kestimator.limits import klipper_release
+
+from .conftest import CORPUS
+from .fake_moonraker import CORPUS_SETTINGS, TIMEOUT_S, V0_12_INFO, FakeMoonraker
+
+V0_12 = Path(__file__).parent / "oracle_refs_releases" / "klipper-v0.12.0"
+# What v0.12.0's own Klipper gave, against kestimator with klipper_version = v0.12.0: the
+# generation's meaning of max_accel_to_decel is exact; v0.12.0's junction rules (a straight
+# junction clamped at cos -0.999999, a reversal stopping) are not modelled, measured at up to
+# 0.019 s on these files (0.01 s + 1e-6 x t holds on three of the five).
+TOL_ABS_S = 0.02
+TOL_REL = 1e-6
+PRINTER = "[printer]\nkinematics: cartesian\nmax_velocity: 300\nmax_accel: 3000\n{extra}"
+
+
+@pytest.fixture
+def environ(tmp_path: Path) -> dict[str, str]:
+    """No profile (until a test writes one), a private cache, no slicer environment."""
+    return {"HOME": str(tmp_path), "XDG_CONFIG_HOME": str(tmp_path / "config"),
+            "XDG_CACHE_HOME": str(tmp_path / "cache")}
+
+
+@pytest.mark.parametrize(("version", "generation"), [
+    ("v0.11.0-0-g9a7a2b4d", "absolute"),
+    ("v0.12.0", "absolute"),
+    ("v0.12.0-118-g18de421c4", "absolute"),
+    ("v0.12.0-119-g0105aa330", "mcr"),
+    ("v0.12.0-455-g5f2d7bc8", "mcr"),
+    ("v0.13.0-0-g61c0c8d2", "mcr"),
+    ("v0.13.0-191-gcfc58d3ce", "mcr"),
+    ("v0.13.0-192-g3ef760c18", "mainline"),
+    ("v0.13.0-730-g84104bbbd-dirty", "mainline"),
+    ("Kalico v2026.07.00-0-g30c65e09", "mcr"),
+    ("Kalico v2025.10.00-12-gabcdef12", "mcr"),
+])
+def test_a_version_as_printer_info_reports_it_selects_that_releases_generation(
+        version: str, generation: str) -> None:
+    release = klipper_release(version)
+    assert (release.generation, release.note) == (generation, None)
+
+
+@pytest.mark.parametrize(("version", "newest"), [
+    ("v0.14.0-2-g1234abcd", "Klipper 84104bbbd (v0.13.0-730, 2026-08)"),
+    ("v0.13.0-731-gabcdef01", "Klipper 84104bbbd (v0.13.0-730, 2026-08)"),
+    ("Kalico v2026.11.00-0-g0badc0de", "Kalico v2026.07.00"),
+])
+def test_a_version_newer_than_the_newest_known_is_taken_as_it_with_one_line(
+        version: str, newest: str, tmp_path: Path, environ: dict[str, str]) -> None:
+    release = klipper_release(version)
+    assert release.note == (f"klipper_version {version} is newer than the newest "
+                            f"{release.app} kestimator knows: taken as {newest}")
+    resolved = resolve_limits(LimitRequest(environ=environ,
+                                           overrides={"klipper_version": version}))
+    assert resolved.limits.klipper_generation == klipper_release(
+        "Kalico v2026.07.00" if version.startswith("Kalico") else "v0.13.0-730").generation
+    assert [w for w in resolved.warnings if "newer than the newest" in w] == [release.note]
+
+
+@pytest.mark.parametrize("version", ["banana", "Marlin 2.1.2", "v0.12.0 extra", "?", ""])
+def test_text_that_is_no_klipper_version_is_refused_on_one_line(
+        version: str, environ: dict[str, str]) -> None:
+    with pytest.raises(KestimatorError, match="^--set klipper_version: ") as error:
+        resolve_limits(LimitRequest(environ=environ, overrides={"klipper_version": version}))
+    assert "\n" not in str(error.value)
+
+
+def test_klipper_version_is_taken_from_set_the_profile_and_a_printer_cfg_comment(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    from_set = resolve_limits(LimitRequest(environ=environ,
+                                           overrides={"klipper_version": "v0.12.0"}))
+    assert from_set.limits.klipper_generation == "absolute"
+    assert from_set.sources["klipper_generation"].startswith("klipper_version v0.12.0 (--set)")
+    profile = Path(environ["XDG_CONFIG_HOME"]) / "kestimator" / "config.toml"
+    profile.parent.mkdir(parents=True)
+    profile.write_text('[limits]\nklipper_version = "Kalico v2026.07.00-0-g30c65e09"\n')
+    from_profile = resolve_limits(LimitRequest(environ=environ))
+    assert (from_profile.limits.klipper_version, from_profile.limits.klipper_generation) == (
+        "Kalico v2026.07.00-0-g30c65e09", "mcr")
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("# kestimator: klipper_version = v0.12.0-455-g5f2d7bc8\n"
+                   + PRINTER.format(extra="max_accel_to_decel: 1500\n"))
+    from_cfg = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ))
+    assert from_cfg.sources["klipper_version"] == f"{cfg}:1"
+    assert from_cfg.limits.klipper_version == "v0.12.0-455-g5f2d7bc8"
+    # A printer.cfg above the profile: its version wins, and v0.12.0-455 converts
+    # max_accel_to_decel to minimum_cruise_ratio as it did.
+    assert from_cfg.limits.klipper_generation == "mcr"
+    assert from_cfg.limits.minimum_cruise_ratio == 0.5
+    assert not [w for w in from_cfg.warnings if "max_accel_to_decel" in w]
+
+
+def test_a_kalico_version_in_a_printer_cfg_comment_keeps_its_app_name(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(PRINTER.format(extra="# kestimator: klipper_version = "
+                                        "Kalico v2026.07.00-0-g30c65e09\n"))
+    resolved = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ))
+    assert resolved.limits.klipper_version == "Kalico v2026.07.00-0-g30c65e09"
+    assert resolved.limits.klipper_generation == "mcr"
+
+
+def test_a_bad_version_in_a_printer_cfg_comment_names_the_file_and_line(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("[printer]\n# kestimator: klipper_version = vx.y\nkinematics: cartesian\n")
+    with pytest.raises(KestimatorError, match="is not a version") as error:
+        resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ))
+    assert str(error.value).startswith(f"{cfg}:2: ")
+
+
+def test_klipper_generation_given_as_high_as_the_version_stays_the_low_level_knob(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    both = resolve_limits(LimitRequest(environ=environ, overrides={
+        "klipper_version": "v0.12.0", "klipper_generation": "mcr"}))
+    assert both.limits.klipper_generation == "mcr"
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text("# kestimator: klipper_generation = mcr\n"
+                   "# kestimator: klipper_version = v0.12.0\n" + PRINTER.format(extra=""))
+    assert resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ)
+                          ).limits.klipper_generation == "mcr"
+    # A version on the command line is above a generation in the printer.cfg.
+    above = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                        overrides={"klipper_version": "v0.13.0-730"}))
+    assert above.limits.klipper_generation == "mainline"
+
+
+@pytest.mark.parametrize(("version", "option", "line"), [
+    ("v0.12.0", "minimum_cruise_ratio: 0.5", "minimum_cruise_ratio"),
+    ("v0.13.0-730-g84104bbbd", "max_accel_to_decel: 1500", "max_accel_to_decel"),
+])
+def test_an_option_the_release_refuses_is_reported_as_that_klipper_would(
+        version: str, option: str, line: str, tmp_path: Path, environ: dict[str, str]) -> None:
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(PRINTER.format(extra=option + "\n"))
+    with pytest.raises(KestimatorError) as error:
+        resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                    overrides={"klipper_version": version}))
+    assert str(error.value) == (
+        f"{cfg}:5: [printer] has no option '{line}': Klipper {version} refuses to start "
+        f"with it (Option '{line}' is not valid in section 'printer')")
+
+
+def _v0_12_settings() -> dict[str, dict[str, object]]:
+    settings = copy.deepcopy(CORPUS_SETTINGS)
+    printer = settings["printer"]
+    del printer["minimum_cruise_ratio"]
+    printer["max_accel_to_decel"] = 1500.0
+    return settings
+
+
+def test_moonraker_gives_the_version_from_printer_info_and_the_cache_keeps_it(
+        tmp_path: Path) -> None:
+    fake = FakeMoonraker(_v0_12_settings(), info=V0_12_INFO).start()
+    try:
+        found = moonraker_values(fake.url, None, TIMEOUT_S, tmp_path)
+    finally:
+        fake.stop()
+    assert (found.values["klipper_version"], found.sources["klipper_version"]) == (
+        "v0.12.0-0-g0d67d9c4", f"moonraker {fake.url}: printer.info software_version")
+    assert "klipper_generation" not in found.values   # the version decides it
+    offline = moonraker_values(fake.url, None, TIMEOUT_S, tmp_path)
+    assert offline.values["klipper_version"] == "v0.12.0-0-g0d67d9c4"
+    assert "printer offline" in offline.sources["klipper_version"]
+
+
+def test_the_resolver_takes_the_version_from_moonraker_where_limits_come_from_it(
+        environ: dict[str, str]) -> None:
+    kalico = dict(V0_12_INFO, app="Kalico", software_version="v2026.07.00-0-g30c65e09")
+    fake = FakeMoonraker(copy.deepcopy(CORPUS_SETTINGS), info=kalico).start()
+    try:
+        resolved = resolve_limits(LimitRequest(moonraker_url=fake.url, environ=environ))
+    finally:
+        fake.stop()
+    assert resolved.limits.klipper_version == "Kalico v2026.07.00-0-g30c65e09"
+    assert resolved.limits.klipper_generation == "mcr"
+    assert resolved.sources["klipper_generation"].startswith(
+        "klipper_version Kalico v2026.07.00-0-g30c65e09 (moonraker ")
+
+
+def test_a_printer_info_that_is_no_version_is_said_sanitised_and_the_settings_decide(
+        tmp_path: Path) -> None:
+    odd = dict(V0_12_INFO, software_version="\x1b[31mhacked\x1b[0m")
+    fake = FakeMoonraker(_v0_12_settings(), info=odd).start()
+    try:
+        found = moonraker_values(fake.url, None, TIMEOUT_S, tmp_path)
+    finally:
+        fake.stop()
+    assert "klipper_version" not in found.values
+    assert found.values["klipper_generation"] == "absolute"
+    assert len(found.warnings) == 1 and "\x1b" not in found.warnings[0]
+
+
+def _v0_12_refs() -> list[object]:
+    return [pytest.param(p, id=p.stem) for p in sorted(V0_12.glob("*.json"))]
+
+
+@pytest.mark.parametrize("ref_path", _v0_12_refs())
+def test_klipper_version_v0_12_0_gives_v0_12_0s_own_times(ref_path: Path,
+                                                          corpus_root: Path,
+                                                          environ: dict[str, str]) -> None:
+    ref = json.loads(ref_path.read_text())
+    gcode = CORPUS / ref["file"]
+    resolved = resolve_limits(LimitRequest(gcode=gcode, printer_cfg=V0_12 / "printer.cfg",
+                                           environ=environ, use_profile=False,
+                                           read_slicer_environment=False,
+                                           overrides={"klipper_version": "v0.12.0"}))
+    assert resolved.limits.klipper_generation == "absolute"
+    est = estimate_file(gcode, resolved.limits)
+
+    def within(mine: float, theirs: float) -> bool:
+        return abs(mine - theirs) <= TOL_ABS_S + TOL_REL * theirs
+
+    assert within(est.total_s, ref["total_s"]), (est.total_s, ref["total_s"])
+    mine = dict(est.layers)
+    layers = [cp for cp in ref["checkpoints"] if cp["kind"] == "layer"]
+    assert {cp["line"] for cp in layers} == set(mine)
+    off = [(cp["line"], mine[cp["line"]], cp["t"]) for cp in layers
+           if not within(mine[cp["line"]], cp["t"])]
+    assert not off, off[:5]
+
+
+def test_without_the_version_a_v0_12_0_config_is_minutes_off_on_accel_changes(
+        corpus_root: Path, environ: dict[str, str]) -> None:
+    """What the setting is for: the same config and file without it (mainline semantics)."""
+    ref = json.loads((V0_12 / "helixscreen_calicat_orca2.3.1_klipper.json").read_text())
+    gcode = CORPUS / ref["file"]
+    resolved = resolve_limits(LimitRequest(gcode=gcode, printer_cfg=V0_12 / "printer.cfg",
+                                           environ=environ, use_profile=False,
+                                           read_slicer_environment=False))
+    assert resolved.limits.klipper_generation == "mainline"
+    assert ref["total_s"] - estimate_file(gcode, resolved.limits).total_s > 60.0
