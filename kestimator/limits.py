@@ -1,9 +1,10 @@
 """The one value that describes what a Klipper printer allows: `Limits`.
 
 This module owns Klipper's own defaults for every motion setting we model and the values
-derived from them (junction deviation, the minimum_cruise_ratio pseudo-acceleration), and the
+derived from them (junction deviation, the minimum_cruise_ratio pseudo-acceleration), the
 ``kestimator: klipper_generation = <name>`` directive by which a file may name the Klipper
-generation.
+generation, and what a Klipper version means (``klipper_release``: the releases known, the
+generation each has, the ``kestimator: klipper_version = <version>`` directive).
 
 Sources of limits (printer.cfg, slicer settings, the command line) build a `Limits` through
 `Limits.from_values`, so a default lives in exactly one place: here.

@@ -15,7 +15,9 @@ Precedence, highest first:
    file using G2/G3 or G10/G11 is meant for a printer with [gcode_arcs] / [firmware_retraction].
 
 So the profile and the slicer only stand in where no printer.cfg or Moonraker is known, except
-for what no Klipper config holds: which Klipper generation the printer runs. Every value comes
+for what no Klipper config holds: which Klipper generation (and version) the printer runs. A
+``klipper_version`` gives the generation its release has where no source at least as high
+gives ``klipper_generation`` (``_apply_klipper_version``). Every value comes
 with its provenance, and what it overrode is kept (``ResolvedLimits.shadowed``) for
 ``kestimator limits``. In the middle generation (``klipper_generation = "mcr"``) a
 ``max_accel_to_decel`` without ``minimum_cruise_ratio`` becomes
@@ -494,5 +496,6 @@ def _generation_warnings(limits: Limits, chosen: Mapping[str, Candidate]) -> lis
             and accel_to_decel.level == LEVEL_MACHINE):
         return [f"max_accel_to_decel ({accel_to_decel.source}) is an option mainline Klipper "
                 "refuses and ignored here: if the printer runs Klipper from before 2025-08, "
-                "set klipper_generation to \"mcr\" (2024-03..2025-08) or \"absolute\" (older)"]
+                "set klipper_version to its version (e.g. v0.12.0), or klipper_generation to "
+                "\"mcr\" (2024-03..2025-08) or \"absolute\" (older)"]
     return []
