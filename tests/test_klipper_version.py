@@ -208,6 +208,18 @@ def test_a_printer_info_that_is_no_version_is_said_sanitised_and_the_settings_de
     assert len(found.warnings) == 1 and "\x1b" not in found.warnings[0]
 
 
+def test_a_klipper_that_does_not_know_its_version_leaves_the_settings_to_decide(
+        tmp_path: Path) -> None:
+    """Klipper reports "?" when its tree has neither git nor a .version file."""
+    fake = FakeMoonraker(_v0_12_settings(), info=dict(V0_12_INFO, software_version="?")).start()
+    try:
+        found = moonraker_values(fake.url, None, TIMEOUT_S, tmp_path)
+    finally:
+        fake.stop()
+    assert "klipper_version" not in found.values and found.warnings == ()
+    assert found.values["klipper_generation"] == "absolute"
+
+
 def _v0_12_refs() -> list[object]:
     return [pytest.param(p, id=p.stem) for p in sorted(V0_12.glob("*.json"))]
 

@@ -169,8 +169,9 @@ def fetch_klipper_version(url: str, api_key: str | None = None,
                           timeout_s: float = DEFAULT_TIMEOUT_S) -> tuple[str | None, str | None]:
     """(the Klipper version, a warning): ``software_version`` of Moonraker's printer.info
     (``GET <url>/printer/info``), the app's name first where it is not Klipper ("Kalico
-    v2026.07.00-0-g30c65e09"). (None, None) where Moonraker does not answer it; (None, a
-    line saying so, its text sanitised) where it is not a version kestimator reads."""
+    v2026.07.00-0-g30c65e09"). (None, None) where Moonraker does not answer it or Klipper
+    does not know its version ("?"); (None, a line saying so, its text sanitised) where it is
+    not a version kestimator reads."""
     try:
         body = _fetch(url, INFO_PATH, api_key, timeout_s)
         info = json.loads(body)["result"]
@@ -181,6 +182,8 @@ def fetch_klipper_version(url: str, api_key: str | None = None,
         return None, f"Moonraker at {url} answered printer.info without a software_version"
     if not isinstance(version, str) or not isinstance(app, str):
         return None, f"Moonraker at {url} answered printer.info without a software_version"
+    if version.strip() in ("", "?"):
+        return None, None  # Klipper's own "not known" (a tree without git or .version file)
     text = version if app.strip().lower() in ("", "klipper") else f"{app.strip()} {version}"
     try:
         klipper_release(text)
