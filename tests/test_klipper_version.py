@@ -158,6 +158,17 @@ def test_an_option_the_release_refuses_is_reported_as_that_klipper_would(
         f"with it (Option '{line}' is not valid in section 'printer')")
 
 
+def test_a_refusal_by_a_newer_klipper_says_which_known_one_it_was_taken_as(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(PRINTER.format(extra="max_accel_to_decel: 1500\n"))
+    with pytest.raises(KestimatorError, match=(
+            r":5: \[printer\] has no option 'max_accel_to_decel': Klipper v0\.14\.0-3-gabc, "
+            r"taken as Klipper 84104bbbd \(v0\.13\.0-730, 2026-08\), refuses to start")):
+        resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                    overrides={"klipper_version": "v0.14.0-3-gabc"}))
+
+
 def _v0_12_settings() -> dict[str, dict[str, object]]:
     settings = copy.deepcopy(CORPUS_SETTINGS)
     printer = settings["printer"]

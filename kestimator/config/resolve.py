@@ -431,8 +431,10 @@ def _apply_klipper_version(chosen: dict[str, Candidate], warnings: list[str]) ->
         given = chosen.get(option)
         if accepted or given is None or given.level != LEVEL_MACHINE:
             continue
+        klipper = f"{release.app} {text}" + (
+            "" if release.note is None else f", taken as {release.rule},")
         raise KestimatorError(f"{given.source}: [printer] has no option '{option}': "
-                              f"{release.app} {text} refuses to start with it (Option "
+                              f"{klipper} refuses to start with it (Option "
                               f"'{option}' is not valid in section 'printer')")
 
 
