@@ -363,6 +363,15 @@ def _say_guessed(resolved: ResolvedLimits) -> None:
         _warn_stderr(resolved.guess_warning)
 
 
+def _say_flavour(resolved: ResolvedLimits, shown: str) -> None:
+    """The sliced-for-another-firmware line on stderr, for the commands whose own output
+    lists no warnings (inject, check): a slicer's hook shows stderr."""
+    flavour = resolved.slicer_settings.flavour
+    if flavour is not None:
+        sys.stdout.flush()
+        _warn_stderr("%s: %s" % (shown, flavour))
+
+
 def _warn_stderr(text: str) -> None:
     sys.stderr.write("kestimator: warning: %s\n" % printable(text))
     sys.stderr.flush()
@@ -570,6 +579,8 @@ def cmd_inject(args: argparse.Namespace) -> int:
             "kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
             % (shown_output, format_duration(est.total_s), _parts_text(est), approximate,
                said, result.m73_written, found)) + "\n")
+    if not args.json:
+        _say_flavour(resolved, args.shown)
     _say_guessed(resolved)
     return _stop_status(result.estimate)
 
@@ -602,6 +613,8 @@ def cmd_check(args: argparse.Namespace) -> int:
             "Pre-flight: Klipper runs every command of this file on this printer"]
         sys.stdout.write(printable(est.path) + "\n"
                          + "".join("  %s\n" % printable(line) for line in lines))
+    if not args.json:
+        _say_flavour(resolved, args.shown)
     _say_guessed(resolved)
     if est.stops_print:
         return EXIT_KLIPPER_STOPS

@@ -244,7 +244,9 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         slicer, slicer_settings = read_slicer_settings(
             request.gcode, environ if request.read_slicer_environment else None,
             request.slicer_cache)
-    warnings: list[str] = []
+    # Sliced for another firmware's flavour: said first, with how to choose Klipper's.
+    warnings: list[str] = [] if slicer_settings.flavour is None else [
+        slicer_settings.flavour]
     profile = _profile(request, environ, slicer_settings.printer_preset, warnings)
     machine = _machine(request, profile, environ)
     if machine is not None:
