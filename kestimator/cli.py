@@ -826,11 +826,31 @@ def _command_parser(parser: argparse.ArgumentParser,
     return None
 
 
+def _set_mistake(arguments: list[str]) -> str | None:
+    """The line for `--set KEY VALUE` (the value given as a word of its own), or None.
+
+    Only when the word after the key is no file: `--set max_accel print.gcode` is a --set
+    without its value, which the resolver names."""
+    for i, arg in enumerate(arguments[:-1]):
+        flag, equals, key = arg.partition("=")
+        if flag != "--set":
+            continue
+        at = i if equals else i + 1
+        if at + 1 >= len(arguments):
+            continue
+        key, value = (key if equals else arguments[at]), arguments[at + 1]
+        if ("=" not in key and key and not value.startswith("-")
+                and not os.path.exists(value)):
+            return ("--set takes KEY=VALUE, a value needs '=': --set %s=%s"
+                    % (printable(key), printable(value)))
+    return None
+
+
 def _unrecognized(parser: argparse.ArgumentParser, args: argparse.Namespace,
-                  arguments: list[str], extras: list[str]) -> None:
-    """Words no option of the command takes: its own usage, and what was probably meant (a
-    --set value without `=`, an option spelt with `_`, several files, learn's
-    --printer-cfg) on the error line, as argparse's own errors look."""
+                  extras: list[str]) -> None:
+    """Words no option of the command takes: its own usage, and what was probably meant (an
+    option spelt with `_`, several files, learn's --printer-cfg) on the error line, as
+    argparse's own errors look."""
     command = _command_parser(parser, args.command) or parser
     hint = ""
     option = next((extra for extra in extras if extra.startswith("-")), None)
@@ -846,13 +866,7 @@ def _unrecognized(parser: argparse.ArgumentParser, args: argparse.Namespace,
             close = difflib.get_close_matches(name.replace("_", "-"), known, n=1, cutoff=0.75)
             if close:
                 hint = "did you mean %s?" % close[0]
-    else:
-        setting = next((value for flag, value in zip(arguments, arguments[1:])
-                        if flag == "--set" and "=" not in value), None)
-        if setting is not None:
-            hint = ("--set takes KEY=VALUE, a value needs '=': --set %s=%s"
-                    % (setting, extras[0]))
-        elif args.command is not None and getattr(args, "file", None) is not None:
+    elif args.command is not None and getattr(args, "file", None) is not None:
             hint = ("one file per run: for several, run kestimator once per file, e.g. "
                     "for f in *.gcode; do kestimator %s \"$f\"; done" % args.command)
     command.print_usage(sys.stderr)
@@ -951,9 +965,15 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     if mistake is not None:
         sys.stderr.write("kestimator: error: %s\n" % mistake)
         return EXIT_USAGE
+    set_mistake = _set_mistake(arguments)
+    if set_mistake is not None:
+        command = _command_parser(parser, arguments[0] if arguments else None) or parser
+        command.print_usage(sys.stderr)
+        sys.stderr.write("%s: error: %s\n" % (command.prog, set_mistake))
+        return EXIT_USAGE
     args, extras = parser.parse_known_args(arguments)
     if extras:
-        _unrecognized(parser, args, arguments, extras)
+        _unrecognized(parser, args, extras)
         return EXIT_USAGE
     args.written = written
     if args.command is None:

@@ -106,12 +106,20 @@ def _usage_error(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[str, s
     return lines[0].split()[2], lines[-1]
 
 
-def test_a_set_value_without_equals_shows_the_commands_usage_and_says_so(
-        capsys: pytest.CaptureFixture[str]) -> None:
-    usage, error = _usage_error(capsys, "estimate", str(EXAMPLE), "--set", "max_accel", "5000")
-    assert usage == "estimate"
-    assert error == ("kestimator estimate: error: unrecognized arguments: 5000 (--set takes "
-                     "KEY=VALUE, a value needs '=': --set max_accel=5000)")
+@pytest.mark.parametrize("argv", [
+    ["limits", "--set", "max_accel", "5000"],           # limits' FILE is optional
+    ["estimate", str(EXAMPLE), "--set=max_accel", "5000"],
+    ["--set", "max_accel", "5000", "check", str(EXAMPLE)],
+    ["inject", str(EXAMPLE), "--set", "max_accel", "5000", "-o", "out.gcode"],
+])
+def test_every_form_of_a_set_value_without_equals_is_told_to_use_it(
+        argv: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    command = next(word for word in argv if word in cli.COMMANDS)
+    usage, error = _usage_error(capsys, *argv)
+    assert usage == command
+    assert error == ("kestimator %s: error: --set takes KEY=VALUE, a value needs '=': --set "
+                     "max_accel=5000" % command)
+    assert os.listdir(tmp_path) == []
 
 
 @pytest.mark.parametrize("command", ["estimate", "inject", "check", "limits"])
