@@ -140,3 +140,12 @@ def test_prusaslicers_rrf_file_without_its_settings_is_told_by_its_commands(
     # PrusaSlicer writes a tool's temperature as G10 S<temp> P<tool>, then waits with M116.
     assert flavour == ("sliced for RepRapFirmware (its commands, e.g. 'G10 S200 P0 ; set "
                        "temperature'), %s; %s" % (ABOUT, GENERIC_FIX))
+
+
+def test_a_flavour_setting_decides_over_the_commands(tmp_path: Path, corpus_root: Path) -> None:
+    # An OrcaSlicer file set to Klipper whose start G-code waits with M116: the setting says
+    # Klipper, so nothing is said (the pre-flight names M116 as unknown).
+    source = CORPUS / "gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode"
+    path = tmp_path / "klipper-with-m116.gcode"
+    path.write_bytes(b"M116\n" + source.read_bytes())
+    assert read_slicer_settings(path)[1].flavour is None

@@ -237,11 +237,12 @@ def _read_slicer_settings(ends: FileEnds | None, environ: Mapping[str, str] | No
         if from_file:
             config.update(from_file)
             origins.insert(0, FILE_ORIGIN)
-    # Sliced for another firmware: the settings' flavor says so, else RepRapFirmware's own
-    # commands in the file's ends do.
-    flavour = adapter.foreign_flavour(info, config) if config else None
-    if flavour is None and ends is not None:
-        flavour = flavour_from_commands(ends)
+    # Sliced for another firmware: the settings' flavor says so, else (no flavor set)
+    # RepRapFirmware's own commands in the file's ends do.
+    if any(key in config for key in adapter.flavour_keys):
+        flavour = adapter.foreign_flavour(info, config)
+    else:
+        flavour = None if ends is None else flavour_from_commands(ends)
     if not config:
         return info, NO_SETTINGS if flavour is None else dataclasses.replace(
             NO_SETTINGS, flavour=flavour)

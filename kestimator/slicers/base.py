@@ -122,6 +122,9 @@ class SlicerAdapter:
     ``rewrite_time_comment`` (a cheap ``startswith`` filter on the hot path)."""
     mark_prefixes: tuple[str, ...] = ()
     """Comment lines whose own time the estimate must record exactly (per-layer times)."""
+    flavour_keys: tuple[str, ...] = ()
+    """Settings keys that name the file's G-code flavour: where one is set, it decides
+    (`foreign_flavour`), and the file's commands are not searched."""
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         """Return what this family knows about the file, or None if it did not write it."""

@@ -191,6 +191,7 @@ class CuraAdapter(SlicerAdapter):
 
     family = "cura"
     time_comment_prefixes = (";TIME:", ";PRINT.TIME:", ELAPSED_PREFIX)
+    flavour_keys = (FLAVOR_KEY,)
     mark_prefixes = (ELAPSED_PREFIX,)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:

@@ -125,6 +125,7 @@ class OrcaAdapter(SlicerAdapter):
 
     family = "orca"
     time_comment_prefixes = (*TIME_COMMENT_PREFIXES, _BAMBU_PREFIX)
+    flavour_keys = ("gcode_flavor",)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         generated_by = ends.generated_by()

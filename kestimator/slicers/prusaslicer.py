@@ -334,6 +334,7 @@ class PrusaSlicerAdapter(SlicerAdapter):
 
     family = "prusaslicer"
     time_comment_prefixes = TIME_COMMENT_PREFIXES
+    flavour_keys = ("gcode_flavor",)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         generated_by = ends.generated_by()
