@@ -867,8 +867,9 @@ def _unrecognized(parser: argparse.ArgumentParser, args: argparse.Namespace,
             if close:
                 hint = "did you mean %s?" % close[0]
     elif args.command is not None and getattr(args, "file", None) is not None:
-            hint = ("one file per run: for several, run kestimator once per file, e.g. "
-                    "for f in *.gcode; do kestimator %s \"$f\"; done" % args.command)
+        page = ' -o "${f%.gcode}.html"' if args.command == "report" else ""
+        hint = ("one file per run: for several, run kestimator once per file, e.g. "
+                "for f in *.gcode; do kestimator %s \"$f\"%s; done" % (args.command, page))
     command.print_usage(sys.stderr)
     sys.stderr.write("%s: error: unrecognized arguments: %s%s\n" % (
         command.prog, printable(" ".join(extras)), "" if not hint else " (%s)" % hint))

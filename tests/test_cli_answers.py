@@ -139,9 +139,10 @@ def test_several_files_are_told_one_file_per_run(
     extra = ["-o", "page.html"] if command == "report" else []
     usage, error = _usage_error(capsys, command, "a.gcode", "b.gcode", *extra)
     assert usage == command
+    page = ' -o "${f%.gcode}.html"' if command == "report" else ""
     assert error == ("kestimator %s: error: unrecognized arguments: b.gcode (one file per "
                      "run: for several, run kestimator once per file, e.g. for f in *.gcode; "
-                     "do kestimator %s \"$f\"; done)" % (command, command))
+                     "do kestimator %s \"$f\"%s; done)" % (command, command, page))
     assert (tmp_path / "a.gcode").read_bytes() == EXAMPLE.read_bytes()
 
 
