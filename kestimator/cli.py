@@ -73,7 +73,7 @@ from kestimator.preflight import (
     stderr_line,
     summary_lines,
 )
-from kestimator.rewrite import check_gcode_file, inject_file, slicer_of_file
+from kestimator.rewrite import NO_MOVES, check_gcode_file, inject_file, slicer_of_file
 
 __all__ = ["EXIT_FAILURE", "EXIT_INTERNAL", "EXIT_KLIPPER_STOPS", "EXIT_OK", "EXIT_USAGE",
            "JSON_SCHEMA_VERSION", "RICH_ENV",
@@ -255,7 +255,8 @@ def _build_parser() -> argparse.ArgumentParser:
                     "than Klipper's planner. Stored beside the Moonraker cache and used by "
                     "every command whose limits come from that Moonraker (--no-learned: not)."
                     % learn.MIN_JOBS)
-    _add_limit_options(lrn, with_times=False)
+    # Only Moonraker has the job history: no --printer-cfg here.
+    _add_limit_options(lrn, with_times=False, with_printer_cfg=False)
     lrn.add_argument("--jobs", type=int, default=learn.MAX_HISTORY_JOBS, metavar="N",
                      help="read the newest N jobs (default %d; more from the server are "
                           "ignored)" % learn.MAX_HISTORY_JOBS)
@@ -299,10 +300,13 @@ def _add_debug_option(parser: argparse.ArgumentParser) -> None:
                         help=argparse.SUPPRESS)
 
 
-def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True) -> None:
+def _add_limit_options(parser: argparse.ArgumentParser, with_times: bool = True,
+                       with_printer_cfg: bool = True) -> None:
     machine = parser.add_mutually_exclusive_group()
-    machine.add_argument("--printer-cfg", metavar="CFG",
-                         help="your Klipper printer.cfg (includes and SAVE_CONFIG are read)")
+    if with_printer_cfg:
+        machine.add_argument("--printer-cfg", metavar="CFG",
+                             help="your Klipper printer.cfg (includes and SAVE_CONFIG are "
+                                  "read)")
     machine.add_argument("--moonraker", metavar="URL",
                          help="read the printer's live Klipper settings from Moonraker, e.g. "
                               "http://voron.local:7125 (cached for when it is offline, "
@@ -359,6 +363,15 @@ def _say_guessed(resolved: ResolvedLimits) -> None:
         _warn_stderr(resolved.guess_warning)
 
 
+def _say_flavour(resolved: ResolvedLimits, shown: str) -> None:
+    """The sliced-for-another-firmware line on stderr, for the commands whose own output
+    lists no warnings (inject, check): a slicer's hook shows stderr."""
+    flavour = resolved.slicer_settings.flavour
+    if flavour is not None:
+        sys.stdout.flush()
+        _warn_stderr("%s: %s" % (shown, flavour))
+
+
 def _warn_stderr(text: str) -> None:
     sys.stderr.write("kestimator: warning: %s\n" % printable(text))
     sys.stderr.flush()
@@ -380,7 +393,8 @@ def _limit_request(args: argparse.Namespace, gcode_path: str | None) -> LimitReq
         if not equals or not key.strip():
             raise KestimatorError("--set takes KEY=VALUE, e.g. --set max_accel=5000")
         overrides[key.strip()] = value
-    return LimitRequest(gcode=gcode_path, overrides=overrides, printer_cfg=args.printer_cfg,
+    return LimitRequest(gcode=gcode_path, overrides=overrides,
+                        printer_cfg=getattr(args, "printer_cfg", None),
                         moonraker_url=args.moonraker, api_key=args.api_key,
                         profile=args.profile, use_profile=not args.no_profile,
                         printer=args.printer)
@@ -409,7 +423,14 @@ def _time_file(args: argparse.Namespace, label: str) -> tuple[ResolvedLimits, Es
         est = estimate_lines(iter_lines(args.file, progress), resolved.limits, args.shown,
                              homing_time=args.homing_time, heat_time=args.heat_time,
                              macros=args.macros, events=events)
+    _require_moves(est, args.shown)
     return resolved, est
+
+
+def _require_moves(est: Estimate, shown: str) -> None:
+    """Every command refuses a file without a move, as `inject` does (exit status 1)."""
+    if est.last_move_line is None:
+        raise KestimatorError(NO_MOVES, shown)
 
 
 def exclusion_events(args: argparse.Namespace, limits: Limits) -> list[Event]:
@@ -487,8 +508,6 @@ def cmd_estimate(args: argparse.Namespace) -> int:
     """`kestimator estimate`."""
     resolved, est = _time_file(args, "timing")
     warnings = list(resolved.warnings)
-    if est.last_move_line is None:
-        warnings.append("the file has no moves: there is nothing to time")
     slicer = slicer_of_file(args.file)
     doc = estimate_to_json(est, slicer, resolved.summary, warnings,
                            limits_guessed=resolved.guessed, source=args.file)
@@ -560,6 +579,8 @@ def cmd_inject(args: argparse.Namespace) -> int:
             "kestimator: %s: Klipper time %s%s%s%s; wrote %d M73 lines%s"
             % (shown_output, format_duration(est.total_s), _parts_text(est), approximate,
                said, result.m73_written, found)) + "\n")
+    if not args.json:
+        _say_flavour(resolved, args.shown)
     _say_guessed(resolved)
     return _stop_status(result.estimate)
 
@@ -592,6 +613,8 @@ def cmd_check(args: argparse.Namespace) -> int:
             "Pre-flight: Klipper runs every command of this file on this printer"]
         sys.stdout.write(printable(est.path) + "\n"
                          + "".join("  %s\n" % printable(line) for line in lines))
+    if not args.json:
+        _say_flavour(resolved, args.shown)
     _say_guessed(resolved)
     if est.stops_print:
         return EXIT_KLIPPER_STOPS
@@ -708,6 +731,10 @@ def cmd_report(args: argparse.Namespace) -> int:
             and os.path.samefile(args.file, args.output)):
         raise KestimatorError("the report would overwrite the G-code it reports on: give "
                               "another -o", args.output)
+    if not to_stdout and os.path.isdir(args.output):
+        raise UsageError("-o %s is a directory: give the page's file name, e.g. -o %s"
+                         % (printable(args.output), printable(os.path.join(
+                             args.output, "report.html"))))
     if extension not in REPORT_EXTENSIONS:
         raise UsageError("report writes one HTML page, not %s: give -o NAME.html (open it "
                          "in a browser to save a picture)" % (extension or "a file without "
@@ -720,6 +747,7 @@ def cmd_report(args: argparse.Namespace) -> int:
                        macros=args.macros, limit_warnings=list(resolved.warnings),
                        limit_sources=resolved.sources, guessed_limits=resolved.guessed,
                        bytes_read=progress, shown=args.shown)
+    _require_moves(data.estimate, args.shown)
     page = render_html(data)
     write_bytes_atomically(args.output, page.encode("utf-8"))
     if not args.quiet:
@@ -786,6 +814,65 @@ def _path_mistake(argv: list[str]) -> str | None:
                     % (option, printable(value), option,
                        printable(value.replace("\\", "/"))))
     return None
+
+
+def _command_parser(parser: argparse.ArgumentParser,
+                    command: str | None) -> argparse.ArgumentParser | None:
+    """The parser of one command (`kestimator estimate`), or None."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            found = action.choices.get(command or "")
+            return found if isinstance(found, argparse.ArgumentParser) else None
+    return None
+
+
+def _set_mistake(arguments: list[str]) -> str | None:
+    """The line for `--set KEY VALUE` (the value given as a word of its own), or None.
+
+    Only when the word after the key is no file: `--set max_accel print.gcode` is a --set
+    without its value, which the resolver names."""
+    for i, arg in enumerate(arguments[:-1]):
+        flag, equals, key = arg.partition("=")
+        if flag != "--set":
+            continue
+        at = i if equals else i + 1
+        if at + 1 >= len(arguments):
+            continue
+        key, value = (key if equals else arguments[at]), arguments[at + 1]
+        if ("=" not in key and key and not value.startswith("-")
+                and not os.path.exists(value)):
+            return ("--set takes KEY=VALUE, a value needs '=': --set %s=%s"
+                    % (printable(key), printable(value)))
+    return None
+
+
+def _unrecognized(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                  extras: list[str]) -> None:
+    """Words no option of the command takes: its own usage, and what was probably meant (an
+    option spelt with `_`, several files, learn's --printer-cfg) on the error line, as
+    argparse's own errors look."""
+    command = _command_parser(parser, args.command) or parser
+    hint = ""
+    option = next((extra for extra in extras if extra.startswith("-")), None)
+    if option is not None:
+        name = option.partition("=")[0]
+        known = sorted(s for action in command._actions for s in action.option_strings)
+        if args.command == "learn" and name == "--printer-cfg":
+            hint = ("learn reads the printer's job history from Moonraker: give --moonraker "
+                    "URL")
+        else:
+            import difflib
+
+            close = difflib.get_close_matches(name.replace("_", "-"), known, n=1, cutoff=0.75)
+            if close:
+                hint = "did you mean %s?" % close[0]
+    elif args.command is not None and getattr(args, "file", None) is not None:
+        page = ' -o "${f%.gcode}.html"' if args.command == "report" else ""
+        hint = ("one file per run: for several, run kestimator once per file, e.g. "
+                "for f in *.gcode; do kestimator %s \"$f\"%s; done" % (args.command, page))
+    command.print_usage(sys.stderr)
+    sys.stderr.write("%s: error: unrecognized arguments: %s%s\n" % (
+        command.prog, printable(" ".join(extras)), "" if not hint else " (%s)" % hint))
 
 
 def _error_text(exc: KestimatorError) -> str:
@@ -879,7 +966,16 @@ def _main(argv: Sequence[str] | None, written: list[str]) -> int:
     if mistake is not None:
         sys.stderr.write("kestimator: error: %s\n" % mistake)
         return EXIT_USAGE
-    args = parser.parse_args(arguments)
+    set_mistake = _set_mistake(arguments)
+    if set_mistake is not None:
+        command = _command_parser(parser, arguments[0] if arguments else None) or parser
+        command.print_usage(sys.stderr)
+        sys.stderr.write("%s: error: %s\n" % (command.prog, set_mistake))
+        return EXIT_USAGE
+    args, extras = parser.parse_known_args(arguments)
+    if extras:
+        _unrecognized(parser, args, extras)
+        return EXIT_USAGE
     args.written = written
     if args.command is None:
         parser.print_help(sys.stderr)

@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from typing import Any, TextIO
 
 from kestimator import __version__
-from kestimator.config.resolve import GUESS_WARNING_START, ResolvedLimits
+from kestimator.config.resolve import GUESS_WARNING_STARTS, ResolvedLimits
 from kestimator.durations import format_duration
 from kestimator.errors import fixed
 from kestimator.estimate import KIND_UNKNOWN, Estimate
@@ -375,7 +375,7 @@ def shown_warnings(doc: dict[str, Any], verbose: bool = False) -> list[str]:
     """The warnings the summary lists: not the guessed-limits one (said on stderr), and the
     one-per-command ones only with --verbose (the grouped summary says what they say)."""
     return [w for w in doc["warnings"]
-            if not (doc.get("limits_guessed") and w.startswith(GUESS_WARNING_START))
+            if not (doc.get("limits_guessed") and w.startswith(GUESS_WARNING_STARTS))
             and (verbose or _PER_COMMAND_WARNING_RE.search(w) is None)]
 
 
@@ -443,19 +443,26 @@ def untimed_summary(doc: dict[str, Any]) -> str | None:
 
 
 def untimed_waits_summary(doc: dict[str, Any]) -> str | None:
-    """`2 heater waits and 1 homing count as 0 s: ...`, said once, or None."""
+    """`2 heater waits count as 0 s: time each with --heat-time S ...`, said once, or None.
+
+    Names only the options of the kinds the file has (no --homing-time without a G28)."""
     waits = (doc.get("parts") or {}).get("untimed_waits") or {}
-    parts = []
-    for kind, one, many in (("heater_waits", "heater wait", "heater waits"),
-                            ("homings", "homing (G28)", "homings (G28)")):
+    parts, options, keys = [], [], []
+    for kind, one, many, option, key in (
+            ("heater_waits", "heater wait", "heater waits", "--heat-time S", "heat_time_s"),
+            ("homings", "homing (G28)", "homings (G28)", "--homing-time S", "homing_time_s")):
         count = int(waits.get(kind, 0))
         if count:
             parts.append("%d %s" % (count, one if count == 1 else many))
+            options.append(option)
+            keys.append(key)
     if not parts:
         return None
-    return ("%s count%s as 0 s unless timed: --heat-time / --homing-time or the profile "
-            "give their time, `kestimator learn` the start's" % (
-                " and ".join(parts), "s" if len(parts) == 1 and parts[0][:2] == "1 " else ""))
+    single = len(parts) == 1 and parts[0].startswith("1 ")
+    return ("%s count%s as 0 s: time %s with %s (or %s in the profile), or let `kestimator "
+            "learn` time the printer's start" % (
+                " and ".join(parts), "s" if single else "", "it" if single else "each",
+                " and ".join(options), " and ".join(keys)))
 
 
 def untimed_detail(doc: dict[str, Any]) -> list[str]:

@@ -32,7 +32,7 @@ from kestimator.cli_output import (
     untimed_summary,
     untimed_waits_summary,
 )
-from kestimator.config.resolve import GUESS_WARNING_START
+from kestimator.config.resolve import GUESS_WARNING_STARTS
 from kestimator.durations import format_duration
 from kestimator.preflight import KIND_STOP, summary_lines
 
@@ -301,7 +301,7 @@ def limits_tail(doc: dict[str, Any]) -> list[str]:
             "%s %g" % (key, value) for key, value in accelerations.items()))
     lines.extend("note: " + note for note in doc["slicer_settings"]["notes"])
     lines.extend("warning: " + w for w in doc["warnings"]
-                 if not w.startswith(GUESS_WARNING_START))  # that one is said on stderr
+                 if not w.startswith(GUESS_WARNING_STARTS))  # that one is said on stderr
     return lines
 
 

@@ -808,6 +808,10 @@ class InjectResult:
     """The progress table written at the end of the output (None: none written)."""
 
 
+NO_MOVES = "the file has no moves: nothing to estimate"
+"""Every command's refusal of a file without a move (a text file, a picture, a macro)."""
+
+
 def check_gcode_file(path: str) -> os.stat_result:
     """Stat a file we are about to read, refusing what is not a text G-code file."""
     try:
@@ -860,7 +864,7 @@ def plan_lines(lines: Iterable[bytes], head: bytes, tail: bytes, limits: Limits,
                          sample=True, mark_prefixes=adapter.mark_prefixes, macros=macros,
                          note=attention_matcher(adapter.time_comment_prefixes))
     if est.last_move_line is None:
-        raise KestimatorError("the file has no moves: nothing to estimate", path)
+        raise KestimatorError(NO_MOVES, path)
     plan = InjectPlan.from_estimate(
         est, adapter, slicer_s, limits_source,
         # What the rewritten time comments hold: print_duration, without the time before the

@@ -163,9 +163,9 @@ def test_plain_text_summary_shows_times_difference_filament_source_and_warnings(
     # Macros are one grouped line at the end, not a warning each; then, once, the heater
     # waits and homing that count as 0 s (issue 36).
     assert torus.endswith("\n  2 macros: their time is not counted (--verbose lists them)\n"
-                          "  2 heater waits count as 0 s unless timed: --heat-time / "
-                          "--homing-time or the profile give their time, `kestimator learn` "
-                          "the start's\n")
+                          "  2 heater waits count as 0 s: time each with --heat-time S (or "
+                          "heat_time_s in the profile), or let `kestimator learn` time the "
+                          "printer's start\n")
     assert "is not a Klipper command" not in torus
 
 
@@ -356,9 +356,9 @@ def test_the_summary_says_once_that_heater_waits_and_homing_count_as_0_s(
                      "M109 S210\n")
     out = estimate_text(capsys, gcode)
     said = [line for line in out.splitlines() if "count as 0 s" in line]
-    assert said == ["  3 heater waits and 2 homings (G28) count as 0 s unless timed: "
-                    "--heat-time / --homing-time or the profile give their time, "
-                    "`kestimator learn` the start's"]
+    assert said == ["  3 heater waits and 2 homings (G28) count as 0 s: time each with "
+                    "--heat-time S and --homing-time S (or heat_time_s and homing_time_s in "
+                    "the profile), or let `kestimator learn` time the printer's start"]
     doc = estimate_json(capsys, gcode)
     assert doc["parts"]["untimed_waits"] == {"heater_waits": 3, "homings": 2}
     # Timed, nothing is said.

@@ -1,8 +1,8 @@
 """Inputs that are not what they seem, and what kestimator must never do with a file.
 
 Each odd input (binary .bgcode, empty file, a file without moves, a directory, a missing
-path) gets exit status 1 (or a warning, for a file without moves under `estimate`) and
-one line naming the path, no traceback, from both `estimate` and `inject`; the file is
+path) gets exit status 1 and one line naming the path, no traceback, from every command
+(a file without moves too: estimate, check, report and inject say the same); the file is
 left as it was. Nothing in a G-code file is executed or handed to a shell, and every
 HTTP call in the package carries a timeout.
 
@@ -64,24 +64,20 @@ def test_odd_inputs_get_one_clear_line_and_stay_untouched(
     assert sorted(os.listdir(tmp_path)) == ([path.name] if path.exists() else [])
 
 
-def test_inject_of_a_file_without_moves_says_so_and_keeps_it(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("command", [["estimate"], ["estimate", "-q"], ["check"],
+                                     ["report", "-o", "page.html"], ["inject"]])
+def test_every_command_refuses_a_file_without_moves_with_the_same_line(
+        command: list[str], tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)
     path = tmp_path / "print.gcode"
     path.write_bytes(NO_MOVES)
-    assert cli.main(["inject", str(path)]) == 1
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "the file has no moves" in err and str(path) in err
+    assert cli.main([command[0], str(path), *command[1:]]) == 1
+    out, err = capsys.readouterr()
+    assert out == ""
+    assert err == "kestimator: error: %s: the file has no moves: nothing to estimate\n" % path
     assert path.read_bytes() == NO_MOVES
     assert os.listdir(tmp_path) == ["print.gcode"]
-
-
-def test_estimate_of_a_file_without_moves_warns_that_there_is_nothing_to_time(
-        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    path = tmp_path / "print.gcode"
-    path.write_bytes(NO_MOVES)
-    assert cli.main(["estimate", str(path)]) == 0
-    out = capsys.readouterr().out
-    assert "Klipper time : 0s" in out and "the file has no moves" in out
 
 
 def test_planner_arithmetic_failure_is_a_located_error_not_a_traceback(

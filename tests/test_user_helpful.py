@@ -130,10 +130,9 @@ def test_options_before_the_command_work(corpus_root: Path) -> None:
 def test_a_misspelt_set_key_suggests_the_right_one(corpus_root: Path) -> None:
     proc = run("estimate", str(NUT), "--set", "max_acel=5000")
     assert proc.returncode == 1
-    assert proc.stderr.startswith(
+    assert proc.stderr == (
         "kestimator: error: --set max_acel: unknown setting 'max_acel': did you mean "
-        "max_accel? (known: kinematics, max_velocity, max_accel, ")
-    assert proc.stderr.count("\n") == 1
+        "max_accel? (`kestimator limits` lists every setting)\n")
 
 
 def test_a_hook_path_with_an_unquoted_space_or_backslashes_says_how_to_quote_it(

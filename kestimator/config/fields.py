@@ -60,8 +60,8 @@ def check_limit_value(field: str, value: object) -> object:
         import difflib
         close = difflib.get_close_matches(field, Limits.field_names(), n=1, cutoff=0.6)
         hint = f": did you mean {close[0]}?" if close else ""
-        raise ValueError(f"unknown setting {field!r}{hint} (known: "
-                         + ", ".join(Limits.field_names()) + ")") from None
+        raise ValueError(f"unknown setting {field!r}{hint} (`kestimator limits` lists "
+                         "every setting)") from None
     if kind is tuple:
         return tuple_field_value(field, value)
     if kind is bool:

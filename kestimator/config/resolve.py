@@ -71,6 +71,12 @@ GUESS_FIX = ("pass --printer-cfg PATH or --moonraker URL, or set printer_cfg or 
 """How to give the real limits, in every front end's guessed-limits line."""
 GUESS_WARNING_START = "no printer.cfg or Moonraker given"
 """How the guessed-limits line (``ResolvedLimits.guess_warning``) begins."""
+NO_PRINTER_SECTION_START = "no [printer] section in "
+"""How the guessed-limits line begins when the printer.cfg given has no [printer] section
+(a moonraker.conf, a macro file): Klipper would not start with it, so its limits are
+Klipper's defaults and guesses."""
+GUESS_WARNING_STARTS = (GUESS_WARNING_START, NO_PRINTER_SECTION_START)
+"""Every way the guessed-limits line begins (front ends say it once, on stderr)."""
 NO_CONFIG_FALLBACK = ("kestimator fallback: Klipper requires it and no printer.cfg or "
                       "Moonraker gives it")
 GENERATION_DEFAULT = ("kestimator default: mainline Klipper (SET_VELOCITY_LIMIT "
@@ -159,7 +165,7 @@ class ResolvedLimits:
     """The key the Moonraker of ``machine`` was asked with (never shown)."""
     guess_warning: str | None = None
     """The one line that says the limits are guesses and how to give the real ones (also
-    in ``warnings``); None when a printer.cfg or Moonraker decided them."""
+    in ``warnings``); None when a printer.cfg with [printer] or Moonraker decided them."""
 
     @property
     def marker_source(self) -> str:
@@ -188,7 +194,8 @@ class ResolvedLimits:
 
     @property
     def guessed(self) -> bool:
-        """True when no printer.cfg or Moonraker is known: the times are approximate."""
+        """True when no printer.cfg or Moonraker is known, or the printer.cfg has no
+        [printer] section: the times are approximate."""
         return self.guess_warning is not None
 
     @property
@@ -241,7 +248,9 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
         slicer, slicer_settings = read_slicer_settings(
             request.gcode, environ if request.read_slicer_environment else None,
             request.slicer_cache)
-    warnings: list[str] = []
+    # Sliced for another firmware's flavour: said first, with how to choose Klipper's.
+    warnings: list[str] = [] if slicer_settings.flavour is None else [
+        slicer_settings.flavour]
     profile = _profile(request, environ, slicer_settings.printer_preset, warnings)
     machine = _machine(request, profile, environ)
     if machine is not None:
@@ -288,6 +297,17 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
             "so times are approximate, moves are not range-checked and G28 homes to 0; %s"
             % (", ".join(stand_ins[:-1]) + " and " + stand_ins[-1] if len(stand_ins) > 1
                else stand_ins[0], limits.max_velocity, limits.max_accel, request.guess_fix))
+        warnings.append(guess_warning)
+    elif (not machine.description.startswith(MOONRAKER_PREFIX)
+          and "printer" not in limits.configured_sections):
+        # A printer.cfg without [printer] (Moonraker's settings always have it): used, but
+        # named as guessed, as `limits` shows each value.
+        guess_warning = (
+            NO_PRINTER_SECTION_START + "%s: is this your printer.cfg? Klipper would not "
+            "start with it, so its limits are Klipper's defaults and guesses (max_velocity "
+            "%g, max_accel %g) and the times are approximate; give the printer.cfg Klipper "
+            "runs with, or --moonraker URL" % (machine.description, limits.max_velocity,
+                                               limits.max_accel))
         warnings.append(guess_warning)
     return ResolvedLimits(
         limits=limits, sources=sources, shadowed=shadowed,

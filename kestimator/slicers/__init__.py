@@ -6,7 +6,9 @@ everything about its slicers' files (``orca.py``, ``prusaslicer.py``, ``cura.py`
 recognises a file wins, and a file none recognises is ``generic.UNKNOWN``. Only the first and
 last MiB of a file are read, as Moonraker does, so even 40 MB files are detected at once.
 ``read_slicer_settings`` combines a file's embedded settings with the slicer's
-post-processing environment through the same adapters (``settings.py`` has their shape).
+post-processing environment through the same adapters (``settings.py`` has their shape), and
+says when the file was sliced for another firmware's G-code flavour (``SlicerSettings.flavour``:
+the settings' flavour, else RepRapFirmware's commands in the file's ends).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from kestimator.slicers.base import (
     FileEnds,
     SlicerAdapter,
     SlicerInfo,
+    flavour_from_commands,
     format_prusa_duration,
     parse_prusa_duration,
 )
@@ -234,7 +237,14 @@ def _read_slicer_settings(ends: FileEnds | None, environ: Mapping[str, str] | No
         if from_file:
             config.update(from_file)
             origins.insert(0, FILE_ORIGIN)
+    # Sliced for another firmware: the settings' flavor says so, else (no flavor set)
+    # RepRapFirmware's own commands in the file's ends do.
+    if any(key in config for key in adapter.flavour_keys):
+        flavour = adapter.foreign_flavour(info, config)
+    else:
+        flavour = None if ends is None else flavour_from_commands(ends)
     if not config:
-        return info, NO_SETTINGS
+        return info, NO_SETTINGS if flavour is None else dataclasses.replace(
+            NO_SETTINGS, flavour=flavour)
     settings = adapter.map_settings(config)
-    return info, dataclasses.replace(settings, origin=" + ".join(origins))
+    return info, dataclasses.replace(settings, origin=" + ".join(origins), flavour=flavour)

@@ -122,6 +122,9 @@ class SlicerAdapter:
     ``rewrite_time_comment`` (a cheap ``startswith`` filter on the hot path)."""
     mark_prefixes: tuple[str, ...] = ()
     """Comment lines whose own time the estimate must record exactly (per-layer times)."""
+    flavour_keys: tuple[str, ...] = ()
+    """Settings keys that name the file's G-code flavour: where one is set, it decides
+    (`foreign_flavour`), and the file's commands are not searched."""
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         """Return what this family knows about the file, or None if it did not write it."""
@@ -159,6 +162,44 @@ class SlicerAdapter:
         """What ``config`` (from ``read_settings`` and ``read_environment``) stands for in
         Klipper; a family that embeds no settings maps nothing."""
         return NO_SETTINGS
+
+    def foreign_flavour(self, info: SlicerInfo, config: SlicerConfig) -> str | None:
+        """`foreign_flavour_line` when the settings name a G-code flavour that is not
+        Klipper's in this slicer; None when they name Klipper's or none."""
+        return None
+
+
+# Commands only RepRapFirmware's G-code has: a tool's temperatures as G10 P<tool> S/R (Klipper
+# runs G10 as a firmware retraction, or skips it), M116 (wait for temperatures), M568 (tool
+# settings). Marlin's commands are no such sign: Klipper users' start G-code has them too.
+# Each starts with a literal, so `textsearch.search` finds it without trying every position.
+_RRF_COMMAND_RES = (re.compile(r"^G10 (?=[^;\n]*P\d)(?=[^;\n]*[SR]-?\d)[^\n]*",
+                               re.MULTILINE),
+                    re.compile(r"^M116\b[^\n]*", re.MULTILINE),
+                    re.compile(r"^M568\b[^\n]*", re.MULTILINE))
+RRF = "RepRapFirmware"
+GENERIC_FLAVOUR_FIX = ("choose the slicer's Klipper G-code flavor (Marlin where it has none) "
+                       "and slice again")
+
+
+def foreign_flavour_line(firmware: str, evidence: str, how: str) -> str:
+    """The one line: sliced for `firmware` (`evidence`: the setting or the commands), what
+    Klipper does with such a file, and `how` to choose Klipper's flavour in the slicer."""
+    return ("sliced for %s (%s), not for Klipper, which skips or reads differently some of "
+            "that firmware's commands; %s" % (firmware, evidence, how))
+
+
+def flavour_from_commands(ends: FileEnds) -> str | None:
+    """`foreign_flavour_line` when the file's ends (the first MiB and the last: where start
+    and end G-code are) hold RepRapFirmware's own commands, else None."""
+    for text in (ends.head, ends.tail):
+        for pattern in _RRF_COMMAND_RES:
+            match = search(pattern, text)
+            if match is not None:
+                return foreign_flavour_line(
+                    RRF, "its commands, e.g. '%s'" % match.group(0).strip()[:40],
+                    GENERIC_FLAVOUR_FIX)
+    return None
 
 
 def replace_group(match: re.Match[str], group: int | str, new: str) -> str:

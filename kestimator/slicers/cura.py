@@ -28,6 +28,7 @@ from kestimator.slicers.base import (
     SlicerAdapter,
     SlicerInfo,
     first_group,
+    foreign_flavour_line,
     replace_group,
 )
 from kestimator.slicers.settings import (
@@ -89,6 +90,10 @@ CURA_UNLIMITED_FEEDRATE = 299792458000.0
 # Cura's RepRap flavor writes accelerations as M204 P / M204 T lines (GCodeExport in
 # Ultimaker/CuraEngine), which Klipper ignores.
 _IGNORED_M204_FLAVORS = frozenset(("RepRap",))
+# ;FLAVOR: values (CuraEngine's flavorToString) -> the firmware they are for: "RepRap" is the
+# menu's "RepRap (RepRap)", RepRapFirmware's G-code ("RepRap (Marlin/Sprinter)" writes Marlin).
+CURA_FLAVOURS = {"RepRap": "RepRapFirmware", "UltiGCode": "Ultimaker's UltiGCode",
+                 "Griffin": "Ultimaker's Griffin", "Makerbot": "MakerBot"}
 
 _CURA_RULES = (
     LeastOf("max_velocity", ("machine_max_feedrate_x", "machine_max_feedrate_y")),
@@ -186,6 +191,7 @@ class CuraAdapter(SlicerAdapter):
 
     family = "cura"
     time_comment_prefixes = (";TIME:", ";PRINT.TIME:", ELAPSED_PREFIX)
+    flavour_keys = (FLAVOR_KEY,)
     mark_prefixes = (ELAPSED_PREFIX,)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
@@ -224,3 +230,14 @@ class CuraAdapter(SlicerAdapter):
     def map_settings(self, config: SlicerConfig) -> SlicerSettings:
         """Cura keys, mapped as docs/LIMITS.md says."""
         return map_cura_settings(config)
+
+    def foreign_flavour(self, info: SlicerInfo, config: SlicerConfig) -> str | None:
+        """The ``;FLAVOR:`` header, when not Marlin: Cura has no Klipper flavor, and
+        Klipper's G-code is Marlin's (Klipper's docs/Slicers.md)."""
+        flavor = config.get(FLAVOR_KEY)
+        if flavor is None or flavor.text.startswith("Marlin"):
+            return None
+        return foreign_flavour_line(
+            CURA_FLAVOURS.get(flavor.text, flavor.text), flavor.source,
+            "in Cura choose Preferences > Configure Cura > Printers > Machine Settings > "
+            "G-code flavor: Marlin, and slice again")

@@ -42,6 +42,7 @@ from kestimator.slicers.prusaslicer import (
     prusa_time_comment,
     read_slic3r_environment,
     rewrite_estimated_time_line,
+    slic3r_foreign_flavour,
     slic3r_machine_rules,
 )
 from kestimator.slicers.settings import (
@@ -124,6 +125,7 @@ class OrcaAdapter(SlicerAdapter):
 
     family = "orca"
     time_comment_prefixes = (*TIME_COMMENT_PREFIXES, _BAMBU_PREFIX)
+    flavour_keys = ("gcode_flavor",)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         generated_by = ends.generated_by()
@@ -188,3 +190,7 @@ class OrcaAdapter(SlicerAdapter):
         """OrcaSlicer/Bambu Studio keys, mapped as docs/LIMITS.md says."""
         limits, notes = _orca_extras(config)
         return map_slic3r_settings(config, ORCA_DIALECT).extended(limits, notes)
+
+    def foreign_flavour(self, info: SlicerInfo, config: SlicerConfig) -> str | None:
+        """``gcode_flavor``, when not Klipper's (`slic3r_foreign_flavour`)."""
+        return slic3r_foreign_flavour(info, config)

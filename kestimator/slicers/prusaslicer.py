@@ -34,6 +34,7 @@ from kestimator.slicers.base import (
     SlicerAdapter,
     SlicerInfo,
     find_duration,
+    foreign_flavour_line,
     format_prusa_duration,
     replace_group,
 )
@@ -269,6 +270,57 @@ def map_slic3r_settings(config: Mapping[str, SlicerValue],
                           printer_preset=(preset.text.strip() or None) if preset else None)
 
 
+# gcode_flavor's values as the Slic3r lineage's G-code flavor menu names them.
+SLIC3R_FLAVOURS = {
+    "klipper": "Klipper", "marlin2": "Marlin 2", "marlin": "Marlin (legacy)",
+    "reprap": "RepRap/Sprinter", "reprapfirmware": "RepRapFirmware", "repetier": "Repetier",
+    "teacup": "Teacup", "makerware": "MakerWare (MakerBot)", "sailfish": "Sailfish (MakerBot)",
+    "mach3": "Mach3/LinuxCNC", "machinekit": "Machinekit", "smoothie": "Smoothie",
+    "no-extrusion": "No extrusion",
+}
+# Where a slicer without a Klipper flavor is right for Klipper: Marlin's G-code (Klipper's
+# docs/Slicers.md: "Set the G-Code flavor to Marlin"; Smoothieware "also works well").
+MARLIN_LIKE_FLAVOURS = frozenset(("marlin2", "marlin", "reprap", "smoothie"))
+# The first version of each slicer whose G-code flavor menu has Klipper (PrusaSlicer 2.5 turns
+# a klipper setting into reprap; the corpus's SuperSlicer 2.3.56 file says klipper).
+KLIPPER_FLAVOUR_SINCE = {"PrusaSlicer": (2, 6), "SuperSlicer": (2, 3, 56),
+                         "OrcaSlicer": (0,)}
+# Where each slicer's G-code flavor menu is.
+FLAVOUR_MENU = {
+    "OrcaSlicer": "the printer's settings > Basic information > Advanced > G-code flavor",
+    "Bambu Studio": "the printer's settings > Basic information > Advanced > G-code flavor",
+}
+SLIC3R_FLAVOUR_MENU = "Printer Settings > General > Firmware > G-code flavor"
+
+
+def _version(text: str | None) -> tuple[int, ...]:
+    """``2.6.1+MacOS-x64`` -> (2, 6, 1); () when the text starts with no number."""
+    match = re.match(r"\d+(?:\.\d+)*", (text or "").strip())
+    return tuple(int(part) for part in match.group(0).split(".")) if match else ()
+
+
+def slic3r_foreign_flavour(info: SlicerInfo, config: SlicerConfig) -> str | None:
+    """The line for a Slic3r-lineage file whose ``gcode_flavor`` is not Klipper's: Klipper
+    where the slicer's version offers it, else a Marlin-like flavour."""
+    flavor = config.get("gcode_flavor")
+    if flavor is None:
+        return None
+    value = flavor.text.strip().lower()
+    since = KLIPPER_FLAVOUR_SINCE.get(info.name)
+    has_klipper = since is not None and _version(info.version) >= since
+    if value == "klipper" or (not has_klipper and value in MARLIN_LIKE_FLAVOURS):
+        return None
+    menu = FLAVOUR_MENU.get(info.name, SLIC3R_FLAVOUR_MENU)
+    if has_klipper:
+        how = "in %s choose %s: Klipper, and slice again" % (info.name, menu)
+    else:
+        how = ("in %s choose %s: Marlin 2 (or Marlin), as Klipper's documentation advises, "
+               "and slice again" % (info.name, menu))
+        if info.name == "PrusaSlicer":
+            how += " (PrusaSlicer 2.6 and newer offer Klipper)"
+    return foreign_flavour_line(SLIC3R_FLAVOURS.get(value, value), flavor.source, how)
+
+
 def prusa_time_comment(info: SlicerInfo, ends: FileEnds,
                        total_s: float) -> tuple[str, str] | None:
     """The footer time line Moonraker's PrusaSlicer parser reads, if the file has none."""
@@ -282,6 +334,7 @@ class PrusaSlicerAdapter(SlicerAdapter):
 
     family = "prusaslicer"
     time_comment_prefixes = TIME_COMMENT_PREFIXES
+    flavour_keys = ("gcode_flavor",)
 
     def detect(self, ends: FileEnds) -> SlicerInfo | None:
         generated_by = ends.generated_by()
@@ -322,3 +375,7 @@ class PrusaSlicerAdapter(SlicerAdapter):
     def map_settings(self, config: SlicerConfig) -> SlicerSettings:
         """PrusaSlicer/SuperSlicer/Slic3r keys, mapped as docs/LIMITS.md says."""
         return map_slic3r_settings(config, PRUSASLICER_DIALECT)
+
+    def foreign_flavour(self, info: SlicerInfo, config: SlicerConfig) -> str | None:
+        """``gcode_flavor``, when not Klipper's (`slic3r_foreign_flavour`)."""
+        return slic3r_foreign_flavour(info, config)

@@ -80,6 +80,9 @@ class SlicerSettings:
     key -> mm/s^2 with percentages resolved: not Klipper settings, the file applies them."""
     printer_preset: str | None = None
     """The slicer's printer preset name (selects a printer table in the user's profile)."""
+    flavour: str | None = None
+    """One line when the file was sliced for another firmware's G-code flavour (its settings
+    or its commands say so), naming how to choose Klipper's in that slicer; else None."""
 
     def by_field(self) -> dict[str, SlicerLimit]:
         """The mapped values keyed by ``Limits`` field."""
