@@ -42,6 +42,7 @@ from kestimator.macros import (
 )
 from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.segments import OBJECT_COMMANDS, Segments
+from kestimator.stops import MAX_STOPS, Stop, known_stops, stop_commands
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
 
@@ -152,6 +153,11 @@ class Estimate:
     # every 2nd, 4th, ...) and MAX_REMAINING_OBJECTS (the first objects to print).
     object_remaining: list[tuple[int, float, dict[str, float]]] = dataclasses.field(
         default_factory=list)
+    # The commands at which the print waits for a person (kestimator.stops), in file order,
+    # each with Klipper's time from the start to when the printer stands there; at most
+    # stops.MAX_STOPS, the further ones counted in stops_unlisted.
+    stops: list[Stop] = dataclasses.field(default_factory=list)
+    stops_unlisted: int = 0
 
     @property
     def parts(self) -> Parts:
@@ -458,6 +464,16 @@ class Timeline:
         if self.toolhead.kin.unchecked is not None:
             self.preflight.moves_unchecked(self.toolhead.kin.unchecked)
         self._kin_commands = self.toolhead.kin.commands
+        # The stop commands this printer runs (a command Klipper does not know on a known
+        # config is skipped: the print goes on there), and the stops met so far.
+        interp = self.interp
+        self.stop_names = known_stops(
+            stop_commands(limits.stop_commands, limits.gcode_macros),
+            None if interp.modules is None else interp.registered | frozenset(interp.macros))
+        self.stop_times = TimedLines()
+        self.stop_commands: list[str] = []
+        self.stop_layers: list[int] = []
+        self.stops_unlisted = 0
         learned = self.macros.before_first_extrusion
         if learned is not None:
             # The printer's own history measured everything before the first extrusion:
@@ -682,6 +698,8 @@ class Timeline:
             self.split.object_command(cmd, self.lineno)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
+        if cmd.name in self.stop_names:
+            self._stop(cmd.name)
         self.interp.gcode_move.tag = self.lineno
         try:
             self.interp.execute(cmd)
@@ -689,6 +707,18 @@ class Timeline:
             self._command_error(stripped, exc, "reject:" + cmd.name)
         if self.toolhead.print_time > MAX_PRINT_S:
             raise _too_long_wait(self.path, self.lineno, stripped, self.toolhead.print_time)
+
+    def _stop(self, name: str) -> None:
+        """The print waits for a person here: it reads no further line, so Klipper runs its
+        look-ahead out (toolhead.py `_handle_step_flush` -> `_flush_lookahead(is_runout=
+        True)`): every earlier move ends at rest, and that moment is the stop's time."""
+        self.toolhead.run_out()
+        if len(self.stop_commands) >= MAX_STOPS:
+            self.stops_unlisted += 1
+            return
+        self._record(self.stop_times, self.lineno)
+        self.stop_commands.append(name)
+        self.stop_layers.append(len(self.layers))
 
     def _reject(self, stripped: str, exc: Exception) -> None:
         """Klipper rejects this plain move line (as `execute` would report it)."""
@@ -800,6 +830,9 @@ class Timeline:
             untimed_waits=untimed_waits(interp, self.macros),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
+            stops=[Stop(name, line, layer, t) for name, layer, (line, t) in zip(
+                self.stop_commands, self.stop_layers, self.stop_times)],
+            stops_unlisted=self.stops_unlisted,
             tail_lines=array("q", self.samples.tail_lines),
             tail_times=array("d", self.samples.tail_times))
 

@@ -58,7 +58,7 @@ import re
 import stat
 import zlib
 from array import array
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterable
 from typing import BinaryIO
 
@@ -100,6 +100,7 @@ from kestimator.progress_table import (
 )
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
+from kestimator.stops import Stop
 from kestimator.timedlines import TimedLines
 
 MARKER_PREFIX = "; kestimator "
@@ -109,6 +110,13 @@ _FOREIGN_LAYER_INFO_RE = re.compile(
     rb"^[ \t]*SET_PRINT_STATS_INFO\b(?![^\n]*; kestimator\r?$)", re.MULTILINE | re.IGNORECASE)
 PREP_PREFIX = "; time before first extrusion (kestimator) = "
 _PREP_PREFIX_B = PREP_PREFIX.encode()
+# The comment written before each stop (kestimator.stops): Klipper's time from the start
+# to when the printer stands there.
+STOP_PREFIX = "; stop (kestimator) "
+_STOP_PREFIX_B = STOP_PREFIX.encode()
+# An M73's time-to-change parameter (Prusa firmware: minutes to the next colour change or
+# pause), as a parameter word of the line.
+_M73_C_RE = re.compile(rb"[ \t]C[ \t]*[-+0-9.]")
 # The marker's exact format (`marker_line`): only a line matching it, after leading blanks and
 # before its line ending, is ours. `limits=` runs to the end of the line and may hold any
 # text (what it records is issue 17's), so it is matched loosely.
@@ -148,7 +156,8 @@ def attention_pattern(time_comment_prefixes: tuple[bytes, ...]) -> bytes:
     slicer's time comments (rewritten). Every other comment is copied as it is, except a
     layer marker, which a quiet stretch ends before by its line number."""
     starts = [_M73, LAYER_INFO_COMMAND + b" ", re.escape(_MARKER_PREFIX_B),
-              re.escape(_PREP_PREFIX_B), re.escape(HEADER_PREFIX), re.escape(CHUNK_PREFIX)]
+              re.escape(_PREP_PREFIX_B), re.escape(_STOP_PREFIX_B), re.escape(HEADER_PREFIX),
+              re.escape(CHUNK_PREFIX)]
     starts += [re.escape(prefix) for prefix in time_comment_prefixes]
     return rb"[ \t\r\x0b\x0c]*(?:%s)" % b"|".join(starts)
 
@@ -215,6 +224,16 @@ def progress_pr(t: float, total_s: float) -> tuple[int, int]:
     percent = int(done * PERCENT + 0.5)
     minutes = int(max(total_s - t, 0.0) / SECONDS_PER_MINUTE + 0.5)
     return percent, minutes
+
+
+def stop_line(command: str, t: float) -> str:
+    """The comment before a stop: its command and Klipper's time from the start."""
+    return "%s%s = %s (%.3f s) from the start" % (STOP_PREFIX, command, format_duration(t), t)
+
+
+def minutes_to_stop(t: float, stop_t: float) -> int:
+    """Whole minutes from `t` to a stop at `stop_t`, rounded to nearest (as M73 R)."""
+    return int(max(stop_t - t, 0.0) / SECONDS_PER_MINUTE + 0.5)
 
 
 def marker_line(total_s: float, slicer_s: float | None, limits_source: str) -> str:
@@ -362,6 +381,9 @@ class InjectPlan:
     """The printer settings the table records (`table_settings`)."""
     table_line: int | None = None
     """The line the table is written before (`table_place`); None: at the file's end."""
+    stops: tuple[Stop, ...] = ()
+    """The stops (kestimator.stops): a comment with the time goes before each, and an M73
+    with a time-to-change (C) parameter gets the minutes to the next one."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -389,7 +411,7 @@ class InjectPlan:
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == TAIL else None,
                    layer_info_total=len(est.layers) if layer_info else 0,
-                   table=select(est) if table else None)
+                   table=select(est) if table else None, stops=tuple(est.stops))
 
 
 class Rewriter:
@@ -431,8 +453,10 @@ class Rewriter:
         self._old_table = False  # an old table's header was met: its base64 lines go
         self.table: ProgressTable | None = None
         table_line = () if plan.table is None or plan.table_line is None else (plan.table_line,)
+        self._stop_lines = array("q", (stop.line for stop in plan.stops))
         self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines,
-                                             self._table_lines, table_line))
+                                             self._table_lines, table_line,
+                                             self._stop_lines))
         self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
@@ -513,12 +537,15 @@ class Rewriter:
         if code[:1] == b";":
             return self._comment(raw, code, eol)
         if _is_m73(code):
-            return []
+            return self._time_to_stop(code, eol)
         if is_layer_info_line(code):
             return []  # ours: written again at the layer markers
         out: list[bytes] = []
         plan = self.plan
         line_eol = eol or self.eol
+        stop = self._stop_at(lineno)
+        if stop is not None:
+            out.append(stop_line(stop.command, stop.time_s).encode() + line_eol)
         if not self._started:
             self._started = True
             self._advance(self.lineno)
@@ -545,6 +572,29 @@ class Rewriter:
             return out
         out.append(raw)
         return out
+
+    def _stop_at(self, line: int) -> Stop | None:
+        """The stop on `line`, if there is one."""
+        index = bisect_left(self._stop_lines, line)
+        if index < len(self._stop_lines) and self._stop_lines[index] == line:
+            return self.plan.stops[index]
+        return None
+
+    def _time_to_stop(self, code: bytes, eol: bytes) -> list[bytes]:
+        """An M73 line of the slicer's: dropped, but for its time-to-change form (C, Prusa
+        firmware's minutes to the next colour change or pause), written Klipper-true from
+        this line's time while a stop is still ahead."""
+        if _M73_C_RE.search(code.split(b";", 1)[0]) is None:
+            return []
+        line = self.lineno
+        index = bisect_left(self._stop_lines, line)
+        if index >= len(self._stop_lines):
+            return []
+        lines = self.plan.sample_lines
+        sample = bisect_left(lines, line)
+        t = self.plan.sample_times[sample - 1] if sample else 0.0
+        return [b"M73 C%d" % minutes_to_stop(t, self.plan.stops[index].time_s)
+                + (eol or self.eol)]
 
     def copy_stream(self, inp: BinaryIO, write: Callable[[bytes], object],
                     progress: Callable[[int], None] | None = None) -> None:
@@ -772,7 +822,7 @@ class Rewriter:
         return before + [raw] + after
 
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
-        if code.startswith(_PREP_PREFIX_B) or (
+        if code.startswith(_PREP_PREFIX_B) or code.startswith(_STOP_PREFIX_B) or (
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
         if code.startswith(HEADER_PREFIX) and is_header_line(code):

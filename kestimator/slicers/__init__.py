@@ -31,6 +31,7 @@ from kestimator.slicers.generic import UNKNOWN, GenericAdapter
 from kestimator.slicers.orca import OrcaAdapter
 from kestimator.slicers.prusaslicer import PrusaSlicerAdapter
 from kestimator.slicers.settings import NO_SETTINGS, SlicerConfig, SlicerSettings
+from kestimator.stops import SLICER_STOP_KEYS
 
 __all__ = [
     "ADAPTERS",
@@ -237,4 +238,6 @@ def _read_slicer_settings(ends: FileEnds | None, environ: Mapping[str, str] | No
     if not config:
         return info, NO_SETTINGS
     settings = adapter.map_settings(config)
-    return info, dataclasses.replace(settings, origin=" + ".join(origins))
+    stop_gcode = tuple((key, config[key].text) for key in SLICER_STOP_KEYS if key in config)
+    return info, dataclasses.replace(settings, origin=" + ".join(origins),
+                                     stop_gcode=stop_gcode)

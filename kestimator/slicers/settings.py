@@ -80,6 +80,9 @@ class SlicerSettings:
     key -> mm/s^2 with percentages resolved: not Klipper settings, the file applies them."""
     printer_preset: str | None = None
     """The slicer's printer preset name (selects a printer table in the user's profile)."""
+    stop_gcode: tuple[tuple[str, str], ...] = ()
+    """The slicer's colour-change and pause G-code (kestimator.stops.SLICER_STOP_KEYS), key
+    -> text as written: the commands it runs are stops."""
 
     def by_field(self) -> dict[str, SlicerLimit]:
         """The mapped values keyed by ``Limits`` field."""
