@@ -42,7 +42,7 @@ from kestimator.macros import (
 )
 from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.segments import OBJECT_COMMANDS, Segments
-from kestimator.stops import MAX_STOPS, Stop, known_stops, stop_commands
+from kestimator.stops import Stop, StopLog, known_stops, stop_commands
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
 
@@ -464,16 +464,7 @@ class Timeline:
         if self.toolhead.kin.unchecked is not None:
             self.preflight.moves_unchecked(self.toolhead.kin.unchecked)
         self._kin_commands = self.toolhead.kin.commands
-        # The stop commands this printer runs (a command Klipper does not know on a known
-        # config is skipped: the print goes on there), and the stops met so far.
-        interp = self.interp
-        self.stop_names = known_stops(
-            stop_commands(limits.stop_commands, limits.gcode_macros),
-            None if interp.modules is None else interp.registered | frozenset(interp.macros))
-        self.stop_times = TimedLines()
-        self.stop_commands: list[str] = []
-        self.stop_layers: list[int] = []
-        self.stops_unlisted = 0
+        self.stops = stop_log(limits, self.interp)  # kestimator.stops
         learned = self.macros.before_first_extrusion
         if learned is not None:
             # The printer's own history measured everything before the first extrusion:
@@ -698,8 +689,10 @@ class Timeline:
             self.split.object_command(cmd, self.lineno)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
-        if cmd.name in self.stop_names:
-            self._stop(cmd.name)
+        if cmd.name in self.stops.names:  # a paused print runs the look-ahead out (stop_log)
+            self.toolhead.run_out()
+            if self.stops.note(cmd.name, len(self.layers)):
+                self._record(self.stops.times, self.lineno)
         self.interp.gcode_move.tag = self.lineno
         try:
             self.interp.execute(cmd)
@@ -707,18 +700,6 @@ class Timeline:
             self._command_error(stripped, exc, "reject:" + cmd.name)
         if self.toolhead.print_time > MAX_PRINT_S:
             raise _too_long_wait(self.path, self.lineno, stripped, self.toolhead.print_time)
-
-    def _stop(self, name: str) -> None:
-        """The print waits for a person here: it reads no further line, so Klipper runs its
-        look-ahead out (toolhead.py `_handle_step_flush` -> `_flush_lookahead(is_runout=
-        True)`): every earlier move ends at rest, and that moment is the stop's time."""
-        self.toolhead.run_out()
-        if len(self.stop_commands) >= MAX_STOPS:
-            self.stops_unlisted += 1
-            return
-        self._record(self.stop_times, self.lineno)
-        self.stop_commands.append(name)
-        self.stop_layers.append(len(self.layers))
 
     def _reject(self, stripped: str, exc: Exception) -> None:
         """Klipper rejects this plain move line (as `execute` would report it)."""
@@ -830,11 +811,19 @@ class Timeline:
             untimed_waits=untimed_waits(interp, self.macros),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
-            stops=[Stop(name, line, layer, t) for name, layer, (line, t) in zip(
-                self.stop_commands, self.stop_layers, self.stop_times)],
-            stops_unlisted=self.stops_unlisted,
+            stops=self.stops.listed(), stops_unlisted=self.stops.unlisted,
             tail_lines=array("q", self.samples.tail_lines),
             tail_times=array("d", self.samples.tail_times))
+
+
+def stop_log(limits: Limits, interp: Interpreter) -> StopLog:
+    """The stops of an estimate, with the stop commands this printer runs: a command
+    Klipper does not know on a known config is skipped (the print goes on there). At each
+    the print waits for a person and reads no further line, so Klipper runs its look-ahead
+    out (toolhead.py `_handle_step_flush` -> `_flush_lookahead(is_runout=True)`): every
+    earlier move ends at rest, and that moment is the stop's time (`Timeline._feed_other`)."""
+    known = None if interp.modules is None else interp.registered | frozenset(interp.macros)
+    return StopLog(known_stops(stop_commands(limits.stop_commands, limits.gcode_macros), known))
 
 
 def first_extrusion(moves: list[Move], start_t: float, filament: float) -> float | None:

@@ -384,6 +384,8 @@ class InjectPlan:
     stops: tuple[Stop, ...] = ()
     """The stops (kestimator.stops): a comment with the time goes before each, and an M73
     with a time-to-change (C) parameter gets the minutes to the next one."""
+    stop_lines: array = dataclasses.field(default_factory=lambda: array("q"))
+    """The stops' lines, in file order."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -411,7 +413,8 @@ class InjectPlan:
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == TAIL else None,
                    layer_info_total=len(est.layers) if layer_info else 0,
-                   table=select(est) if table else None, stops=tuple(est.stops))
+                   table=select(est) if table else None, stops=tuple(est.stops),
+                   stop_lines=array("q", (stop.line for stop in est.stops)))
 
 
 class Rewriter:
@@ -453,10 +456,8 @@ class Rewriter:
         self._old_table = False  # an old table's header was met: its base64 lines go
         self.table: ProgressTable | None = None
         table_line = () if plan.table is None or plan.table_line is None else (plan.table_line,)
-        self._stop_lines = array("q", (stop.line for stop in plan.stops))
         self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines,
-                                             self._table_lines, table_line,
-                                             self._stop_lines))
+                                             self._table_lines, table_line, plan.stop_lines))
         self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
@@ -537,15 +538,12 @@ class Rewriter:
         if code[:1] == b";":
             return self._comment(raw, code, eol)
         if _is_m73(code):
-            return self._time_to_stop(code, eol)
+            return time_to_stop(self.plan, lineno, code, eol or self.eol)
         if is_layer_info_line(code):
             return []  # ours: written again at the layer markers
-        out: list[bytes] = []
         plan = self.plan
         line_eol = eol or self.eol
-        stop = self._stop_at(lineno)
-        if stop is not None:
-            out.append(stop_line(stop.command, stop.time_s).encode() + line_eol)
+        out = stop_comment(plan, lineno, line_eol)
         if not self._started:
             self._started = True
             self._advance(self.lineno)
@@ -572,29 +570,6 @@ class Rewriter:
             return out
         out.append(raw)
         return out
-
-    def _stop_at(self, line: int) -> Stop | None:
-        """The stop on `line`, if there is one."""
-        index = bisect_left(self._stop_lines, line)
-        if index < len(self._stop_lines) and self._stop_lines[index] == line:
-            return self.plan.stops[index]
-        return None
-
-    def _time_to_stop(self, code: bytes, eol: bytes) -> list[bytes]:
-        """An M73 line of the slicer's: dropped, but for its time-to-change form (C, Prusa
-        firmware's minutes to the next colour change or pause), written Klipper-true from
-        this line's time while a stop is still ahead."""
-        if _M73_C_RE.search(code.split(b";", 1)[0]) is None:
-            return []
-        line = self.lineno
-        index = bisect_left(self._stop_lines, line)
-        if index >= len(self._stop_lines):
-            return []
-        lines = self.plan.sample_lines
-        sample = bisect_left(lines, line)
-        t = self.plan.sample_times[sample - 1] if sample else 0.0
-        return [b"M73 C%d" % minutes_to_stop(t, self.plan.stops[index].time_s)
-                + (eol or self.eol)]
 
     def copy_stream(self, inp: BinaryIO, write: Callable[[bytes], object],
                     progress: Callable[[int], None] | None = None) -> None:
@@ -842,6 +817,29 @@ class Rewriter:
                     indent = raw[:len(raw) - len(code)]
                     return [indent + new.encode("utf-8", "surrogateescape") + eol]
         return [raw]
+
+
+def stop_comment(plan: InjectPlan, line: int, eol: bytes) -> list[bytes]:
+    """The comment with the time at the stop on `line` (none if no stop is there)."""
+    index = bisect_left(plan.stop_lines, line)
+    if index < len(plan.stop_lines) and plan.stop_lines[index] == line:
+        stop = plan.stops[index]
+        return [stop_line(stop.command, stop.time_s).encode() + eol]
+    return []
+
+
+def time_to_stop(plan: InjectPlan, line: int, code: bytes, eol: bytes) -> list[bytes]:
+    """An M73 line of the slicer's (`code`, on `line`): dropped, but for its time-to-change
+    form (C, Prusa firmware's minutes to the next colour change or pause), written
+    Klipper-true from this line's time while a stop is still ahead."""
+    if _M73_C_RE.search(code.split(b";", 1)[0]) is None:
+        return []
+    index = bisect_left(plan.stop_lines, line)
+    if index >= len(plan.stop_lines):
+        return []
+    sample = bisect_left(plan.sample_lines, line)
+    t = plan.sample_times[sample - 1] if sample else 0.0
+    return [b"M73 C%d" % minutes_to_stop(t, plan.stops[index].time_s) + eol]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -22,6 +22,7 @@ from collections.abc import Container, Iterable
 from typing import Final
 
 from kestimator.klipper_commands import CORE_COMMANDS, MODULE_COMMANDS
+from kestimator.timedlines import TimedLines
 
 # Colour change (M600), pause (M601: Prusa firmware; PAUSE: Klipper's pause_resume),
 # unconditional and conditional stop (M0, M1) and SD pause (M25: Klipper's virtual_sdcard).
@@ -59,6 +60,34 @@ class Stop:
     line: int
     layer: int
     time_s: float
+
+
+class StopLog:
+    """The stop commands of one estimate and the stops met so far: the first MAX_STOPS
+    listed (command, layer; their times recorded into `times` by the estimate), the rest
+    counted."""
+
+    def __init__(self, names: frozenset[str]) -> None:
+        self.names = names
+        self.times = TimedLines()
+        self.commands: list[str] = []
+        self.layers: list[int] = []
+        self.unlisted = 0
+
+    def note(self, name: str, layer: int) -> bool:
+        """A stop of command `name` in `layer`; True when it is listed (its time is to be
+        recorded)."""
+        if len(self.commands) >= MAX_STOPS:
+            self.unlisted += 1
+            return False
+        self.commands.append(name)
+        self.layers.append(layer)
+        return True
+
+    def listed(self) -> list[Stop]:
+        """The stops listed, in file order."""
+        return [Stop(name, line, layer, t) for name, layer, (line, t)
+                in zip(self.commands, self.layers, self.times)]
 
 
 def command_word(line: str) -> str | None:
