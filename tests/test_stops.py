@@ -11,6 +11,7 @@ holds that this is the time a real pause gives.
 from __future__ import annotations
 
 import json
+import re
 import os
 import shutil
 import subprocess
@@ -248,3 +249,25 @@ def test_a_real_klipper_pause_stands_at_the_stops_time(tmp_path: Path) -> None:
     for stop, (paused_at, _) in zip(est.stops, idle):
         klipper_left = run_realtime.truth_at(paused_at, end, [list(gap) for gap in idle])
         assert est.total_s - stop.time_s == pytest.approx(klipper_left, abs=1e-5)
+
+
+def test_the_report_marks_each_stop_on_the_time_chart_and_lists_it() -> None:
+    from kestimator.report import PAD_L, PLOT_W, Axis, collect, render_html
+
+    resolved = resolve_limits(LimitRequest(gcode=str(STOPS / FILES[0]),
+                                           printer_cfg=str(STOPS_CFG), use_profile=False))
+    data = collect(str(STOPS / FILES[0]), resolved.limits, resolved.summary)
+    page = render_html(data)
+    chart = page[page.index('id="chart-remaining"'):]
+    chart = chart[:chart.index("</svg>")]
+    marks = re.findall(r'<line class="stop" x1="([0-9.]+)".*?<title>(.*?)</title>', chart)
+    assert [title for _, title in marks] == ["M600, line 494: 1m 07s",
+                                             "PAUSE, line 682: 1m 25s"]
+    # Where the time axis puts the stop's time.
+    axis = Axis(data.estimate.total_s, timed=True)
+    for (x, _), stop in zip(marks, data.estimate.stops):
+        assert float(x) == pytest.approx(PAD_L + PLOT_W * stop.time_s / axis.max, abs=0.06)
+    table = page[page.index('<table class="stops">'):]
+    table = table[:table.index("</table>")]
+    assert re.findall(r"<tr><td>(.*?)</td><td>(.*?)</td>", table) == [
+        ("M600", "494"), ("PAUSE", "682"), ("end", "")]
