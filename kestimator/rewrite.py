@@ -323,8 +323,9 @@ def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 
     generation, the config's sections and macros), the kinematics' own sections of the
     printer's config (steppers, probe, homing, bed mesh; values only, not where they were
     read; [printer]'s options that are `Limits` fields only once, resolved, above), the
-    seconds per G28 and per heater wait, and the macro times (the profile's and the
-    learned ones). `inject` writes them into the table and the worker compares them with
+    seconds per G28 and per heater wait, the stop commands the slicer's settings and the
+    profile name (kestimator.stops), and the macro times (the profile's and the learned
+    ones). `inject` writes them into the table and the worker compares them with
     the printer's: both call this with what they give the estimate."""
     pairs: list[tuple[str, object]] = []
     for name in Limits.field_names():
@@ -342,6 +343,10 @@ def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 
                    if section != "printer" or option not in fields]]
         for section, options in machine.sections]))
     pairs += [("homing_time_s", homing_time), ("heat_time_s", heat_time)]
+    if limits.stop_commands:
+        # The slicer's and the profile's stop commands (the defaults and the printer's
+        # macros calling one are known from the above): each runs the look-ahead out.
+        pairs.append(("stop_commands", list(limits.stop_commands)))
     macros = macros if macros is not None else MacroTimes()
     prep, ratio = macros.before_first_extrusion, macros.motion_ratio
     pairs += [("macro_times", sorted([name, t.seconds] for name, t in macros.macros.items())

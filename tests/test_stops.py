@@ -271,3 +271,15 @@ def test_the_report_marks_each_stop_on_the_time_chart_and_lists_it() -> None:
     table = table[:table.index("</table>")]
     assert re.findall(r"<tr><td>(.*?)</td><td>(.*?)</td>", table) == [
         ("M600", "494"), ("PAUSE", "682"), ("end", "")]
+
+
+def test_a_progress_table_records_the_stop_commands_it_was_made_with() -> None:
+    """The worker follows a file's table only for the same settings: a profile's own stop
+    command (the look-ahead runs out there) makes other times."""
+    from kestimator.rewrite import table_settings
+
+    plain = dict(table_settings(Limits()))
+    named = dict(table_settings(Limits().replace(stop_commands=("TAKE_A_LOOK",))))
+    assert "stop_commands" not in plain
+    assert named["stop_commands"] != plain.get("stop_commands")
+    assert {k: v for k, v in named.items() if k != "stop_commands"} == plain
