@@ -27,6 +27,7 @@ from kestimator.timedlines import TimedLines
 # Colour change (M600), pause (M601: Prusa firmware; PAUSE: Klipper's pause_resume),
 # unconditional and conditional stop (M0, M1) and SD pause (M25: Klipper's virtual_sdcard).
 DEFAULT_STOP_COMMANDS: Final = ("M600", "M601", "PAUSE", "M0", "M1", "M25")
+DEFAULT_STOP_COMMANDS_SET: Final = frozenset(DEFAULT_STOP_COMMANDS)
 # The slicer settings whose G-code a slicer writes where the print stops for a person:
 # PrusaSlicer/SuperSlicer's colour change and pause, OrcaSlicer/Bambu Studio's pause (their
 # colour change on a printer without an AMS is M600, a default). Their tool-change G-code

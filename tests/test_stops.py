@@ -11,8 +11,8 @@ holds that this is the time a real pause gives.
 from __future__ import annotations
 
 import json
-import re
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -149,7 +149,8 @@ def test_stop_commands_from_the_slicer_and_profile_reach_the_limits(
     shutil.copyfile(CORPUS / "gcode" / "orcaslicer" / "accelctl_orca1.5.0_klipper_m204.gcode",
                     gcode)
     resolved = resolve_limits(LimitRequest(gcode=str(gcode), profile=str(profile)))
-    assert set(resolved.limits.stop_commands) == {"FILAMENT_SWAP", "TAKE_A_LOOK", "PAUSE"}
+    # PAUSE (the file's machine_pause_gcode) is a default: every estimate knows it.
+    assert resolved.limits.stop_commands == ("FILAMENT_SWAP", "TAKE_A_LOOK")
     assert home.is_dir()
 
 
