@@ -280,6 +280,9 @@ def estimate_to_json(est: Estimate, slicer: SlicerInfo, limits_source: str,
         "untimed_commands": untimed_by_kind(est, {source["name"]
                                                   for source in parts["sources"]}),
         "preflight": [finding.to_json() for finding in est.preflight],
+        "stops": [{"command": stop.command, "line": stop.line, "layer": stop.layer,
+                   "time_s": round(stop.time_s, 6)} for stop in est.stops],
+        "stops_unlisted": est.stops_unlisted,
         "parts": parts,
         "warnings": extra_warnings + est.warnings,
         "warnings_dropped": est.warnings_dropped,
@@ -527,6 +530,30 @@ def feature_rows(doc: dict[str, Any]) -> list[tuple[str, float, float]]:
             for name, t in sorted(doc["features"].items(), key=lambda kv: -kv[1])]
 
 
+def stop_rows(doc: dict[str, Any]) -> list[tuple[str, str, str, str, str]]:
+    """The stops as rows (command, line, layer, Klipper time from the start, motion time
+    since the last stop or the start), then the end of the print as one more row."""
+    rows = []
+    last = 0.0
+    for stop in doc.get("stops", ()):
+        rows.append((printable(stop["command"]), str(stop["line"]), str(stop["layer"]),
+                     format_duration(stop["time_s"]), format_duration(stop["time_s"] - last)))
+        last = stop["time_s"]
+    if rows:
+        rows.append(("end", "", "", format_duration(doc["total_s"]),
+                     format_duration(doc["total_s"] - last)))
+    return rows
+
+
+def stops_note(doc: dict[str, Any]) -> str | None:
+    """What the stop list leaves out, if anything."""
+    unlisted = doc.get("stops_unlisted", 0)
+    return "%d more stops not listed" % unlisted if unlisted else None
+
+
+STOP_TITLES = ("stop", "line", "layer", "at", "after")
+
+
 def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
                verbose: bool = False) -> None:
     """The plain-text summary (stdout is not a terminal, or rich is not installed)."""
@@ -562,6 +589,15 @@ def print_text(doc: dict[str, Any], out: TextIO, layers: bool = False,
         for feature, t, share in rows:
             lines.append("    %-*s %10s %5.1f %%" % (
                 FEATURE_NAME_WIDTH, feature[:FEATURE_NAME_WIDTH], format_duration(t), share))
+    stops = stop_rows(doc)
+    if stops:
+        lines.append("  Stops (the printer waits for you; Klipper time from the start, and "
+                     "since the last stop):")
+        for row in [STOP_TITLES] + stops:
+            lines.append("    %-12s %7s %5s %10s %10s" % ((row[0][:12],) + tuple(row[1:])))
+        note = stops_note(doc)
+        if note is not None:
+            lines.append("    " + note)
     lines.extend(summary_tail_lines(doc, verbose))
     # The layer table first and the summary last: with hundreds of layers the summary
     # stays on screen. Written a row at a time (a file may have a million layers).

@@ -28,6 +28,8 @@ from kestimator.cli_output import (
     printable,
     shown_warnings,
     slicer_label,
+    stop_rows,
+    stops_note,
     untimed_detail,
     untimed_summary,
     untimed_waits_summary,
@@ -211,6 +213,19 @@ def print_estimate_rich(doc: dict[str, Any], console: Any, layers: bool = False,
         for name, t, share in rows:
             table.add_row(Text(name), format_duration(t), "%.1f %%" % share,
                           Text(bar(share, 100.0), style="cyan"))
+        console.print(table)
+    stop_table = stop_rows(doc)
+    if stop_table:
+        table = Table(title="Stops: the printer waits for you", title_justify="left",
+                      box=box.SIMPLE_HEAD)
+        table.add_column("Stop")
+        for title in ("Line", "Layer", "At", "After"):
+            table.add_column(title, justify="right")
+        for row in stop_table:
+            table.add_row(Text(row[0]), *row[1:])
+        note = stops_note(doc)
+        if note is not None:
+            table.caption = note
         console.print(table)
     preflight = summary_lines(doc["preflight"])
     if preflight:

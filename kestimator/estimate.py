@@ -42,6 +42,7 @@ from kestimator.macros import (
 )
 from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.segments import OBJECT_COMMANDS, Segments
+from kestimator.stops import Stop, StopLog, known_stops, stop_commands
 from kestimator.timedlines import TimedLines
 from kestimator.toolhead import Move, ToolHead
 
@@ -152,6 +153,11 @@ class Estimate:
     # every 2nd, 4th, ...) and MAX_REMAINING_OBJECTS (the first objects to print).
     object_remaining: list[tuple[int, float, dict[str, float]]] = dataclasses.field(
         default_factory=list)
+    # The commands at which the print waits for a person (kestimator.stops), in file order,
+    # each with Klipper's time from the start to when the printer stands there; at most
+    # stops.MAX_STOPS, the further ones counted in stops_unlisted.
+    stops: list[Stop] = dataclasses.field(default_factory=list)
+    stops_unlisted: int = 0
 
     @property
     def parts(self) -> Parts:
@@ -458,6 +464,7 @@ class Timeline:
         if self.toolhead.kin.unchecked is not None:
             self.preflight.moves_unchecked(self.toolhead.kin.unchecked)
         self._kin_commands = self.toolhead.kin.commands
+        self.stops = stop_log(limits, self.interp)  # kestimator.stops
         learned = self.macros.before_first_extrusion
         if learned is not None:
             # The printer's own history measured everything before the first extrusion:
@@ -682,6 +689,10 @@ class Timeline:
             self.split.object_command(cmd, self.lineno)
         if cmd.name in self._kin_commands:
             self.warn(self._kin_commands[cmd.name], self.lineno, "kinematics:" + cmd.name)
+        if cmd.name in self.stops.names:  # a paused print runs the look-ahead out (stop_log)
+            self.toolhead.run_out()
+            if self.stops.note(cmd.name, len(self.layers)):
+                self._record(self.stops.times, self.lineno)
         self.interp.gcode_move.tag = self.lineno
         try:
             self.interp.execute(cmd)
@@ -800,8 +811,19 @@ class Timeline:
             untimed_waits=untimed_waits(interp, self.macros),
             objects=objects, commands=commands, preflight=self.preflight.findings(),
             object_remaining=object_remaining,
+            stops=self.stops.listed(), stops_unlisted=self.stops.unlisted,
             tail_lines=array("q", self.samples.tail_lines),
             tail_times=array("d", self.samples.tail_times))
+
+
+def stop_log(limits: Limits, interp: Interpreter) -> StopLog:
+    """The stops of an estimate, with the stop commands this printer runs: a command
+    Klipper does not know on a known config is skipped (the print goes on there). At each
+    the print waits for a person and reads no further line, so Klipper runs its look-ahead
+    out (toolhead.py `_handle_step_flush` -> `_flush_lookahead(is_runout=True)`): every
+    earlier move ends at rest, and that moment is the stop's time (`Timeline._feed_other`)."""
+    known = None if interp.modules is None else interp.registered | frozenset(interp.macros)
+    return StopLog(known_stops(stop_commands(limits.stop_commands, limits.gcode_macros), known))
 
 
 def first_extrusion(moves: list[Move], start_t: float, filament: float) -> float | None:

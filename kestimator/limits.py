@@ -387,6 +387,10 @@ class Limits:
     # Not a settable limit: not among `field_names()`, and not compared (two Limits with the
     # same values are equal whether or not they know the printer's steppers).
     machine: MachineConfig | None = dataclasses.field(default=None, compare=False)
+    # The stop commands the file's slicer settings and the user's profile name beyond the
+    # defaults (kestimator.stops; the printer's macros that call one are added where the
+    # estimate runs). Not a settable limit either: resolve_limits sets it.
+    stop_commands: tuple[str, ...] = ()
 
     @property
     def filament_area(self) -> float:
@@ -400,8 +404,10 @@ class Limits:
 
     @classmethod
     def field_names(cls) -> tuple[str, ...]:
-        """Every settable key, in declaration order (`machine` is not one)."""
-        return tuple(f.name for f in dataclasses.fields(cls) if f.name != "machine")
+        """Every settable key, in declaration order (`machine` and `stop_commands` are not
+        ones)."""
+        return tuple(f.name for f in dataclasses.fields(cls)
+                     if f.name not in ("machine", "stop_commands"))
 
     @classmethod
     def from_values(cls, values: Mapping[str, Any]) -> "Limits":

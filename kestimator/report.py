@@ -24,6 +24,7 @@ from kestimator.cli_output import (
     parts_to_json,
     printable,
     shown_warnings,
+    stop_rows,
     untimed_by_kind,
     untimed_detail,
     untimed_summary,
@@ -57,6 +58,9 @@ NUMBER_STEPS = (1.0, 2.0, 2.5, 5.0)
 MAX_TICKS = 5
 COLORS = ("#2f6fdf", "#e0702a", "#3a9d5d", "#b8408f", "#8a6d3b", "#5a5a5a", "#c23b3b",
           "#17a2b8")
+# The stops' lines on the remaining-time chart, and how many are drawn at most.
+STOP_COLOR = COLORS[6]
+MAX_STOP_MARKS = 200
 
 
 @dataclasses.dataclass
@@ -352,7 +356,42 @@ def remaining_chart(data: ReportData) -> str:
                     'stroke-width="2" points="%s"><title>%s (%s)</title></polyline>'
                     % (COLORS[1], " ".join(points), _escape(data.slicer.name),
                        _escape(data.remaining_source)))
+    body.extend(stop_marks(data.estimate, x_axis, y_axis))
     return _svg("chart-remaining", "Time remaining on the printer's display", body)
+
+
+def stop_marks(est: Estimate, x_axis: Axis, y_axis: Axis) -> list[str]:
+    """A dashed vertical line at each stop's time (kestimator.stops), titled with its
+    command, line and time (at most MAX_STOP_MARKS: the page stays small)."""
+    marks = []
+    for stop in est.stops[:MAX_STOP_MARKS]:
+        x = _x(x_axis, stop.time_s)
+        marks.append('<line class="stop" x1="%.1f" x2="%.1f" y1="%.1f" y2="%.1f" stroke="%s" '
+                     'stroke-width="2" stroke-dasharray="5 3"><title>%s, line %d: %s</title>'
+                     '</line>' % (x, x, _y(y_axis, y_axis.max), _y(y_axis, 0.0), STOP_COLOR,
+                                  _escape(stop.command), stop.line,
+                                  _escape(format_duration(stop.time_s))))
+    return marks
+
+
+def stops_table(est: Estimate) -> str:
+    """The stops: command, line, layer, Klipper time from the start, time since the last
+    stop (cli_output.stop_rows, as `estimate` lists them)."""
+    if not est.stops:
+        return ""
+    rows = stop_rows({"stops": [{"command": s.command, "line": s.line, "layer": s.layer,
+                                 "time_s": s.time_s} for s in est.stops],
+                      "total_s": est.total_s, "stops_unlisted": est.stops_unlisted})
+    head = "".join("<th>%s</th>" % title for title in ("Stop", "Line", "Layer", "At",
+                                                         "After"))
+    body = "".join("<tr>%s</tr>" % "".join("<td>%s</td>" % _escape(cell) for cell in row)
+                   for row in rows)
+    unlisted = ("<p class=\"note\">%d more stops not listed.</p>" % est.stops_unlisted
+                if est.stops_unlisted else "")
+    return ("<h2>When the printer waits for you</h2><p class=\"note\">Each stop (a colour "
+            "change, a pause: the dashed lines on the first chart) with Klipper's time from "
+            "the start, and since the last stop.</p><table class=\"stops\"><tr>%s</tr>%s"
+            "</table>%s" % (head, body, unlisted))
 
 
 def layer_chart(est: Estimate, layer_z: Sequence[float | None]) -> str:
@@ -634,6 +673,7 @@ def render_html(data: ReportData) -> str:
 %(banner)s
 <div class="cards">%(cards)s</div>
 <h2>What the printer's display says</h2>%(remaining_text)s%(legend)s%(remaining)s
+%(stops)s
 <h2>Time per layer</h2>
 <p class="note">Each bar is one layer, from its layer marker to the next; touch a bar for
 its Z height and time.</p>%(layers)s
@@ -653,7 +693,7 @@ slowing down (%(lost)s in all, %(share).0f %% of the print).</p>%(speed_legend)s
 """ % {
         "title": _escape("Klipper time for " + name), "css": _CSS, "cards": card_html,
         "banner": _banner(data), "remaining_text": _remaining_text(data),
-        "legend": legend, "remaining": remaining_chart(data),
+        "legend": legend, "remaining": remaining_chart(data), "stops": stops_table(est),
         "layers": layer_chart(est, data.layer_z), "objects": object_chart(est),
         "features": feature_chart(est), "speed": speed_chart(data.speed),
         "speed_legend": speed_legend(data.speed), "bin": SPEED_BIN_V,

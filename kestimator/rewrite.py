@@ -58,7 +58,7 @@ import re
 import stat
 import zlib
 from array import array
-from bisect import bisect_right
+from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterable
 from typing import BinaryIO
 
@@ -100,6 +100,7 @@ from kestimator.progress_table import (
 )
 from kestimator.slicers import SlicerAdapter, SlicerInfo, adapter_for, detect, read_file_ends
 from kestimator.slicers.base import HEAD, TAIL, FileEnds, KlipperTimes
+from kestimator.stops import Stop
 from kestimator.timedlines import TimedLines
 
 MARKER_PREFIX = "; kestimator "
@@ -109,6 +110,13 @@ _FOREIGN_LAYER_INFO_RE = re.compile(
     rb"^[ \t]*SET_PRINT_STATS_INFO\b(?![^\n]*; kestimator\r?$)", re.MULTILINE | re.IGNORECASE)
 PREP_PREFIX = "; time before first extrusion (kestimator) = "
 _PREP_PREFIX_B = PREP_PREFIX.encode()
+# The comment written before each stop (kestimator.stops): Klipper's time from the start
+# to when the printer stands there.
+STOP_PREFIX = "; stop (kestimator) "
+_STOP_PREFIX_B = STOP_PREFIX.encode()
+# An M73's time-to-change parameter (Prusa firmware: minutes to the next colour change or
+# pause), as a parameter word of the line.
+_M73_C_RE = re.compile(rb"[ \t]C[ \t]*[-+0-9.]")
 # The marker's exact format (`marker_line`): only a line matching it, after leading blanks and
 # before its line ending, is ours. `limits=` runs to the end of the line and may hold any
 # text (what it records is issue 17's), so it is matched loosely.
@@ -148,7 +156,8 @@ def attention_pattern(time_comment_prefixes: tuple[bytes, ...]) -> bytes:
     slicer's time comments (rewritten). Every other comment is copied as it is, except a
     layer marker, which a quiet stretch ends before by its line number."""
     starts = [_M73, LAYER_INFO_COMMAND + b" ", re.escape(_MARKER_PREFIX_B),
-              re.escape(_PREP_PREFIX_B), re.escape(HEADER_PREFIX), re.escape(CHUNK_PREFIX)]
+              re.escape(_PREP_PREFIX_B), re.escape(_STOP_PREFIX_B), re.escape(HEADER_PREFIX),
+              re.escape(CHUNK_PREFIX)]
     starts += [re.escape(prefix) for prefix in time_comment_prefixes]
     return rb"[ \t\r\x0b\x0c]*(?:%s)" % b"|".join(starts)
 
@@ -215,6 +224,16 @@ def progress_pr(t: float, total_s: float) -> tuple[int, int]:
     percent = int(done * PERCENT + 0.5)
     minutes = int(max(total_s - t, 0.0) / SECONDS_PER_MINUTE + 0.5)
     return percent, minutes
+
+
+def stop_line(command: str, t: float) -> str:
+    """The comment before a stop: its command and Klipper's time from the start."""
+    return "%s%s = %s (%.3f s) from the start" % (STOP_PREFIX, command, format_duration(t), t)
+
+
+def minutes_to_stop(t: float, stop_t: float) -> int:
+    """Whole minutes from `t` to a stop at `stop_t`, rounded to nearest (as M73 R)."""
+    return int(max(stop_t - t, 0.0) / SECONDS_PER_MINUTE + 0.5)
 
 
 def marker_line(total_s: float, slicer_s: float | None, limits_source: str) -> str:
@@ -304,8 +323,9 @@ def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 
     generation, the config's sections and macros), the kinematics' own sections of the
     printer's config (steppers, probe, homing, bed mesh; values only, not where they were
     read; [printer]'s options that are `Limits` fields only once, resolved, above), the
-    seconds per G28 and per heater wait, and the macro times (the profile's and the
-    learned ones). `inject` writes them into the table and the worker compares them with
+    seconds per G28 and per heater wait, the stop commands the slicer's settings and the
+    profile name (kestimator.stops), and the macro times (the profile's and the learned
+    ones). `inject` writes them into the table and the worker compares them with
     the printer's: both call this with what they give the estimate."""
     pairs: list[tuple[str, object]] = []
     for name in Limits.field_names():
@@ -323,6 +343,10 @@ def table_settings(limits: Limits, homing_time: float = 0.0, heat_time: float = 
                    if section != "printer" or option not in fields]]
         for section, options in machine.sections]))
     pairs += [("homing_time_s", homing_time), ("heat_time_s", heat_time)]
+    if limits.stop_commands:
+        # The slicer's and the profile's stop commands (the defaults and the printer's
+        # macros calling one are known from the above): each runs the look-ahead out.
+        pairs.append(("stop_commands", list(limits.stop_commands)))
     macros = macros if macros is not None else MacroTimes()
     prep, ratio = macros.before_first_extrusion, macros.motion_ratio
     pairs += [("macro_times", sorted([name, t.seconds] for name, t in macros.macros.items())
@@ -362,6 +386,11 @@ class InjectPlan:
     """The printer settings the table records (`table_settings`)."""
     table_line: int | None = None
     """The line the table is written before (`table_place`); None: at the file's end."""
+    stops: tuple[Stop, ...] = ()
+    """The stops (kestimator.stops): a comment with the time goes before each, and an M73
+    with a time-to-change (C) parameter gets the minutes to the next one."""
+    stop_lines: array = dataclasses.field(default_factory=lambda: array("q"))
+    """The stops' lines, in file order."""
 
     @classmethod
     def from_estimate(cls, est: Estimate, adapter: SlicerAdapter, slicer_s: float | None,
@@ -389,7 +418,8 @@ class InjectPlan:
                    tail_comment=moonraker_comment[1] if moonraker_comment is not None
                    and moonraker_comment[0] == TAIL else None,
                    layer_info_total=len(est.layers) if layer_info else 0,
-                   table=select(est) if table else None)
+                   table=select(est) if table else None, stops=tuple(est.stops),
+                   stop_lines=array("q", (stop.line for stop in est.stops)))
 
 
 class Rewriter:
@@ -432,7 +462,7 @@ class Rewriter:
         self.table: ProgressTable | None = None
         table_line = () if plan.table is None or plan.table_line is None else (plan.table_line,)
         self._stops = array("q", heapq.merge(plan.layer_lines.lines, plan.attention_lines,
-                                             self._table_lines, table_line))
+                                             self._table_lines, table_line, plan.stop_lines))
         self._next_stop = 0
 
     def _m73(self, percent: int, minutes: int, eol: bytes) -> bytes:
@@ -513,12 +543,12 @@ class Rewriter:
         if code[:1] == b";":
             return self._comment(raw, code, eol)
         if _is_m73(code):
-            return []
+            return time_to_stop(self.plan, lineno, code, eol or self.eol)
         if is_layer_info_line(code):
             return []  # ours: written again at the layer markers
-        out: list[bytes] = []
         plan = self.plan
         line_eol = eol or self.eol
+        out = stop_comment(plan, lineno, line_eol)
         if not self._started:
             self._started = True
             self._advance(self.lineno)
@@ -772,7 +802,7 @@ class Rewriter:
         return before + [raw] + after
 
     def _comment(self, raw: bytes, code: bytes, eol: bytes) -> list[bytes]:
-        if code.startswith(_PREP_PREFIX_B) or (
+        if code.startswith(_PREP_PREFIX_B) or code.startswith(_STOP_PREFIX_B) or (
                 code.startswith(_MARKER_PREFIX_B) and _MARKER_RE.match(code) is not None):
             return []
         if code.startswith(HEADER_PREFIX) and is_header_line(code):
@@ -792,6 +822,29 @@ class Rewriter:
                     indent = raw[:len(raw) - len(code)]
                     return [indent + new.encode("utf-8", "surrogateescape") + eol]
         return [raw]
+
+
+def stop_comment(plan: InjectPlan, line: int, eol: bytes) -> list[bytes]:
+    """The comment with the time at the stop on `line` (none if no stop is there)."""
+    index = bisect_left(plan.stop_lines, line)
+    if index < len(plan.stop_lines) and plan.stop_lines[index] == line:
+        stop = plan.stops[index]
+        return [stop_line(stop.command, stop.time_s).encode() + eol]
+    return []
+
+
+def time_to_stop(plan: InjectPlan, line: int, code: bytes, eol: bytes) -> list[bytes]:
+    """An M73 line of the slicer's (`code`, on `line`): dropped, but for its time-to-change
+    form (C, Prusa firmware's minutes to the next colour change or pause), written
+    Klipper-true from this line's time while a stop is still ahead."""
+    if _M73_C_RE.search(code.split(b";", 1)[0]) is None:
+        return []
+    index = bisect_left(plan.stop_lines, line)
+    if index >= len(plan.stop_lines):
+        return []
+    sample = bisect_left(plan.sample_lines, line)
+    t = plan.sample_times[sample - 1] if sample else 0.0
+    return [b"M73 C%d" % minutes_to_stop(t, plan.stops[index].time_s) + eol]
 
 
 @dataclasses.dataclass(frozen=True)

@@ -576,6 +576,12 @@ class ToolHead:
         """M400: stop until every queued move has finished."""
         self._flush_lookahead()
 
+    def run_out(self) -> None:
+        """The input stops (a pause waits for a person): Klipper's step-flush handler runs
+        the look-ahead out (`_handle_step_flush` -> `_flush_lookahead(is_runout=True)`),
+        every queued move planned to end at rest, as M400 plans them."""
+        self._flush_lookahead()
+
     def set_extruder(self, extruder: PrinterExtruder, extrude_pos: float) -> None:
         """ACTIVATE_EXTRUDER (after a full stop): that extruder's limits and E position."""
         self.extruder = extruder

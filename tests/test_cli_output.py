@@ -37,6 +37,7 @@ ESTIMATE_FIELDS: dict[str, tuple[type, ...]] = {
     "ignored_commands_unlisted": (int,),
     "warnings_dropped": (int,), "limits_guessed": (bool,), "untimed_commands": (dict,),
     "parts": (dict,), "commands": (dict,), "preflight": (list,),
+    "stops": (list,), "stops_unlisted": (int,),
 }
 SLICER_FIELDS = ("name", "version", "estimate_s", "first_layer_estimate_s", "difference_s",
                  "difference_pct")

@@ -228,6 +228,19 @@ def test_compiled_equals_pure_with_a_bed_mesh_and_skew_correction(
             assert a == b, (cfg.parent.name, path.name)
 
 
+def test_compiled_equals_pure_on_files_with_stops(compiled_python: str) -> None:
+    """Each stop runs the look-ahead out (kestimator.stops): the same bits in both builds,
+    on the real multi-colour files of tests/oracle_refs/stops with their printer.cfg."""
+    from .test_stops import FILES, STOPS, STOPS_CFG
+
+    paths = [STOPS / name for name in FILES]
+    compiled = digests(compiled_python, paths, on_path=False, printer_cfg=STOPS_CFG)
+    pure = digests(sys.executable, paths, printer_cfg=STOPS_CFG)
+    assert compiled[0] == '{"build": "compiled"}'
+    assert compiled[1:] == pure[1:]
+    assert '"command": "PAUSE"' in pure[1] and '"command": "M25"' in pure[2]
+
+
 def test_the_wheel_compiles_on_python_3_9_and_gives_the_same_fields(
         compiled_python39: str, tmp_path: Path) -> None:
     # mypy for 3.9 refused code 3.10+ accepted, and the build fell back to pure Python with

@@ -12,6 +12,7 @@ and its ``[limits]`` and ``[macros]`` add to the top-level ones::
     moonraker_timeout_s = 3
     homing_time_s = 25          # what one G28 takes on this printer (default 0)
     heat_time_s = 90            # what one heater wait takes (default 0)
+    stop_commands = ["FILAMENT_SWAP"]  # commands that wait for you, beyond M600, PAUSE...
 
     [macros]                     # seconds one run of a macro takes on this printer
     PRINT_START = 420
@@ -54,7 +55,10 @@ MAX_MOONRAKER_TIMEOUT_S = 3600.0
 """An hour: beyond, a deadline is no deadline (and 1e308 s overflows the clock)."""
 
 _TOP_KEYS = frozenset((*_TEXT_KEYS, *DURATION_KEYS, "moonraker_timeout_s", "limits",
-                       "macros", "printers"))
+                       "macros", "printers", "stop_commands"))
+# A command name as Klipper's G-code dispatch looks it up (letters, digits, underscores).
+_COMMAND_NAME_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_")
+MAX_STOP_COMMANDS = 100
 _TABLE_KEYS = _TOP_KEYS - {"printers"}
 
 
@@ -77,6 +81,8 @@ class Profile:
     heat_time_s: float | None = None
     macros: Mapping[str, float] = dataclasses.field(default_factory=dict)
     """Macro name (upper case, as Klipper looks it up) -> seconds one run takes."""
+    stop_commands: tuple[str, ...] = ()
+    """The user's own commands at which the print waits for them (upper case)."""
 
     @property
     def description(self) -> str:
@@ -173,6 +179,7 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
             raise KestimatorError(f"{key} must be a number of seconds, 0 or more and at most "
                                   f"a year ({MAX_PRINT_S:g})", name)
         durations[key] = None if value is None else float(value)
+    stops = _stop_commands(settings.get("stop_commands", []), name)
     printer_cfg = settings.get("printer_cfg")
     if printer_cfg is not None:
         printer_cfg = os.path.join(os.path.dirname(os.path.abspath(name)),
@@ -182,7 +189,19 @@ def load_profile(path: str | os.PathLike[str], printer: str | None = None,
                    moonraker_timeout_s=None if timeout_s is None else float(timeout_s),
                    limits=limits, limit_sources=limit_sources,
                    homing_time_s=durations["homing_time_s"],
-                   heat_time_s=durations["heat_time_s"], macros=macros)
+                   heat_time_s=durations["heat_time_s"], macros=macros,
+                   stop_commands=stops)
+
+
+def _stop_commands(value: object, path: str) -> tuple[str, ...]:
+    """``stop_commands``: a list of command names, upper-cased as Klipper looks them up."""
+    if not isinstance(value, list) or len(value) > MAX_STOP_COMMANDS or not all(
+            isinstance(item, str) and item.strip() and len(item) <= 64
+            and set(item.strip().upper()) <= _COMMAND_NAME_CHARS for item in value):
+        raise KestimatorError("stop_commands must be a list of at most %d command names "
+                              '(letters, digits, "_"), e.g. ["M600", "FILAMENT_SWAP"]'
+                              % MAX_STOP_COMMANDS, path)
+    return tuple(item.strip().upper() for item in value)
 
 
 def toml_available() -> bool:

@@ -61,6 +61,7 @@ from kestimator.slicers import (
     read_slicer_settings,
 )
 from kestimator.slicers.settings import NO_SETTINGS
+from kestimator.stops import DEFAULT_STOP_COMMANDS_SET, slicer_stop_commands
 
 API_KEY_ENVIRONMENT = "MOONRAKER_API_KEY"
 """Where the Moonraker API key may come from when neither --api-key nor the profile gives it."""
@@ -276,6 +277,11 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
     limits, chosen = _build(chosen)
     if machine is not None and machine.machine is not None:
         limits = limits.replace(machine=machine.machine)
+    # Beyond the defaults (every estimate knows those).
+    stops = (slicer_stop_commands(slicer_settings.stop_gcode) | frozenset(
+        profile.stop_commands if profile is not None else ())) - DEFAULT_STOP_COMMANDS_SET
+    if stops:
+        limits = limits.replace(stop_commands=tuple(sorted(stops)))
     # Built once here so that a value Klipper refuses stops now, with its file and line
     # (what it does not model is said by the estimate, which builds it again).
     load_kinematics(limits)

@@ -34,6 +34,7 @@ from kestimator.slicers.generic import UNKNOWN, GenericAdapter
 from kestimator.slicers.orca import OrcaAdapter
 from kestimator.slicers.prusaslicer import PrusaSlicerAdapter
 from kestimator.slicers.settings import NO_SETTINGS, SlicerConfig, SlicerSettings
+from kestimator.stops import SLICER_STOP_KEYS
 
 __all__ = [
     "ADAPTERS",
@@ -247,4 +248,6 @@ def _read_slicer_settings(ends: FileEnds | None, environ: Mapping[str, str] | No
         return info, NO_SETTINGS if flavour is None else dataclasses.replace(
             NO_SETTINGS, flavour=flavour)
     settings = adapter.map_settings(config)
-    return info, dataclasses.replace(settings, origin=" + ".join(origins), flavour=flavour)
+    stop_gcode = tuple((key, config[key].text) for key in SLICER_STOP_KEYS if key in config)
+    return info, dataclasses.replace(settings, origin=" + ".join(origins), flavour=flavour,
+                                     stop_gcode=stop_gcode)

@@ -83,6 +83,9 @@ class SlicerSettings:
     flavour: str | None = None
     """One line when the file was sliced for another firmware's G-code flavour (its settings
     or its commands say so), naming how to choose Klipper's in that slicer; else None."""
+    stop_gcode: tuple[tuple[str, str], ...] = ()
+    """The slicer's colour-change and pause G-code (kestimator.stops.SLICER_STOP_KEYS), key
+    -> text as written: the commands it runs are stops."""
 
     def by_field(self) -> dict[str, SlicerLimit]:
         """The mapped values keyed by ``Limits`` field."""
