@@ -338,3 +338,25 @@ def _setup_py() -> ModuleType:
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+@pytest.mark.parametrize(("available_mib", "cpus", "jobs"), [
+    (280, 4, 1),     # a small board: one compiler at a time, as the 300 MiB bar was measured
+    (540, 4, 1),     # not yet room for a second cc1 (COMPILE_JOB_MIB) beside the install
+    (560, 1, 1),     # one CPU: nothing to gain
+    (560, 2, 2),     # the README's 2-CPU host with memory: both CPUs compile
+    (24000, 2, 2),
+    (24000, 8, 8),
+])
+def test_c_files_compile_side_by_side_only_where_cpus_and_ram_allow(
+        available_mib: int, cpus: int, jobs: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    setup_py = _setup_py()
+    monkeypatch.delenv("KESTIMATOR_BUILD_JOBS", raising=False)
+    monkeypatch.delenv("KESTIMATOR_BUILD_MEMORY_MIB", raising=False)
+    # Swap does not count: a compile that swaps is slower than one after the other.
+    monkeypatch.setattr(setup_py, "_meminfo_mib",
+                        lambda: {"MemAvailable": available_mib, "SwapFree": 4096})
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cpus)))
+    assert setup_py.compile_jobs() == jobs
+    monkeypatch.setenv("KESTIMATOR_BUILD_JOBS", "3")
+    assert setup_py.compile_jobs() == 3
