@@ -9,9 +9,20 @@ it prints one line saying which and why (pip shows build output only with `-v`;
 `kestimator --version` says "compiled" or "pure Python" afterwards).
 
 Memory (a small board runs Klipper beside the install): mypy runs in a child process that
-has exited before gcc starts, the modules are compiled in three groups (three C files, one
-gcc at a time) and gcc's garbage collector is told to keep its heap small. The install's peak,
-summed over every process, is measured by benchmarks/install_memory.py.
+has exited before gcc starts, the modules are compiled in three groups (three C files) and
+gcc's garbage collector is told to keep its heap small. The C files are compiled one at a
+time, or one per CPU where RAM beyond BUILD_MEMORY_MIB holds a compiler more
+(compile_jobs; KESTIMATOR_BUILD_JOBS=N sets it). The install's peak, summed over every
+process, and the README's first command's time are measured by benchmarks/install_memory.py.
+
+Float arithmetic: Klipper's planner is Python, whose every float operation is one
+IEEE double operation rounded once. A C compiler may do otherwise: fuse `a*b + c` into one
+multiply-add (GCC's default on aarch64, clang's within an expression, any compiler given
+-march=haswell or -mfma), keep x87 intermediates in 80 bits, or take -ffast-math (whose link
+step also switches the CPU's denormals to zero) from the user's CFLAGS. Every compiled module
+is built with FLOAT_FLAGS after the user's flags (the last flag wins), linked with
+FLOAT_LINK_FLAGS, and a probe library built the same way must compute what Python computes
+before anything is compiled; a compiler that will not is refused (the pure package, and why).
 
 KESTIMATOR_BUILD=pure forces the pure package; KESTIMATOR_BUILD=compiled makes any reason
 not to compile an error instead of a fallback. An editable install (`pip install -e .`,
@@ -85,6 +96,67 @@ BUILD_MEMORY_MIB = 300
 # the parameters change only when memory is collected), the compile takes ~15 % more CPU.
 _GCC_MEMORY_FLAGS = ["--param=ggc-min-expand=10", "--param=ggc-min-heapsize=16384"]
 _COMPILER_FLAGS: list[str] = []  # _GCC_MEMORY_FLAGS when the probe's compiler takes them
+# What one more compiler running at once needs: cc1's largest peak, on the commands group's
+# C file, is 201 MiB (/usr/bin/time, gcc 12, the flags above). The C files are compiled
+# one at a time unless RAM beyond BUILD_MEMORY_MIB holds another (compile_jobs).
+COMPILE_JOB_MIB = 250
+# mypyc's optimisation level (-O3): the probe below is compiled at it too, as contraction
+# into a multiply-add is an optimisation.
+OPT_LEVEL = "3"
+# Float arithmetic as CPython's, whatever CFLAGS say (they come first on gcc's command line,
+# these last): no contraction into fused multiply-adds, none of -ffast-math's parts (each
+# named, as -fno-fast-math leaves one the user set alone), and on x87 every assignment
+# rounded to a double, as CPython's every operation is (mypyc gives each operation its own
+# assignment). The first set the compiler takes without a warning is used: GCC's, clang's.
+FLOAT_FLAG_SETS = (
+    ["-ffp-contract=off", "-fno-fast-math", "-fno-unsafe-math-optimizations",
+     "-fno-associative-math", "-fno-reciprocal-math", "-fno-finite-math-only",
+     "-fsigned-zeros", "-fno-single-precision-constant", "-fexcess-precision=standard"],
+    ["-ffp-contract=off", "-fno-fast-math", "-fno-unsafe-math-optimizations",
+     "-fno-associative-math", "-fno-reciprocal-math", "-fno-finite-math-only",
+     "-fsigned-zeros", "-fno-approx-func", "-fhonor-nans", "-fhonor-infinities"],
+)
+# At the link: -ffast-math, -funsafe-math-optimizations or -Ofast in CFLAGS (which distutils
+# passes to the link too) make gcc link crtfastmath.o, whose constructor sets flush-to-zero
+# for the whole Python process when the library loads; a later -fno-... or -O<level> undoes
+# each (gcc's driver takes the last of a switch and its negation).
+FLOAT_LINK_FLAGS = ["-fno-fast-math", "-fno-unsafe-math-optimizations", "-O" + OPT_LEVEL]
+FLOAT_FLAGS: list[str] = []  # the set the probe's compiler takes
+# The probe: a = b = 1 + 2**-30, c = -(1 + 2**-29). Python rounds a*b to 1 + 2**-29 and
+# a*b + c is 0.0; fused (one rounding) or kept in a wider register it is 2**-60. The first
+# function is mypyc's form (an assignment per operation), the second one expression (which
+# clang contracts by default; C lets an x87 compiler keep it wide, so it is only checked
+# where FLT_EVAL_METHOD is 0).
+FLOAT_PROBE_C = """\
+#include <float.h>
+double kestimator_statements(double a, double b, double c) {
+    double t = a * b;
+    double u = t + c;
+    return u;
+}
+double kestimator_expression(double a, double b, double c) {
+#if defined(FLT_EVAL_METHOD) && FLT_EVAL_METHOD == 0
+    return a * b + c;
+#else
+    return kestimator_statements(a, b, c);
+#endif
+}
+"""
+# Run by this Python with the probe library: exit 3 if its arithmetic is not Python's, 4 if
+# loading it switched denormals to zero (flush-to-zero, denormals-are-zero), 0 if all is well.
+FLOAT_PROBE_PY = """\
+import ctypes, sys
+lib = ctypes.CDLL(sys.argv[1])
+a, c = 1.0 + 2.0 ** -30, -(1.0 + 2.0 ** -29)
+for name in ("kestimator_statements", "kestimator_expression"):
+    f = getattr(lib, name)
+    f.restype, f.argtypes = ctypes.c_double, [ctypes.c_double] * 3
+    if f(a, a, c) != a * a + c:
+        sys.exit(3)
+m = sys.float_info.min
+if m / 2.0 == 0.0 or (m / 2.0) * 2.0 != m:
+    sys.exit(4)
+"""
 
 
 def _say(message: str) -> None:
@@ -121,7 +193,62 @@ def _c_compiler_problem() -> str | None:
             _COMPILER_FLAGS.clear()
         else:
             _COMPILER_FLAGS[:] = _GCC_MEMORY_FLAGS
+        return _float_problem(compiler, tmp)
+
+
+def _float_problem(compiler: object, tmp: str) -> str | None:
+    """Why this compiler's float arithmetic would not be Python's (None: it is, with
+    FLOAT_FLAGS set to the flags that make it so)."""
+    source = os.path.join(tmp, "float_probe.c")
+    with open(source, "w", encoding="ascii") as f:
+        f.write(FLOAT_PROBE_C)
+    FLOAT_FLAGS.clear()
+    objects: list[str] = []
+    for flags in FLOAT_FLAG_SETS:
+        try:  # -Werror: a compiler that ignores a flag it does not know says so in a warning
+            objects = compiler.compile(  # type: ignore[attr-defined]
+                [source], output_dir=tmp,
+                extra_postargs=["-O" + OPT_LEVEL, "-Werror", *_COMPILER_FLAGS, *flags])
+        except Exception:
+            continue
+        FLOAT_FLAGS[:] = flags
+        break
+    else:
+        return ("the C compiler does not take %s (its float arithmetic could differ from "
+                "Python's)" % " ".join(FLOAT_FLAG_SETS[0][:2]))
+    library = os.path.join(tmp, "float_probe.so")
+    try:
+        compiler.link_shared_object(  # type: ignore[attr-defined]
+            objects, library, extra_postargs=FLOAT_LINK_FLAGS)
+    except Exception as exc:
+        return "the C compiler cannot link a shared library (%s)" % (
+            str(exc).splitlines() or ["?"])[0]
+    check = subprocess.run([sys.executable, "-c", FLOAT_PROBE_PY, library],
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    if check.returncode == 3:
+        return ("the C compiler fuses or widens float arithmetic even with %s (its results "
+                "would differ from Python's)" % " ".join(FLOAT_FLAGS))
+    if check.returncode == 4:
+        return ("a library linked with these flags switches denormal floats to zero "
+                "(-ffast-math in LDFLAGS?); its results would differ from Python's")
+    # Any other outcome (no ctypes, a library this Python cannot load: cross-compiling) leaves
+    # the flags alone to keep the arithmetic Python's.
     return None
+
+
+def _meminfo_mib() -> dict[str, int] | None:
+    """/proc/meminfo in MiB (None where there is none)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            return {line.split(":")[0]: int(line.split()[1]) // 1024
+                    for line in f if ":" in line}
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _memory_need_mib() -> int:
+    wanted = os.environ.get("KESTIMATOR_BUILD_MEMORY_MIB", "").strip()
+    return int(wanted) if wanted.isdigit() else BUILD_MEMORY_MIB
 
 
 def _memory_problem() -> str | None:
@@ -129,14 +256,11 @@ def _memory_problem() -> str | None:
 
     Compiling needs BUILD_MEMORY_MIB free (available RAM plus free swap): on a board that is
     also running Klipper, the kernel's out-of-memory killer could pick Klipper instead."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            info = {line.split(":")[0]: int(line.split()[1]) for line in f if ":" in line}
-        free_mib = (info["MemAvailable"] + info.get("SwapFree", 0)) // 1024
-    except (OSError, KeyError, ValueError, IndexError):
+    info = _meminfo_mib()
+    if info is None or "MemAvailable" not in info:
         return None
-    wanted = os.environ.get("KESTIMATOR_BUILD_MEMORY_MIB", "").strip()
-    need = int(wanted) if wanted.isdigit() else BUILD_MEMORY_MIB
+    free_mib = info["MemAvailable"] + info.get("SwapFree", 0)
+    need = _memory_need_mib()
     if free_mib < need:
         return "only %d MiB of memory free (RAM and swap); compiling needs %d MiB" % (
             free_mib, need)
@@ -170,8 +294,34 @@ def _pure_reason() -> str | None:
     return reason
 
 
+def compile_jobs() -> int:
+    """How many C files to compile at once: one per CPU while RAM (not swap) holds another
+    compiler beside the install's BUILD_MEMORY_MIB; one where that is not known.
+
+    KESTIMATOR_BUILD_JOBS=N sets it."""
+    wanted = os.environ.get("KESTIMATOR_BUILD_JOBS", "").strip()
+    if wanted.isdigit() and int(wanted) >= 1:
+        return int(wanted)
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    info = _meminfo_mib()
+    if info is None or "MemAvailable" not in info:
+        return 1
+    spare = info["MemAvailable"] - _memory_need_mib()
+    return max(1, min(cpus, 1 + spare // COMPILE_JOB_MIB))
+
+
 class BuildExtOrPure(build_ext):
-    """build_ext that falls back to the pure package if the C build fails."""
+    """build_ext that falls back to the pure package if the C build fails, and compiles
+    compile_jobs() extensions at once (setuptools' own --parallel)."""
+
+    def finalize_options(self) -> None:
+        super().finalize_options()
+        if not self.parallel and self.extensions:
+            jobs = compile_jobs()
+            self.parallel = jobs if jobs > 1 else None
 
     def run(self) -> None:
         try:
@@ -207,9 +357,16 @@ def _mypyc_in_child() -> list[object]:
             raise RuntimeError(why)
         with open(result, "rb") as f:
             modules: list[object] = pickle.load(f)  # noqa: S301 (our own child's)
+    # The three groups' libraries first: run side by side, the longest compiles start first
+    # and the modules' small shims fill in around them.
+    modules.sort(key=lambda extension: not extension.name.endswith(  # type: ignore[attr-defined]
+        "__mypyc"))
     for extension in modules:
         extension.extra_compile_args = [  # type: ignore[attr-defined]
-            *extension.extra_compile_args, *_COMPILER_FLAGS]  # type: ignore[attr-defined]
+            *extension.extra_compile_args,  # type: ignore[attr-defined]
+            *_COMPILER_FLAGS, *FLOAT_FLAGS]
+        extension.extra_link_args = [  # type: ignore[attr-defined]
+            *extension.extra_link_args, *FLOAT_LINK_FLAGS]  # type: ignore[attr-defined]
     return modules
 
 
@@ -217,7 +374,7 @@ def _mypyc_child(result: str) -> None:
     """The child's work: mypycify (writes build/*.c), its extensions pickled to `result`."""
     from mypyc.build import mypycify
     modules = mypycify(["--ignore-missing-imports", *COMPILED_MODULES],
-                       opt_level="3", debug_level="0", separate=GROUPS)
+                       opt_level=OPT_LEVEL, debug_level="0", separate=GROUPS)
     with open(result, "wb") as f:
         pickle.dump(list(modules), f)
 
