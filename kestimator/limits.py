@@ -82,6 +82,27 @@ KLIPPER_RELEASE_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str], ..
 }
 APP_NAMES = {"klipper": "Klipper", "kalico": "Kalico"}
 
+# Each app's toolhead rules, oldest first, as (git describe position, the junction rule and
+# the print-time rule from there on); independent of the generation. Junction rules
+# (toolhead.py's Move.calc_junction): "clamped", the junction cosine clamped at -0.999999 and
+# a reversal (cosine above 0.999999) starting from rest, the centripetal limit as
+# .5 * move_d * tan_theta_d2 * accel (Klipper v0.12.0 and before); "clamped_delta_v2", the
+# same computed as delta_v2 * quarter_tan_theta_d2 (8291788f4, v0.12.0-383); "mainline", no
+# clamp (847331260, v0.12.0-384, 2024-11). Print-time rules (toolhead.py's flush of step
+# generation): "force_flush", a full flush remembers how far steps were generated (at least
+# print_time - kin_flush_delay, after a dwell) and motion restarts kin_flush_delay after it
+# (Klipper v0.12.0 and before; G4 and M400 in the main state leave it); "mainline", step
+# generation restarts after the last move's (b7b13588c, v0.12.0-23, 2023-11, onward as
+# kestimator knew before; v0.12.0-23 to -40 are not told apart). Kalico v2026.07.00 has the
+# mainline rules.
+KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str], ...]] = {
+    "klipper": (((0,), 0, "clamped", "force_flush"),
+                ((0, 12, 0), 23, "clamped", "mainline"),
+                ((0, 12, 0), 383, "clamped_delta_v2", "mainline"),
+                ((0, 12, 0), 384, "mainline", "mainline")),
+    "kalico": (((0,), 0, "mainline", "mainline"),),
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class KlipperRelease:
@@ -95,6 +116,9 @@ class KlipperRelease:
     generation: str
     rule: str
     note: str | None = None
+    # The junction and print-time rules (KLIPPER_TOOLHEAD_RULES) of this release.
+    junction: str = "mainline"
+    print_time: str = "mainline"
 
     @property
     def accepts_max_accel_to_decel(self) -> bool:
@@ -125,14 +149,19 @@ def klipper_release(version: str) -> KlipperRelease:
     commits = int(match.group("commits") or 0)
     name = APP_NAMES[app]
     newest_release, newest_commits, generation, rule = rules[-1]
+    junction, print_time = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
     if (release, commits) > (newest_release, newest_commits):
         return KlipperRelease(name, release, commits, generation, rule,
                               f"klipper_version {version.strip()} is newer than the newest "
-                              f"{name} kestimator knows: taken as {rule}")
+                              f"{name} kestimator knows: taken as {rule}", junction, print_time)
     for start, start_commits, start_generation, start_rule in rules:
         if (release, commits) >= (start, start_commits):
             generation, rule = start_generation, start_rule
-    return KlipperRelease(name, release, commits, generation, rule)
+    for start, start_commits, start_junction, start_print_time in KLIPPER_TOOLHEAD_RULES[app]:
+        if (release, commits) >= (start, start_commits):
+            junction, print_time = start_junction, start_print_time
+    return KlipperRelease(name, release, commits, generation, rule, junction=junction,
+                          print_time=print_time)
 
 
 # Options of an [extruderN] section that change motion time (kinematics/extruder.py).

@@ -13,9 +13,13 @@ for gcode in \
     gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode \
     gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
     gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
-    gcode/slic3r/slic3r130_torus_x3_accel.gcode; do
+    gcode/slic3r/slic3r130_torus_x3_accel.gcode \
+    flush_junctions.gcode; do
     name=$(basename "$gcode" .gcode)
-    python3 "$ORACLE" "$CORPUS/$gcode" --cfg "$DIR/printer.cfg" --klipper "$KLIPPER_V0_12" \
+    # flush_junctions.gcode is kestimator's own (beside the references), the rest the corpus's
+    src=$CORPUS/$gcode
+    [ -e "$src" ] || src=$DIR/$gcode
+    python3 "$ORACLE" "$src" --cfg "$DIR/printer.cfg" --klipper "$KLIPPER_V0_12" \
         --python "$ORACLE_PYTHON" --mark-every 0 --reference > "$DIR/$name.json.tmp"
     # The harness labels its output with the Klipper it was written for: say which one ran.
     python3 - "$DIR/$name.json.tmp" "$gcode" <<'PY'
