@@ -17,8 +17,9 @@ X=Y=Z=0 (the oracle's convention: the start macro that homes is not in the file)
 
 Where an older Klipper's toolhead.py differs and `klipper_version` names it, its rule sits
 beside today's, written as that release has it: `ClampedJunctionMove` (junctions before
-847331260, v0.12.0-384) and `ForceFlushToolHead` (print time before b7b13588c, v0.12.0-23),
-chosen by `make_toolhead` (the version table is `kestimator.limits`').
+847331260, v0.12.0-384), `ForceFlushToolHead` (print time before b7b13588c, v0.12.0-23) and
+`MinRestartToolHead` (print time from v0.12.0-69 to v0.13.0-237), chosen by `make_toolhead`
+(the version table is `kestimator.limits`').
 
 The planner does no I/O and knows no G-code. Positions are (x, y, z, e) in mm. Unit
 suffixes (Klipper's legend): _d is distance (mm), _v is velocity (mm/s), _v2 is velocity
@@ -45,8 +46,8 @@ try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says wh
 except ImportError:
     from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
-__all__ = ["ClampedJunctionMove", "ForceFlushToolHead", "LookAheadQueue", "Move", "MoveError",
-           "ToolHead", "ToolHeadCommandHelper", "make_toolhead"]
+__all__ = ["ClampedJunctionMove", "ForceFlushToolHead", "LookAheadQueue", "MinRestartToolHead",
+           "Move", "MoveError", "ToolHead", "ToolHeadCommandHelper", "make_toolhead"]
 
 # Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
 EXTRUDE_ONLY_ACCEL: Final = 99999999.9
@@ -514,11 +515,15 @@ class ToolHead:
         self._calc_junction_deviation()
         # The junction rule of the Klipper named by klipper_version (mainline without one):
         # None for Move's, else the Move class with that release's calc_junction.
-        junction = (klipper_release(limits.klipper_version).junction
-                    if limits.klipper_version else "mainline")
+        release = klipper_release(limits.klipper_version) if limits.klipper_version else None
         self.old_junction_move: type[Move] | None = {
             "clamped": ClampedJunctionMove,
-            "clamped_delta_v2": DeltaV2ClampedJunctionMove}.get(junction)
+            "clamped_delta_v2": DeltaV2ClampedJunctionMove}.get(
+                release.junction if release is not None else "mainline")
+        # Whether a new pressure-advance window also waits for the toolhead
+        # (kestimator.extruder's SET_PRESSURE_ADVANCE; the releases in KLIPPER_TOOLHEAD_RULES).
+        self.pressure_advance_waits = (release is not None
+                                       and release.pressure_advance_waits)
         # Print time tracking
         self.print_time = 0.0
         self.special_queuing_state = "NeedPrime"
@@ -801,12 +806,37 @@ class ForceFlushToolHead(ToolHead):
         self._flush_lookahead()
 
 
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class MinRestartToolHead(ToolHead):
+    """The print-time tracking of Klipper 3d3b87f97 (v0.12.0-69, 2024-01) to v0.13.0-237
+    (its `min_restart_time`, replaced in 1e7c67919), as klippy/toolhead.py of Klipper v0.13.0
+    has it: a full flush of step generation (`flush_step_generation`) also takes the restart
+    to print_time, so motion restarts at least kin_flush_delay after the flush (after a dwell
+    too), and the homing flush at the origin delays the first move by it. Made by
+    `make_toolhead` when `klipper_version` names such a release."""
+
+    def __init__(self, limits: Limits,
+                 on_moves: Callable[[list[Move], float], None] | None = None) -> None:
+        super().__init__(limits, on_moves)
+        # The head starts homed: the homing's flush_step_generation at the origin.
+        self.motion_queuing.last_step_gen_time = 0.0
+
+    def flush_step_generation(self) -> None:
+        """Bring the toolhead to rest; motion restarts no sooner than after this time."""
+        super().flush_step_generation()
+        # upstream: self.min_restart_time = max(self.min_restart_time, self.print_time)
+        if self.print_time > self.motion_queuing.last_step_gen_time:
+            self.motion_queuing.last_step_gen_time = self.print_time
+
+
 def make_toolhead(limits: Limits,
                   on_moves: Callable[[list[Move], float], None] | None = None) -> ToolHead:
     """The ToolHead of the Klipper `limits.klipper_version` names (today's without one)."""
-    if limits.klipper_version and klipper_release(
-            limits.klipper_version).print_time == "force_flush":
+    rule = klipper_release(limits.klipper_version).print_time if limits.klipper_version else ""
+    if rule == "force_flush":
         return ForceFlushToolHead(limits, on_moves)
+    if rule == "min_restart":
+        return MinRestartToolHead(limits, on_moves)
     return ToolHead(limits, on_moves)
 
 
