@@ -44,7 +44,7 @@ from kestimator.preflight import KIND_STOP, Finding, Preflight
 from kestimator.segments import OBJECT_COMMANDS, Segments
 from kestimator.stops import Stop, StopLog, known_stops, stop_commands
 from kestimator.timedlines import TimedLines
-from kestimator.toolhead import Move, ToolHead
+from kestimator.toolhead import Move, make_toolhead
 
 try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
     from mypy_extensions import mypyc_attr
@@ -427,7 +427,7 @@ class Timeline:
         self.path = path
         self.observer = observer
         self.events = EventRunner(self, events) if events else None
-        self.toolhead = ToolHead(limits, on_moves=self._on_moves)
+        self.toolhead = make_toolhead(limits, on_moves=self._on_moves)
         self.warnings = Warnings(path)
         self.interp = Interpreter(limits, self.toolhead, self._warn_here,
                                   homing_time=homing_time, heat_time=heat_time,

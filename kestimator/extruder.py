@@ -200,6 +200,10 @@ class PrinterExtruders:
         stepper.pressure_advance_smooth_time = smooth_time
         if new_window:
             self._check_scan_windows()
+            if self.toolhead.pressure_advance_waits:
+                # Klipper v0.12.0-262 to v0.13.0-245 register a look-ahead callback after
+                # the flush too; with nothing queued that is get_last_move_time.
+                self.toolhead.get_last_move_time()
 
     def cmd_SET_E_ROTATION_DISTANCE(self, cmd: Command) -> None:
         """SET_EXTRUDER_ROTATION_DISTANCE: a new rotation distance stops step generation."""

@@ -82,6 +82,36 @@ KLIPPER_RELEASE_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str], ..
 }
 APP_NAMES = {"klipper": "Klipper", "kalico": "Kalico"}
 
+# Each app's toolhead rules, oldest first, as (git describe position, the junction rule and
+# the print-time rule from there on); independent of the generation. Junction rules
+# (toolhead.py's Move.calc_junction): "clamped", the junction cosine clamped at -0.999999 and
+# a reversal (cosine above 0.999999) starting from rest, the centripetal limit as
+# .5 * move_d * tan_theta_d2 * accel (Klipper v0.12.0 and before); "clamped_delta_v2", the
+# same computed as delta_v2 * quarter_tan_theta_d2 (8291788f4, v0.12.0-383); "mainline", no
+# clamp (847331260, v0.12.0-384, 2024-11). Print-time rules (toolhead.py's flush of step
+# generation): "force_flush", a full flush remembers how far steps were generated (at least
+# print_time - kin_flush_delay, after a dwell) and motion restarts kin_flush_delay after it
+# (Klipper v0.12.0 and before; G4 and M400 in the main state leave it); "min_restart", a full
+# flush also takes the restart to print_time (min_restart_time: 3d3b87f97, v0.12.0-69, 2024-01,
+# to v0.13.0-237); "mainline", step generation restarts after the last move's steps
+# (1e7c67919, v0.13.0-238, 2025-08; v0.12.0-23 to -68 are not told apart from it). Kalico
+# v2026.07.00 has the mainline junction rule; its print time is taken as mainline's (its
+# toolhead has min_restart_time, not yet held to Kalico itself). The last column: a new
+# pressure-advance window waits for the toolhead as well (SET_PRESSURE_ADVANCE's look-ahead
+# callback after its flush, which with nothing queued is get_last_move_time: c84d78f3f,
+# v0.12.0-262, 2024-07, to v0.13.0-245; 542694350 took it out).
+KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str, bool], ...]] = {
+    "klipper": (((0,), 0, "clamped", "force_flush", False),
+                ((0, 12, 0), 23, "clamped", "mainline", False),
+                ((0, 12, 0), 69, "clamped", "min_restart", False),
+                ((0, 12, 0), 262, "clamped", "min_restart", True),
+                ((0, 12, 0), 383, "clamped_delta_v2", "min_restart", True),
+                ((0, 12, 0), 384, "mainline", "min_restart", True),
+                ((0, 13, 0), 238, "mainline", "mainline", True),
+                ((0, 13, 0), 246, "mainline", "mainline", False)),
+    "kalico": (((0,), 0, "mainline", "mainline", False),),
+}
+
 
 @dataclasses.dataclass(frozen=True)
 class KlipperRelease:
@@ -95,6 +125,11 @@ class KlipperRelease:
     generation: str
     rule: str
     note: str | None = None
+    # The junction, print-time and pressure-advance rules (KLIPPER_TOOLHEAD_RULES) of this
+    # release.
+    junction: str = "mainline"
+    print_time: str = "mainline"
+    pressure_advance_waits: bool = False
 
     @property
     def accepts_max_accel_to_decel(self) -> bool:
@@ -125,14 +160,21 @@ def klipper_release(version: str) -> KlipperRelease:
     commits = int(match.group("commits") or 0)
     name = APP_NAMES[app]
     newest_release, newest_commits, generation, rule = rules[-1]
+    junction, print_time, waits = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
     if (release, commits) > (newest_release, newest_commits):
         return KlipperRelease(name, release, commits, generation, rule,
                               f"klipper_version {version.strip()} is newer than the newest "
-                              f"{name} kestimator knows: taken as {rule}")
+                              f"{name} kestimator knows: taken as {rule}", junction, print_time,
+                              waits)
     for start, start_commits, start_generation, start_rule in rules:
         if (release, commits) >= (start, start_commits):
             generation, rule = start_generation, start_rule
-    return KlipperRelease(name, release, commits, generation, rule)
+    for start, start_commits, start_junction, start_print_time, start_waits in (
+            KLIPPER_TOOLHEAD_RULES[app]):
+        if (release, commits) >= (start, start_commits):
+            junction, print_time, waits = start_junction, start_print_time, start_waits
+    return KlipperRelease(name, release, commits, generation, rule, junction=junction,
+                          print_time=print_time, pressure_advance_waits=waits)
 
 
 # Options of an [extruderN] section that change motion time (kinematics/extruder.py).

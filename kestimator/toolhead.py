@@ -15,6 +15,12 @@ Batch mode has no MCU: the reactor, pause checks, priming timer and trapq are le
 and print time starts at 0 when the first move (or dwell) starts. The head starts homed at
 X=Y=Z=0 (the oracle's convention: the start macro that homes is not in the file).
 
+Where an older Klipper's toolhead.py differs and `klipper_version` names it, its rule sits
+beside today's, written as that release has it: `ClampedJunctionMove` (junctions before
+847331260, v0.12.0-384), `ForceFlushToolHead` (print time before b7b13588c, v0.12.0-23) and
+`MinRestartToolHead` (print time from v0.12.0-69 to v0.13.0-237), chosen by `make_toolhead`
+(the version table is `kestimator.limits`').
+
 The planner does no I/O and knows no G-code. Positions are (x, y, z, e) in mm. Unit
 suffixes (Klipper's legend): _d is distance (mm), _v is velocity (mm/s), _v2 is velocity
 squared (mm^2/s^2), _t is time (s), _r is a ratio.
@@ -26,13 +32,13 @@ import math
 import sys
 from collections.abc import Callable
 from math import sqrt
-from typing import Final
+from typing import ClassVar, Final
 
 from kestimator.errors import MoveError, fixed
 from kestimator.extruder import PrinterExtruder
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.kinematics import load_kinematics
-from kestimator.limits import Limits
+from kestimator.limits import Limits, klipper_release
 from kestimator.motion_queuing import PrinterMotionQueuing
 
 try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
@@ -40,7 +46,8 @@ try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says wh
 except ImportError:
     from kestimator.mypyc_attr import mypyc_attr  # type: ignore[assignment]
 
-__all__ = ["LookAheadQueue", "Move", "MoveError", "ToolHead", "ToolHeadCommandHelper"]
+__all__ = ["ClampedJunctionMove", "ForceFlushToolHead", "LookAheadQueue", "MinRestartToolHead",
+           "Move", "MoveError", "ToolHead", "ToolHeadCommandHelper", "make_toolhead"]
 
 # Klipper's accel for extrude-only moves ("unlimited" before the extruder limits apply).
 EXTRUDE_ONLY_ACCEL: Final = 99999999.9
@@ -308,6 +315,73 @@ LOOKAHEAD_FLUSH_TIME: Final = 0.150
 # Class to track a list of pending move requests and to facilitate
 # "look-ahead" across moves to reduce acceleration between moves.
 @mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class ClampedJunctionMove(Move):
+    """A move of a Klipper before 847331260 (v0.12.0-384, 2024-11): its junction rule, as
+    klippy/toolhead.py of Klipper v0.12.0 (and v0.12.0-383) has it. A reversal starts from
+    rest; a straight junction is clamped at cos -0.999999, which limits it (by the angle)
+    where the mainline rule leaves it unlimited. ``delta_v2_centripetal`` is 8291788f4's
+    arithmetic (v0.12.0-383): delta_v2 * .25 * tan_theta_d2 for .5 * move_d * tan_theta_d2
+    * accel. The ToolHead makes these when `klipper_version` names such a release."""
+
+    __slots__ = ()
+    delta_v2_centripetal: ClassVar[bool] = False
+
+    def calc_junction(self, prev_move: Move) -> None:
+        """Maximum start speed from the corner with `prev_move` (v0.12.0's rule)."""
+        if not self.is_kinematic_move or not prev_move.is_kinematic_move:
+            return
+        # Allow extruder to calculate its maximum junction (see Move.calc_junction: the
+        # extruder's limit is taken only where it can be the minimum)
+        max_start_v2 = self.max_cruise_v2
+        diff_r = self.axes_r_e - prev_move.axes_r_e
+        if diff_r:
+            v = self.instant_corner_v / abs(diff_r)
+            square = v * v
+            if square * POW2_BELOW < max_start_v2 or not POW2_TINY < square < POW2_INF:
+                ea_v2 = math.pow(v, 2.0)
+                if ea_v2 < max_start_v2:
+                    max_start_v2 = ea_v2
+        # Find max velocity using "approximated centripetal velocity"
+        junction_cos_theta = -(self.axes_r_x * prev_move.axes_r_x
+                               + self.axes_r_y * prev_move.axes_r_y
+                               + self.axes_r_z * prev_move.axes_r_z)
+        if junction_cos_theta > 0.999999:
+            return
+        junction_cos_theta = max(junction_cos_theta, -0.999999)
+        sin_theta_d2 = sqrt(0.5 * (1.0 - junction_cos_theta))
+        R_jd = sin_theta_d2 / (1. - sin_theta_d2)
+        # Approximated circle must contact moves no further away than mid-move
+        if self.delta_v2_centripetal:
+            cos_theta_d2 = sqrt(0.5 * (1.0 + junction_cos_theta))
+            quarter_tan_theta_d2 = .25 * sin_theta_d2 / cos_theta_d2
+            move_centripetal_v2 = self.delta_v2 * quarter_tan_theta_d2
+            prev_move_centripetal_v2 = prev_move.delta_v2 * quarter_tan_theta_d2
+        else:
+            tan_theta_d2 = sin_theta_d2 / sqrt(0.5 * (1.0 + junction_cos_theta))
+            move_centripetal_v2 = .5 * self.move_d * tan_theta_d2 * self.accel
+            prev_move_centripetal_v2 = (.5 * prev_move.move_d * tan_theta_d2
+                                        * prev_move.accel)
+        # Apply limits
+        self.max_start_v2 = min(
+            R_jd * self.junction_deviation * self.accel,
+            R_jd * prev_move.junction_deviation * prev_move.accel,
+            move_centripetal_v2, prev_move_centripetal_v2,
+            max_start_v2, prev_move.max_cruise_v2,
+            prev_move.max_start_v2 + prev_move.delta_v2)
+        # upstream's max_smoothed_v2 / smooth_delta_v2 (the mcr names here)
+        self.max_mcr_start_v2 = min(
+            self.max_start_v2, prev_move.max_mcr_start_v2 + prev_move.mcr_delta_v2)
+
+
+class DeltaV2ClampedJunctionMove(ClampedJunctionMove):
+    """A move of Klipper v0.12.0-383 (8291788f4): v0.12.0's junction rule with the
+    centripetal limit computed from delta_v2."""
+
+    __slots__ = ()
+    delta_v2_centripetal: ClassVar[bool] = True
+
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
 class LookAheadQueue:
     """Pending moves, planned when enough are queued or when motion must stop."""
 
@@ -411,6 +485,9 @@ class LookAheadQueue:
 
 # Seconds of moves queued before the first flush after the toolhead was at rest.
 BUFFER_TIME_HIGH: Final = 1.0
+# Klipper v0.12.0's [printer] buffer_time_high default (the option went in bafb126ab,
+# v0.12.0-20): how much a flushed look-ahead queues before it plans (ForceFlushToolHead).
+BUFFER_TIME_HIGH_V0_12: Final = 2.0
 # Junction deviation scale: sqrt(2) - 1.
 _JD_FACTOR: Final = 2.0**0.5 - 1.0
 
@@ -436,6 +513,17 @@ class ToolHead:
         self.square_corner_velocity = limits.square_corner_velocity
         self.junction_deviation = self.mcr_pseudo_accel = 0.0
         self._calc_junction_deviation()
+        # The junction rule of the Klipper named by klipper_version (mainline without one):
+        # None for Move's, else the Move class with that release's calc_junction.
+        release = klipper_release(limits.klipper_version) if limits.klipper_version else None
+        self.old_junction_move: type[Move] | None = {
+            "clamped": ClampedJunctionMove,
+            "clamped_delta_v2": DeltaV2ClampedJunctionMove}.get(
+                release.junction if release is not None else "mainline")
+        # Whether a new pressure-advance window also waits for the toolhead
+        # (kestimator.extruder's SET_PRESSURE_ADVANCE; the releases in KLIPPER_TOOLHEAD_RULES).
+        self.pressure_advance_waits = (release is not None
+                                       and release.pressure_advance_waits)
         # Print time tracking
         self.print_time = 0.0
         self.special_queuing_state = "NeedPrime"
@@ -531,8 +619,13 @@ class ToolHead:
                 tag: int = 0) -> Move | None:
         """`move` with the new position as four floats (the hot path: no tuple per move);
         `tag` is the move's source line."""
-        move = Move(self, self.commanded_x, self.commanded_y, self.commanded_z,
-                    self.commanded_e, x, y, z, e, speed, tag)
+        if self.old_junction_move is None:
+            move = Move(self, self.commanded_x, self.commanded_y, self.commanded_z,
+                        self.commanded_e, x, y, z, e, speed, tag)
+        else:
+            move = self.old_junction_move(self, self.commanded_x, self.commanded_y,
+                                          self.commanded_z, self.commanded_e, x, y, z, e,
+                                          speed, tag)
         if not move.move_d:
             return None
         if move.is_kinematic_move:
@@ -640,6 +733,117 @@ class ToolHead:
         """Flush everything; the total print time in seconds."""
         self._flush_lookahead()
         return self.print_time
+
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class ForceFlushToolHead(ToolHead):
+    """The print-time tracking of a Klipper before b7b13588c (v0.12.0-23, 2023-11), as
+    klippy/toolhead.py of Klipper v0.12.0 has it (its `force_flush_time`): a full flush of
+    step generation (`flush_step_generation`) takes the steps to at least
+    print_time - kin_flush_delay (later than the last move after a dwell), and motion
+    restarts kin_flush_delay after that, the delay as it is then (a new pressure-advance
+    window after a dwell costs the difference of the two). G4 and M400 in the main state
+    only flush the look-ahead, with no restart; a flushed look-ahead queues 2 s (its
+    buffer_time_high) before it plans. Made by `make_toolhead` when
+    `klipper_version` names such a release."""
+
+    def __init__(self, limits: Limits,
+                 on_moves: Callable[[list[Move], float], None] | None = None) -> None:
+        super().__init__(limits, on_moves)
+        self.lookahead.set_flush_time(BUFFER_TIME_HIGH_V0_12)
+        # Klipper's force_flush_time and last_kin_move_time: before the origin (the
+        # oracle's pre-roll dwell leaves both over a second before the first line).
+        self.force_flush_time = -math.inf
+        self.last_kin_move_time = -math.inf
+
+    def _calc_print_time(self) -> None:
+        kin_time = self.force_flush_time + self.motion_queuing.kin_flush_delay
+        if kin_time > self.print_time:
+            self.print_time = kin_time
+
+    def _process_lookahead(self, lazy: bool = False) -> None:
+        super()._process_lookahead(lazy)
+        # upstream: last_kin_move_time = max(last_kin_move_time, next_move_time) once moves
+        # are queued (need_step_gen_time is -inf until the first are)
+        if (self.motion_queuing.need_step_gen_time > -math.inf
+                and self.last_move_end_t > self.last_kin_move_time):
+            self.last_kin_move_time = self.last_move_end_t
+
+    def _flush_lookahead(self) -> None:
+        if self.special_queuing_state:
+            self.flush_step_generation()
+            return
+        self._process_lookahead()
+
+    def flush_step_generation(self) -> None:
+        """Bring the toolhead to rest and take step generation past the last move."""
+        # Transition from "Flushed"/"Priming"/main state to "Flushed" state
+        self._process_lookahead()
+        self.special_queuing_state = "Flushed"
+        self.lookahead.set_flush_time(BUFFER_TIME_HIGH_V0_12)
+        self.motion_queuing.flush_all_steps()
+        kin_flush_delay = self.motion_queuing.kin_flush_delay
+        # Determine actual last "itersolve" flush time
+        lastf = self.print_time - kin_flush_delay
+        # Calculate flush time that includes kinematic scan windows
+        flush_time = max(lastf, self.last_kin_move_time + kin_flush_delay)
+        if flush_time > self.print_time:
+            self.print_time = flush_time
+        # Flush kinematic scan windows and step buffers
+        self.force_flush_time = max(self.force_flush_time, flush_time)
+        if self.force_flush_time > self.print_time:
+            self.print_time = self.force_flush_time
+
+    def get_last_move_time(self) -> float:
+        """Flush the look-ahead and return the time the next command would run at."""
+        self._flush_lookahead()
+        if self.special_queuing_state:
+            self._calc_print_time()
+        return self.print_time
+
+    def dwell(self, delay: float) -> None:
+        """G4: flush the look-ahead, then wait delay seconds."""
+        next_print_time = self.get_last_move_time() + max(0.0, delay)
+        if next_print_time > self.print_time:
+            self.print_time = next_print_time
+
+    def wait_moves(self) -> None:
+        """M400: flush the look-ahead."""
+        self._flush_lookahead()
+
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class MinRestartToolHead(ToolHead):
+    """The print-time tracking of Klipper 3d3b87f97 (v0.12.0-69, 2024-01) to v0.13.0-237
+    (its `min_restart_time`, replaced in 1e7c67919), as klippy/toolhead.py of Klipper v0.13.0
+    has it: a full flush of step generation (`flush_step_generation`) also takes the restart
+    to print_time, so motion restarts at least kin_flush_delay after the flush (after a dwell
+    too), and the homing flush at the origin delays the first move by it. Made by
+    `make_toolhead` when `klipper_version` names such a release."""
+
+    def __init__(self, limits: Limits,
+                 on_moves: Callable[[list[Move], float], None] | None = None) -> None:
+        super().__init__(limits, on_moves)
+        # The head starts homed: the homing's flush_step_generation at the origin.
+        self.motion_queuing.last_step_gen_time = 0.0
+
+    def flush_step_generation(self) -> None:
+        """Bring the toolhead to rest; motion restarts no sooner than after this time."""
+        super().flush_step_generation()
+        # upstream: self.min_restart_time = max(self.min_restart_time, self.print_time)
+        if self.print_time > self.motion_queuing.last_step_gen_time:
+            self.motion_queuing.last_step_gen_time = self.print_time
+
+
+def make_toolhead(limits: Limits,
+                  on_moves: Callable[[list[Move], float], None] | None = None) -> ToolHead:
+    """The ToolHead of the Klipper `limits.klipper_version` names (today's without one)."""
+    rule = klipper_release(limits.klipper_version).print_time if limits.klipper_version else ""
+    if rule == "force_flush":
+        return ForceFlushToolHead(limits, on_moves)
+    if rule == "min_restart":
+        return MinRestartToolHead(limits, on_moves)
+    return ToolHead(limits, on_moves)
 
 
 # Support common G-Code commands relative to the toolhead
