@@ -1,4 +1,5 @@
-"""Shared paths: the corpus is read in place from ../shared beside the checkout."""
+"""Shared paths (the corpus is read in place from ../shared beside the checkout), and how the
+suite is spread over two processes (pytest-xdist, `-n 2 --dist loadfile` in pyproject.toml)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,30 @@ SHARED = PROJECT.parent / "shared"
 CORPUS = SHARED / "corpus"
 CORPUS_CFG = CORPUS / "printer.cfg"
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
+
+
+# Long test files start first, so neither process is left with a long file at the end
+# (`--dist loadfile`: a file's tests run in one process, in order, so its module-scoped
+# fixtures run once; `--no-loadscope-reorder` keeps this order); the rest follow in file
+# order. The real-time prints mostly wait on the wall clock, so they start first and leave
+# most of a core to the other process. Each file's time in a whole run: benchmarks/RESULTS.md.
+LONGEST_FIRST = (
+    "test_klipper_module_realtime.py",
+    "test_compiled_build.py",
+    "test_cura_gui.py",
+    "test_pypy.py",
+    "test_accuracy_corpus.py",
+    "test_klipper_module_real.py",
+    "test_moonraker_e2e.py",
+    "test_hook_prusaslicer.py",
+    "test_code_quality.py",
+)
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """The longest files first (a stable sort: the rest keep their order)."""
+    rank = {name: index for index, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
 
 
 def corpus_files(pattern: str = "*/*.gcode") -> list[Path]:
