@@ -1,0 +1,61 @@
+"""benchmarks/arm_check.py's judgement: what it calls a difference from x86 and from Klipper.
+
+The tool builds kestimator in a Debian ARM chroot run through qemu-user and compares every
+file's estimate, `estimate --json` bytes and `inject` bytes with pure CPython on this x86
+host, and its totals and layers with Klipper's references; here its comparisons are pinned
+on the numbers fused multiply-add once gave on arm64 (calicat 1471.918 s against Klipper's
+1473.045 s, xyzcube 354.288 s against 355.192 s).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from types import ModuleType
+
+import pytest
+
+from .conftest import PROJECT
+
+
+def _arm_check() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("arm_check_benchmark",
+                                                  PROJECT / "benchmarks" / "arm_check.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_total_a_second_off_klippers_is_reported() -> None:
+    arm_check = _arm_check()
+    name = arm_check.TWO_FILES[0]
+    ref = arm_check.reference(name)
+    layers = [[p["line"], p["t"]] for p in ref["checkpoints"] if p["kind"] == "layer"]
+    right = {"file": name, "total_s": ref["total_s"], "layers": layers}
+    assert arm_check.klipper_differences(right) == []
+    fused = dict(right, total_s=1471.918)
+    assert arm_check.klipper_differences(fused) == ["total 1471.918 s, Klipper 1473.045 s"]
+    last = dict(right, layers=layers[:-1] + [[layers[-1][0], layers[-1][1] - 0.5]])
+    assert len(arm_check.klipper_differences(last)) == 1
+    assert "no layer at line" in arm_check.klipper_differences(
+        dict(right, layers=layers[1:]))[0]
+
+
+def test_a_build_differing_from_x86_in_any_output_is_reported() -> None:
+    arm_check = _arm_check()
+    x86 = {"digest": "a", "estimate": "b", "inject": "c", "total_s": 355.191976}
+    assert arm_check.build_differences(dict(x86), x86) == []
+    assert arm_check.build_differences(dict(x86, inject="d"), x86) == ["inject"]
+    assert arm_check.build_differences(dict(x86, digest="e", total_s=354.288), x86) == [
+        "digest", "total 354.288 s, x86 355.191976 s"]
+
+
+def test_the_checked_files_are_the_two_and_every_referenced_one_up_to_5_mb() -> None:
+    arm_check = _arm_check()
+    every = arm_check.corpus_names("all")
+    if not every:
+        pytest.skip("the shared corpus is not beside this checkout")
+    assert set(arm_check.TWO_FILES) <= set(every)
+    assert len(every) >= 30
