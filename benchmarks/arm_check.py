@@ -29,7 +29,7 @@ worker started as the module starts it and its first answer, a new commit pulled
 Moonraker's update manager pulls it (git's post-merge hook rebuilds the venv), and the
 worker's answer again: each answer's times must be x86's, bit for bit.
 
-`python3 benchmarks/arm_check.py outputs PRINTER_CFG CORPUS_DIR FILE...` is the side that
+`python3 benchmarks/arm_check.py outputs CORPUS_DIR FILE...` is the side that
 runs under the interpreter checked (inside the chroot, or on the host for x86's side): one
 JSON line per file; `ask-worker CHECKOUT FILE PRINTER_CFG` starts the Klipper module's worker
 of CHECKOUT and prints its first answer.
@@ -76,19 +76,21 @@ CHROOT_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 
 # --- the side that runs under the interpreter checked ----------------------------------
 
-def file_outputs(python: str, printer_cfg: str, path: str) -> dict[str, object]:
-    """`estimate --json`'s and `inject`'s results for one file, run by `python` as a user
-    would run them (a fresh process each)."""
+def file_outputs(python: str, path: str) -> dict[str, object]:
+    """`estimate --json`'s and `inject`'s results for one file (a path relative to the
+    corpus, the current folder, timed with its printer.cfg), run by `python` as a user would
+    run them (a fresh process each). Relative paths: the JSON and the warnings name the file
+    as given, the same on every machine."""
     with tempfile.TemporaryDirectory(prefix="kestimator-arm-") as tmp:
         estimate = subprocess.run(
             [python, "-m", "kestimator", "estimate", path, "--json", "--printer-cfg",
-             printer_cfg], cwd=tmp, capture_output=True, timeout=RUN_TIMEOUT_S)
+             "printer.cfg"], capture_output=True, timeout=RUN_TIMEOUT_S)
         if estimate.returncode != 0:
             raise RuntimeError("estimate %s: %s" % (path, estimate.stderr.decode()[-500:]))
         out = os.path.join(tmp, "out.gcode")
         inject = subprocess.run(
             [python, "-m", "kestimator", "inject", path, "-o", out, "-q", "--printer-cfg",
-             printer_cfg], cwd=tmp, capture_output=True, timeout=RUN_TIMEOUT_S)
+             "printer.cfg"], capture_output=True, timeout=RUN_TIMEOUT_S)
         # 4: Klipper would stop this print (pre-flight); the times are written all the same.
         if inject.returncode not in (0, 4):
             raise RuntimeError("inject %s: %s" % (path, inject.stderr.decode()[-500:]))
@@ -100,22 +102,23 @@ def file_outputs(python: str, printer_cfg: str, path: str) -> dict[str, object]:
             "layers": [[entry["line"], entry["t"]] for entry in document["layers"]]}
 
 
-def outputs(printer_cfg: str, corpus: str, names: Sequence[str]) -> Iterator[dict[str, object]]:
-    """One record per corpus file (named relative to `corpus`/gcode): the build, the
-    estimate's every field (tests/estimate_digest.py) as a hash, and `file_outputs`."""
+def outputs(corpus: str, names: Sequence[str]) -> Iterator[dict[str, object]]:
+    """One record per corpus file (named relative to `corpus`/gcode, timed with
+    `corpus`/printer.cfg): the build, the estimate's every field (tests/estimate_digest.py)
+    as a hash, and `file_outputs`. Runs in `corpus`, naming files relative to it."""
     import importlib
 
     # tests/estimate_digest.py: beside this file in the chroot, tests/ on the host.
     estimate_digest = importlib.import_module("estimate_digest")
-
     from kestimator import build
 
+    os.chdir(corpus)
     for name in names:
-        path = os.path.join(corpus, "gcode", name)
-        digest = json.dumps(estimate_digest.digest(path, printer_cfg), sort_keys=True)
+        path = os.path.join("gcode", name)
+        digest = json.dumps(estimate_digest.digest(path, "printer.cfg"), sort_keys=True)
         record: dict[str, object] = {"file": name, "build": build(),
                                      "digest": hashlib.sha256(digest.encode()).hexdigest()}
-        record.update(file_outputs(sys.executable, printer_cfg, path))
+        record.update(file_outputs(sys.executable, path))
         yield record
 
 
@@ -201,8 +204,8 @@ def x86_outputs(names: Sequence[str]) -> dict[str, dict[str, object]]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join(
         [str(PROJECT), str(PROJECT / "tests")]))
     proc = subprocess.run(
-        [sys.executable, str(Path(__file__).resolve()), "outputs", str(CORPUS / "printer.cfg"),
-         str(CORPUS), *names], env=env, capture_output=True, text=True,
+        [sys.executable, str(Path(__file__).resolve()), "outputs", str(CORPUS), *names],
+        env=env, capture_output=True, text=True,
         timeout=RUN_TIMEOUT_S, cwd=tempfile.gettempdir())
     if proc.returncode != 0:
         raise RuntimeError("x86 outputs failed: " + proc.stderr[-2000:])
@@ -347,7 +350,7 @@ def chroot_outputs(chroot: Chroot, built: Built,
                    names: Sequence[str]) -> dict[str, dict[str, object]]:
     """The records of one build installed in the chroot."""
     proc = chroot.run([built.python, STAGE + "/tools/arm_check.py", "outputs",
-                       STAGE + "/corpus/printer.cfg", STAGE + "/corpus", *names])
+                       STAGE + "/corpus", *names])
     if proc.returncode != 0:
         raise RuntimeError("outputs: " + proc.stderr[-3000:])
     return {str(r["file"]): r for r in map(json.loads, proc.stdout.splitlines())}
@@ -547,7 +550,7 @@ def report(outcome: Outcome) -> str:
 
 def main(argv: Sequence[str]) -> int:
     if argv[:1] == ["outputs"]:
-        for record in outputs(argv[1], argv[2], argv[3:]):
+        for record in outputs(argv[1], argv[2:]):
             print(json.dumps(record, sort_keys=True), flush=True)
         return 0
     if argv[:1] == ["ask-worker"]:
