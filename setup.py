@@ -9,9 +9,11 @@ it prints one line saying which and why (pip shows build output only with `-v`;
 `kestimator --version` says "compiled" or "pure Python" afterwards).
 
 Memory (a small board runs Klipper beside the install): mypy runs in a child process that
-has exited before gcc starts, the modules are compiled in three groups (three C files, one
-gcc at a time) and gcc's garbage collector is told to keep its heap small. The install's peak,
-summed over every process, is measured by benchmarks/install_memory.py.
+has exited before gcc starts, the modules are compiled in three groups (three C files) and
+gcc's garbage collector is told to keep its heap small. The C files are compiled one at a
+time, or one per CPU where RAM beyond BUILD_MEMORY_MIB holds a compiler more
+(compile_jobs; KESTIMATOR_BUILD_JOBS=N sets it). The install's peak, summed over every
+process, and the README's first command's time are measured by benchmarks/install_memory.py.
 
 Float arithmetic: Klipper's planner is Python, whose every float operation is one
 IEEE double operation rounded once. A C compiler may do otherwise: fuse `a*b + c` into one
@@ -94,6 +96,10 @@ BUILD_MEMORY_MIB = 300
 # the parameters change only when memory is collected), the compile takes ~15 % more CPU.
 _GCC_MEMORY_FLAGS = ["--param=ggc-min-expand=10", "--param=ggc-min-heapsize=16384"]
 _COMPILER_FLAGS: list[str] = []  # _GCC_MEMORY_FLAGS when the probe's compiler takes them
+# What one more compiler running at once needs: cc1's largest peak, on the commands group's
+# C file, is 201 MiB (/usr/bin/time, gcc 12, the flags above). The C files are compiled
+# one at a time unless RAM beyond BUILD_MEMORY_MIB holds another (compile_jobs).
+COMPILE_JOB_MIB = 250
 # mypyc's optimisation level (-O3): the probe below is compiled at it too, as contraction
 # into a multiply-add is an optimisation.
 OPT_LEVEL = "3"
@@ -230,19 +236,31 @@ def _float_problem(compiler: object, tmp: str) -> str | None:
     return None
 
 
+def _meminfo_mib() -> dict[str, int] | None:
+    """/proc/meminfo in MiB (None where there is none)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            return {line.split(":")[0]: int(line.split()[1]) // 1024
+                    for line in f if ":" in line}
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _memory_need_mib() -> int:
+    wanted = os.environ.get("KESTIMATOR_BUILD_MEMORY_MIB", "").strip()
+    return int(wanted) if wanted.isdigit() else BUILD_MEMORY_MIB
+
+
 def _memory_problem() -> str | None:
     """Why memory is too short to compile (None when there is enough, or it is not known).
 
     Compiling needs BUILD_MEMORY_MIB free (available RAM plus free swap): on a board that is
     also running Klipper, the kernel's out-of-memory killer could pick Klipper instead."""
-    try:
-        with open("/proc/meminfo", encoding="ascii") as f:
-            info = {line.split(":")[0]: int(line.split()[1]) for line in f if ":" in line}
-        free_mib = (info["MemAvailable"] + info.get("SwapFree", 0)) // 1024
-    except (OSError, KeyError, ValueError, IndexError):
+    info = _meminfo_mib()
+    if info is None or "MemAvailable" not in info:
         return None
-    wanted = os.environ.get("KESTIMATOR_BUILD_MEMORY_MIB", "").strip()
-    need = int(wanted) if wanted.isdigit() else BUILD_MEMORY_MIB
+    free_mib = info["MemAvailable"] + info.get("SwapFree", 0)
+    need = _memory_need_mib()
     if free_mib < need:
         return "only %d MiB of memory free (RAM and swap); compiling needs %d MiB" % (
             free_mib, need)
@@ -276,8 +294,34 @@ def _pure_reason() -> str | None:
     return reason
 
 
+def compile_jobs() -> int:
+    """How many C files to compile at once: one per CPU while RAM (not swap) holds another
+    compiler beside the install's BUILD_MEMORY_MIB; one where that is not known.
+
+    KESTIMATOR_BUILD_JOBS=N sets it."""
+    wanted = os.environ.get("KESTIMATOR_BUILD_JOBS", "").strip()
+    if wanted.isdigit() and int(wanted) >= 1:
+        return int(wanted)
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    info = _meminfo_mib()
+    if info is None or "MemAvailable" not in info:
+        return 1
+    spare = info["MemAvailable"] - _memory_need_mib()
+    return max(1, min(cpus, 1 + spare // COMPILE_JOB_MIB))
+
+
 class BuildExtOrPure(build_ext):
-    """build_ext that falls back to the pure package if the C build fails."""
+    """build_ext that falls back to the pure package if the C build fails, and compiles
+    compile_jobs() extensions at once (setuptools' own --parallel)."""
+
+    def finalize_options(self) -> None:
+        super().finalize_options()
+        if not self.parallel and self.extensions:
+            jobs = compile_jobs()
+            self.parallel = jobs if jobs > 1 else None
 
     def run(self) -> None:
         try:
@@ -313,6 +357,10 @@ def _mypyc_in_child() -> list[object]:
             raise RuntimeError(why)
         with open(result, "rb") as f:
             modules: list[object] = pickle.load(f)  # noqa: S301 (our own child's)
+    # The three groups' libraries first: run side by side, the longest compiles start first
+    # and the modules' small shims fill in around them.
+    modules.sort(key=lambda extension: not extension.name.endswith(  # type: ignore[attr-defined]
+        "__mypyc"))
     for extension in modules:
         extension.extra_compile_args = [  # type: ignore[attr-defined]
             *extension.extra_compile_args,  # type: ignore[attr-defined]

@@ -8,7 +8,14 @@ whose build flags cost gcc the most), runs `pip install -v <clone>` in it and sa
 /proc every 50 ms: the RSS of pip and of every process below it, summed. It prints one
 result line (the row for benchmarks/RESULTS.md) and exits 1 if the peak is over --limit.
 
-    python3 benchmarks/install_memory.py [--python /usr/bin/python3] [--limit 300]
+It runs the README's first command as a user does (`python3 -m venv .venv && .venv/bin/pip
+install -q '.[cli]' && .venv/bin/kestimator inject examples/hex_nut_prusaslicer.gcode ...`,
+with `-v` for the build's line) and prints that command's CPU and wall time as a whole, and
+the load average around it (wall time on a shared host is noise; CPU time much less so).
+`--jobs N` sets KESTIMATOR_BUILD_JOBS (`--jobs 1`: one compile at a time, as setup.py does
+on a small host); without it setup.py decides from the CPUs and memory here.
+
+    python3 benchmarks/install_memory.py [--python /usr/bin/python3] [--limit 300] [--jobs N]
 """
 
 from __future__ import annotations
@@ -107,22 +114,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--limit", type=float, default=300.0,
                         help="MiB the process tree's peak must stay under (default: 300)")
     parser.add_argument("--keep-log", metavar="FILE", help="write pip's output here")
+    parser.add_argument("--jobs", type=int, metavar="N",
+                        help="C compiles at once (KESTIMATOR_BUILD_JOBS); default: setup.py's")
     args = parser.parse_args(argv)
+    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="kestimator-install-mem-") as tmp:
         root = Path(tmp)
         clone = _clone(root)
-        venv = root / "venv"
-        subprocess.run([args.python, "-m", "venv", str(venv)], check=True, timeout=300)
+        venv = clone / ".venv"
         env = dict(os.environ)
-        for name in ("PYTHONPATH", "VIRTUAL_ENV", "KESTIMATOR_BUILD"):
+        for name in ("PYTHONPATH", "VIRTUAL_ENV", "KESTIMATOR_BUILD", "KESTIMATOR_BUILD_JOBS"):
             env.pop(name, None)
+        if args.jobs:
+            env["KESTIMATOR_BUILD_JOBS"] = str(args.jobs)
+        first_rusage = resource.getrusage(resource.RUSAGE_CHILDREN)
+        first_started = time.monotonic()
+        subprocess.run([args.python, "-m", "venv", str(venv)], check=True, timeout=300,
+                       cwd=clone)
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         started = time.monotonic()
         log = open(args.keep_log or os.devnull, "wb")
         process = subprocess.Popen(
-            [str(venv / "bin" / "python"), "-m", "pip", "install", "-v", "--no-cache-dir",
-             "--disable-pip-version-check", str(clone)],
-            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=tmp)
+            [str(venv / "bin" / "pip"), "install", "-v", "--no-cache-dir",
+             "--disable-pip-version-check", ".[cli]"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env, cwd=clone)
         sampler = TreeSampler(process.pid)
         sampler.start()
         output = b""
@@ -141,6 +156,14 @@ def main(argv: list[str] | None = None) -> int:
             sys.stderr.write(output.decode(errors="replace")[-4000:])
             sys.stderr.write("pip install failed (%d)\n" % process.returncode)
             return 2
+        subprocess.run([str(venv / "bin" / "kestimator"), "inject",
+                        "examples/hex_nut_prusaslicer.gcode", "-o", "hex_nut_klipper.gcode",
+                        "--printer-cfg", "examples/printer.cfg"], check=True, env=env,
+                       cwd=clone, stdout=subprocess.DEVNULL, timeout=300)
+        first_wall = time.monotonic() - first_started
+        first_after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        first_cpu = (first_after.ru_utime - first_rusage.ru_utime) + (
+            first_after.ru_stime - first_rusage.ru_stime)
         build = [line.strip() for line in output.decode(errors="replace").splitlines()
                  if "kestimator build: " in line]
         version = subprocess.run([str(venv / "bin" / "kestimator"), "--version"],
@@ -157,6 +180,11 @@ def main(argv: list[str] | None = None) -> int:
               ", ".join("%s %.0f" % (n, k / 1024) for n, k in sampler.peak_members[:6]),
               sampler.largest_kib / 1024, sampler.largest_name, cpu, wall, sampler.samples,
               platform.machine()))
+    load_after = os.getloadavg()
+    print("README's first command (venv, pip install '.[cli]', inject): CPU %.1f s, wall %.1f s "
+          "on %d CPUs, KESTIMATOR_BUILD_JOBS=%s; load average %.2f before, %.2f after" % (
+              first_cpu, first_wall, os.cpu_count() or 0, args.jobs or "unset",
+              load_before[0], load_after[0]))
     if peak >= args.limit:
         print("over the limit: %.0f MiB >= %.0f MiB" % (peak, args.limit))
         return 1

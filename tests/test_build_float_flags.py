@@ -6,7 +6,9 @@ compiles anything it builds a probe library the same way and checks, in this Pyt
 `a*b + c` gives Python's result and that loading it left denormals alone. These tests pin
 the probe on real compilers (GCC, and clang where installed): it fails on a library built
 with fused arithmetic or linked with -ffast-math, and passes with the user's
-`-march=haswell -ffp-contract=fast`, `-ffast-math` and `-Ofast` once the flags are added.
+`-march=haswell -ffp-contract=fast`, `-ffast-math` and `-Ofast` once the flags are added;
+a compiler that takes none of the flags is refused; and on 32-bit x87 GCC's code rounds
+each operation to a double, as CPython does, once they are added.
 The whole-corpus proof on a real build is tests/test_compiled_build.py's FMA-allowed build.
 """
 
@@ -125,3 +127,31 @@ def test_a_compiler_that_takes_no_float_flags_is_refused(
     monkeypatch.delenv("CFLAGS", raising=False)
     problem = _setup_py()._c_compiler_problem()
     assert problem is not None and "-ffp-contract=off" in problem
+
+
+def test_on_x87_each_operation_is_rounded_to_a_double_as_cpython_rounds_it(
+        tmp_path: Path) -> None:
+    # 32-bit x86 without SSE2 computes in 80-bit x87 registers; CPython rounds every
+    # operation's result to a double (it is stored in a float object). GCC keeps mypyc's
+    # `t = a * b; u = t + c` in a register unless told -fexcess-precision=standard, which
+    # stores and reloads t (fstpl, fldl). Assembly only: no 32-bit libc or Python is needed.
+    gcc = _compiler("gcc")
+    source = tmp_path / "probe.c"
+    setup_py = _setup_py()
+    source.write_text(setup_py.FLOAT_PROBE_C, encoding="ascii")
+
+    def statements_asm(flags: list[str]) -> list[str]:
+        proc = subprocess.run([gcc, "-m32", "-mfpmath=387", "-O3", *flags, "-S", "-o", "-",
+                               str(source)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            pytest.skip("this gcc cannot target 32-bit x86: %s" % proc.stderr.strip()[:200])
+        body = proc.stdout.split("kestimator_statements:", 1)[1].split("\tret", 1)[0]
+        return [line.split()[0] for line in body.splitlines()
+                if line.strip().startswith("f")]
+
+    unguarded = statements_asm([])
+    assert "fmull" in unguarded and "fstpl" not in unguarded[:unguarded.index("faddl")]
+    guarded = statements_asm(setup_py.FLOAT_FLAG_SETS[0])
+    product = guarded.index("fmull")
+    assert guarded[product + 1:product + 3] == ["fstpl", "fldl"]
+    assert guarded.index("faddl") > product + 2

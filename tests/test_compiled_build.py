@@ -14,13 +14,17 @@ CI it must be there (.ci/run installs gcc).
 
 from __future__ import annotations
 
+import concurrent.futures
+import importlib.util
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
 import sysconfig
 from pathlib import Path
+from types import ModuleType
 
 import pytest
 
@@ -83,11 +87,17 @@ def _pip_wheel(src: Path, out: Path, env_extra: dict[str, str],
     return wheels[0], proc.stdout + proc.stderr
 
 
-def _compiled_venv(root: Path, python: str, version: tuple[int, int]) -> str:
+def _compiled_venv(root: Path, python: str, version: tuple[int, int],
+                   env_extra: dict[str, str] | None = None) -> str:
     """Build the compiled wheel with `python` (CPython `version`), install it into a fresh
-    venv of that python without mypy; that venv's python."""
+    venv of that python without mypy; that venv's python. `env_extra`: the build's own
+    environment (CC, CFLAGS)."""
     wheel, log = _pip_wheel(_copy_sources(root / "src"), root / "wheels",
-                            {"KESTIMATOR_BUILD": "compiled"}, python)
+                            {"KESTIMATOR_BUILD": "compiled", **(env_extra or {})}, python)
+    # setup.py's float flags come after the user's on every compile of a C file.
+    compiles = [line for line in log.splitlines() if " -c " in line and ".c -o " in line]
+    assert compiles and all(
+        line.rfind("-ffp-contract=off") > line.rfind("-ffp-contract=fast") for line in compiles)
     assert [line.strip() for line in log.splitlines() if "kestimator build:" in line] == [
         line.strip() for line in log.splitlines() if COMPILED_LINE in line][:1]
     assert "-cp%d%d-" % version in wheel.name
@@ -106,6 +116,36 @@ def compiled_python(tmp_path_factory: pytest.TempPathFactory) -> str:
     _require_build_tools()
     return _compiled_venv(tmp_path_factory.mktemp("compiled"), sys.executable,
                           (sys.version_info[0], sys.version_info[1]))
+
+
+# Builds with fused multiply-add allowed, as a user's CFLAGS (or aarch64's GCC, or clang on
+# Apple Silicon) would have them: unguarded, GCC's gave 1471.918 s for OrcaSlicer's calicat
+# where Klipper (and the pure build) give 1473.045 s. setup.py's flags must undo it.
+FMA_BUILDS = {
+    "gcc": {"CC": "gcc", "CFLAGS": "-march=haswell -ffp-contract=fast"},
+    "clang": {"CC": "clang", "CFLAGS": "-mfma -ffp-contract=fast -ffast-math"},
+}
+
+
+@pytest.fixture(scope="module")
+def compiled_fma_pythons(tmp_path_factory: pytest.TempPathFactory) -> dict[str, str]:
+    """Each FMA-allowed build's venv python, by compiler; the builds run side by side."""
+    _require_build_tools()
+    if platform.machine() not in ("x86_64", "AMD64"):
+        pytest.skip("the FMA-allowed builds use x86's -march=haswell / -mfma")
+    with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
+        if " fma" not in f.read():
+            pytest.skip("this CPU has no FMA instructions")
+    missing = [name for name in FMA_BUILDS if shutil.which(name) is None]
+    if missing and IN_CI:
+        pytest.fail("no %s for the FMA-allowed build (.ci/run installs it)" % missing)
+    wanted = {name: env for name, env in FMA_BUILDS.items() if name not in missing}
+    version = (sys.version_info[0], sys.version_info[1])
+    with concurrent.futures.ThreadPoolExecutor(len(wanted)) as pool:
+        futures = {name: pool.submit(_compiled_venv, tmp_path_factory.mktemp("fma_" + name),
+                                     sys.executable, version, env)
+                   for name, env in wanted.items()}
+        return {name: future.result() for name, future in futures.items()}
 
 
 def oldest_python() -> str | None:
@@ -217,6 +257,23 @@ def test_compiled_estimate_equals_pure_field_by_field_on_corpus_and_programs(
         assert a == b, path.name
 
 
+@pytest.mark.parametrize("compiler", list(FMA_BUILDS))
+def test_compiled_with_fused_multiply_add_allowed_equals_pure_on_the_whole_corpus(
+        compiled_fma_pythons: dict[str, str], compiler: str, tmp_path: Path) -> None:
+    # Totals, every layer, samples and marks bit for bit (tests/estimate_digest.py), the
+    # `estimate --json` bytes and `inject`'s bytes, progress table included: every file.
+    if compiler not in compiled_fma_pythons:
+        pytest.skip("%s is not installed" % compiler)
+    python = compiled_fma_pythons[compiler]
+    paths = compared_files() + generated_programs(tmp_path)
+    compiled = digests(python, paths, on_path=False)
+    pure = digests(sys.executable, paths)
+    assert compiled[0] == '{"build": "compiled"}' and len(compiled) == len(paths) + 1
+    assert [path.name for path, a, b in zip(paths, compiled[1:], pure[1:]) if a != b] == []
+    assert [path.name for path in compared_files()
+            if cli_outputs(python, path, on_path=False) != pure_cli_outputs(path)] == []
+
+
 def test_compiled_equals_pure_with_a_bed_mesh_and_skew_correction(
         compiled_python: str, tmp_path: Path) -> None:
     for cfg, paths in transform_runs(tmp_path):
@@ -268,12 +325,38 @@ def test_with_too_little_memory_free_the_build_installs_the_pure_package_and_say
 def test_every_compiled_module_is_in_exactly_one_mypyc_group() -> None:
     # A module left out of setup.py's GROUPS would be compiled apart (mypyc's runtime once
     # more) or not as planned; one in two groups would be two extensions of one name.
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
-    assert spec is not None and spec.loader is not None
-    setup_py = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(setup_py)
+    setup_py = _setup_py()
     grouped = [module for modules, _ in setup_py.GROUPS for module in modules]
     assert sorted(grouped) == sorted(setup_py.COMPILED_MODULES)
     assert len(set(grouped)) == len(grouped)
     assert len({name for _, name in setup_py.GROUPS}) == len(setup_py.GROUPS)
+
+
+def _setup_py() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize(("available_mib", "cpus", "jobs"), [
+    (280, 4, 1),     # a small board: one compiler at a time, as the 300 MiB bar was measured
+    (540, 4, 1),     # not yet room for a second cc1 (COMPILE_JOB_MIB) beside the install
+    (560, 1, 1),     # one CPU: nothing to gain
+    (560, 2, 2),     # the README's 2-CPU host with memory: both CPUs compile
+    (24000, 2, 2),
+    (24000, 8, 8),
+])
+def test_c_files_compile_side_by_side_only_where_cpus_and_ram_allow(
+        available_mib: int, cpus: int, jobs: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    setup_py = _setup_py()
+    monkeypatch.delenv("KESTIMATOR_BUILD_JOBS", raising=False)
+    monkeypatch.delenv("KESTIMATOR_BUILD_MEMORY_MIB", raising=False)
+    # Swap does not count: a compile that swaps is slower than one after the other.
+    monkeypatch.setattr(setup_py, "_meminfo_mib",
+                        lambda: {"MemAvailable": available_mib, "SwapFree": 4096})
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(cpus)))
+    assert setup_py.compile_jobs() == jobs
+    monkeypatch.setenv("KESTIMATOR_BUILD_JOBS", "3")
+    assert setup_py.compile_jobs() == 3
