@@ -450,25 +450,36 @@ cd "$1" && git pull -q --ff-only
 def _worker_answer(chroot: Chroot, python: str) -> dict[str, object]:
     asked = chroot.run([python, STAGE + "/tools/arm_check.py", "ask-worker", CHECKOUT,
                         DATA + "/gcodes/" + os.path.basename(WORKER_FILE),
-                        DATA + "/config/printer.cfg"])
+                        DATA + "/config/printer.cfg"], cwd="/")
     if asked.returncode != 0:
         raise RuntimeError("ask-worker: " + asked.stderr[-2000:])
     answer: dict[str, object] = json.loads(asked.stdout)
     return answer
 
 
-def _same_answer(mine: dict[str, object], x86: dict[str, object]) -> bool:
-    """The worker's answers agree in everything but how long they took."""
-    return ({k: v for k, v in mine.items() if k != "elapsed_s"}
-            == {k: v for k, v in x86.items() if k != "elapsed_s"})
+def _same_answer(mine: dict[str, object], x86: dict[str, object],
+                 paths: tuple[tuple[str, str], tuple[str, str]]) -> bool:
+    """The worker's answers agree in everything but how long they took and the paths their
+    warnings name (`paths`: this answer's G-code file and printer.cfg, then x86's)."""
+    def plain(answer: dict[str, object], names: tuple[str, str]) -> dict[str, object]:
+        found = {k: v for k, v in answer.items() if k != "elapsed_s"}
+        warnings = [str(w) for w in answer.get("warnings", [])]  # type: ignore[attr-defined]
+        for name, stand_in in zip(names, ("FILE", "PRINTER_CFG")):
+            warnings = [w.replace(name, stand_in) for w in warnings]
+        found["warnings"] = warnings
+        return found
+
+    return plain(mine, paths[0]) == plain(x86, paths[1])
 
 
 def install_check(root: Path) -> list[str]:
     """install.sh, the worker's first answer, an update pulled (the hook's rebuild) and the
     worker's answer again, in the arm64 chroot: one line per step ("DIFFERENT ..." when a
     step's result is not what it must be)."""
-    x86 = ask_worker(str(PROJECT), str(CORPUS / "gcode" / WORKER_FILE),
-                     str(CORPUS / "printer.cfg"))
+    x86_paths = (str(CORPUS / "gcode" / WORKER_FILE), str(CORPUS / "printer.cfg"))
+    x86 = ask_worker(str(PROJECT), *x86_paths)
+    paths = ((DATA + "/gcodes/" + os.path.basename(WORKER_FILE), DATA + "/config/printer.cfg"),
+             x86_paths)
     if x86.get("ok") is not True:
         raise RuntimeError("x86's worker: %r" % x86)
     steps = []
@@ -510,7 +521,7 @@ def install_check(root: Path) -> list[str]:
         python = CHECKOUT + "/.venv-host/bin/python"
         first = _worker_answer(chroot, python)
         steps.append("%sthe worker's first answer: %s, total %r s (x86: %r s)" % (
-            "" if _same_answer(first, x86) else "DIFFERENT ", first.get("source"),
+            "" if _same_answer(first, x86, paths) else "DIFFERENT ", first.get("source"),
             first.get("total_s"), x86.get("total_s")))
         started, cpu = time.monotonic(), children_cpu_s()
         pulled = chroot.run(["sh", "-c", UPDATE_SCRIPT, HOST, CHECKOUT], env=user,
@@ -529,7 +540,7 @@ def install_check(root: Path) -> list[str]:
                                "" if ok else ": " + (pulled.stdout + pulled.stderr)[-1500:]))
         again = _worker_answer(chroot, python)
         steps.append("%sthe worker's answer after the update: %s, total %r s" % (
-            "" if _same_answer(again, x86) else "DIFFERENT ", again.get("source"),
+            "" if _same_answer(again, x86, paths) else "DIFFERENT ", again.get("source"),
             again.get("total_s")))
     return steps
 

@@ -84,3 +84,26 @@ def test_the_records_are_the_same_wherever_the_corpus_lies(tmp_path: Path) -> No
         for corpus in (arm_check.CORPUS, copy)]
     assert records[0] == records[1]
     assert arm_check.klipper_differences(json.loads(records[0])) == []
+
+
+def test_worker_answers_agree_but_for_the_paths_they_name_and_differ_in_a_time(
+        tmp_path: Path) -> None:
+    # --install compares the worker's answer in the chroot (the file in the printer's
+    # gcodes folder) with x86's (the file in the corpus): the warnings name each path.
+    arm_check = _arm_check()
+    name = arm_check.WORKER_FILE
+    if not (arm_check.CORPUS / "gcode" / name).is_file():
+        pytest.skip("the shared corpus is not beside this checkout")
+    here = (str(arm_check.CORPUS / "gcode" / name), str(arm_check.CORPUS / "printer.cfg"))
+    elsewhere = (str(tmp_path / "gcodes" / "x.gcode"), str(tmp_path / "printer.cfg"))
+    (tmp_path / "gcodes").mkdir()
+    shutil.copyfile(here[0], elsewhere[0])
+    shutil.copyfile(here[1], elsewhere[1])
+    x86 = arm_check.ask_worker(str(PROJECT), *here)
+    moved = arm_check.ask_worker(str(PROJECT), *elsewhere)
+    assert x86["ok"] is True and any(here[0] in str(w) for w in x86["warnings"])
+    assert x86 != moved
+    assert arm_check._same_answer(moved, x86, (elsewhere, here))
+    times = list(moved["times"])
+    times[-1] += 1e-9
+    assert not arm_check._same_answer(dict(moved, times=times), x86, (elsewhere, here))
