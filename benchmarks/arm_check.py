@@ -71,6 +71,7 @@ TOL_ABS_S = 0.01
 TOL_REL = 1e-6
 BUILD_TIMEOUT_S = 4 * 3600
 RUN_TIMEOUT_S = 4 * 3600
+REPORTED_PROBLEMS = 8  # per file: every layer after a wrong one is wrong too
 CHROOT_PATH = "/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin"
 
 
@@ -554,6 +555,9 @@ def report(outcome: Outcome) -> str:
                 "equal to x86 and to Klipper" if outcome.equal else "DIFFERENT")]
     for name in outcome.records:
         problems = outcome.against_x86[name] + outcome.against_klipper[name]
+        if len(problems) > REPORTED_PROBLEMS:
+            problems = problems[:REPORTED_PROBLEMS] + ["%d more" % (
+                len(problems) - REPORTED_PROBLEMS)]
         if problems:
             lines.append("  %s: %s" % (name, "; ".join(problems)))
     return "\n".join(lines)
