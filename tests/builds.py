@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import os
 import random
 import subprocess
@@ -17,6 +18,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from types import ModuleType
 
 from .conftest import CORPUS_CFG, PROJECT, corpus_files
 
@@ -226,3 +228,12 @@ def digests(python: str, paths: Sequence[Path], on_path: bool = True,
         timeout=RUN_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr
     return proc.stdout.splitlines()
+
+
+def setup_py_module() -> ModuleType:
+    """The project's setup.py loaded as a module (its flags, groups and probes), unrun."""
+    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

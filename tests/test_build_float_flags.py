@@ -14,7 +14,6 @@ The whole-corpus proof on a real build is tests/test_compiled_build.py's FMA-all
 
 from __future__ import annotations
 
-import importlib.util
 import platform
 import shutil
 import subprocess
@@ -24,7 +23,8 @@ from types import ModuleType
 
 import pytest
 
-from .conftest import IN_CI, PROJECT
+from .builds import setup_py_module
+from .conftest import IN_CI
 
 # CFLAGS a user (or a distribution) may build with: each makes gcc or clang fuse, or take
 # -ffast-math's liberties, unless setup.py's flags undo it.
@@ -34,14 +34,6 @@ HOSTILE_CFLAGS = (
     "-Ofast -march=haswell",
     "-mfma -funsafe-math-optimizations -ffinite-math-only -fno-signed-zeros",
 )
-
-
-def _setup_py() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _fma_cpu() -> None:
@@ -68,7 +60,7 @@ def _probe_exit(setup_py: ModuleType, library: Path) -> int:
 
 
 def _library(compiler: str, tmp_path: Path, flags: list[str]) -> Path:
-    setup_py = _setup_py()
+    setup_py = setup_py_module()
     source = tmp_path / "probe.c"
     source.write_text(setup_py.FLOAT_PROBE_C, encoding="ascii")
     library = tmp_path / "probe.so"
@@ -83,14 +75,14 @@ def test_the_probe_fails_a_library_built_with_fused_multiply_add(
     _fma_cpu()
     library = _library(_compiler(compiler), tmp_path, ["-O3", "-march=haswell",
                                                        "-ffp-contract=fast"])
-    assert _probe_exit(_setup_py(), library) == 3
+    assert _probe_exit(setup_py_module(), library) == 3
 
 
 def test_the_probe_fails_a_library_whose_link_zeroes_denormals(tmp_path: Path) -> None:
     if platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("crtfastmath.o's flush-to-zero is x86's")
     library = _library(_compiler("gcc"), tmp_path, ["-O2", "-ffast-math"])
-    assert _probe_exit(_setup_py(), library) == 4
+    assert _probe_exit(setup_py_module(), library) == 4
 
 
 @pytest.mark.parametrize("cflags", HOSTILE_CFLAGS)
@@ -100,7 +92,7 @@ def test_the_float_flags_undo_fused_and_fast_math_cflags(
     _fma_cpu()
     path = _compiler(compiler)
     # Without setup.py's flags these CFLAGS break Python's arithmetic on this CPU...
-    setup_py = _setup_py()
+    setup_py = setup_py_module()
     unguarded = _library(path, tmp_path, ["-O3", *cflags.split()])
     assert _probe_exit(setup_py, unguarded) in (3, 4)
     # ...and setup.py's own probe, with the user's CFLAGS in the environment, passes.
@@ -125,7 +117,7 @@ def test_a_compiler_that_takes_no_float_flags_is_refused(
     fake.chmod(0o755)
     monkeypatch.setenv("CC", str(fake))
     monkeypatch.delenv("CFLAGS", raising=False)
-    problem = _setup_py()._c_compiler_problem()
+    problem = setup_py_module()._c_compiler_problem()
     assert problem is not None and "-ffp-contract=off" in problem
 
 
@@ -137,7 +129,7 @@ def test_on_x87_each_operation_is_rounded_to_a_double_as_cpython_rounds_it(
     # stores and reloads t (fstpl, fldl). Assembly only: no 32-bit libc or Python is needed.
     gcc = _compiler("gcc")
     source = tmp_path / "probe.c"
-    setup_py = _setup_py()
+    setup_py = setup_py_module()
     source.write_text(setup_py.FLOAT_PROBE_C, encoding="ascii")
 
     def statements_asm(flags: list[str]) -> list[str]:

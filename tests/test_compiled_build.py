@@ -15,7 +15,6 @@ CI it must be there (.ci/run installs gcc).
 from __future__ import annotations
 
 import concurrent.futures
-import importlib.util
 import json
 import os
 import platform
@@ -24,7 +23,6 @@ import subprocess
 import sys
 import sysconfig
 from pathlib import Path
-from types import ModuleType
 
 import pytest
 
@@ -36,6 +34,7 @@ from .builds import (
     digests,
     generated_programs,
     pure_cli_outputs,
+    setup_py_module,
     transform_runs,
 )
 from .conftest import CORPUS, CORPUS_CFG, IN_CI, PROJECT, isolate_user_environment
@@ -338,19 +337,11 @@ def test_with_too_little_memory_free_the_build_installs_the_pure_package_and_say
 def test_every_compiled_module_is_in_exactly_one_mypyc_group() -> None:
     # A module left out of setup.py's GROUPS would be compiled apart (mypyc's runtime once
     # more) or not as planned; one in two groups would be two extensions of one name.
-    setup_py = _setup_py()
+    setup_py = setup_py_module()
     grouped = [module for modules, _ in setup_py.GROUPS for module in modules]
     assert sorted(grouped) == sorted(setup_py.COMPILED_MODULES)
     assert len(set(grouped)) == len(grouped)
     assert len({name for _, name in setup_py.GROUPS}) == len(setup_py.GROUPS)
-
-
-def _setup_py() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("kestimator_setup", PROJECT / "setup.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.mark.parametrize(("available_mib", "cpus", "jobs"), [
@@ -363,7 +354,7 @@ def _setup_py() -> ModuleType:
 ])
 def test_c_files_compile_side_by_side_only_where_cpus_and_ram_allow(
         available_mib: int, cpus: int, jobs: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    setup_py = _setup_py()
+    setup_py = setup_py_module()
     monkeypatch.delenv("KESTIMATOR_BUILD_JOBS", raising=False)
     monkeypatch.delenv("KESTIMATOR_BUILD_MEMORY_MIB", raising=False)
     # Swap does not count: a compile that swaps is slower than one after the other.
