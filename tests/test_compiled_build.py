@@ -286,7 +286,7 @@ def test_compiled_equals_pure_with_a_bed_mesh_and_skew_correction(
 
 def test_compiled_equals_pure_on_files_with_stops(compiled_python: str) -> None:
     """Each stop runs the look-ahead out (kestimator.stops): the same bits in both builds,
-    on the real multi-colour files of tests/oracle_refs/stops with their printer.cfg."""
+    on the real multi-colour files of tests/stop_refs with their printer.cfg."""
     from .test_stops import FILES, STOPS, STOPS_CFG
 
     paths = [STOPS / name for name in FILES]

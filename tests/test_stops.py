@@ -1,9 +1,9 @@
 """The stops: the commands at which a print waits for a person, and Klipper's time at each.
 
-Multi-colour files from real slicers (tests/oracle_refs/stops: Debian's PrusaSlicer 2.5 with
+Multi-colour files from real slicers (tests/stop_refs: Debian's PrusaSlicer 2.5 with
 a colour change and a pause made by its layer slider, Debian's CuraEngine 4.13 with Cura's
 own Pause at Height script run twice), with references from the oracle (mainline Klipper
-84104bbbd; tests/oracle_refs/stops/runs.py says how a pause is timed there). A real-time print
+84104bbbd; tests/stop_refs/runs.py says how a pause is timed there). A real-time print
 in real Klipper (a virtual-SD print that really pauses at M600 and PAUSE, then resumes)
 holds that this is the time a real pause gives.
 """
@@ -34,7 +34,7 @@ from kestimator.stops import (
 
 from .conftest import CORPUS, CORPUS_CFG, PROJECT, isolate_user_environment, require_klipper
 
-STOPS = Path(__file__).parent / "oracle_refs" / "stops"
+STOPS = Path(__file__).parent / "stop_refs"
 STOPS_CFG = STOPS / "printer.cfg"
 FILES = ("ps25_box_color_pause.gcode", "cura413_box_pause_at_height.gcode")
 # The oracle's times are rounded to the microsecond.

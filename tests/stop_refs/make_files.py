@@ -1,7 +1,7 @@
 """Make the multi-colour G-code files of this folder with real slicers (kept in the folder:
 the slicers' versions drift, the references must not).
 
-    python3 tests/oracle_refs/stops/make_files.py     (Debian's prusa-slicer, CuraEngine, cura)
+    python3 tests/stop_refs/make_files.py     (Debian's prusa-slicer, CuraEngine, cura)
 
 - `ps25_box_color_pause.gcode`: Debian's PrusaSlicer 2.5 (marlin2 flavour, remaining times on,
   so it writes Prusa firmware's `M73 C` time-to-change lines), a 14 x 14 x 2 mm box with a

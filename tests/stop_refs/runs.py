@@ -2,7 +2,7 @@
 (made by make_files.py with real slicers), with this folder's printer.cfg.
 
 Regenerate with the oracle (mainline Klipper 84104bbbd, batch mode):
-    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/oracle_refs/stops/runs.py
+    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/stop_refs/runs.py
 
 A printer that pauses stops reading the file: Klipper's toolhead runs its look-ahead out
 (`_handle_step_flush` -> `_flush_lookahead(is_runout=True)`) and stands there until RESUME.
@@ -25,7 +25,7 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ORACLE = HERE.parents[2].parent / "shared" / "tools" / "oracle" / "oracle.py"
+ORACLE = HERE.parents[1].parent / "shared" / "tools" / "oracle" / "oracle.py"
 # The commands that pause a print on this folder's printer.cfg: [pause_resume]'s PAUSE,
 # [virtual_sdcard]'s M25, and its macros M600 and M0 (each runs PAUSE).
 PAUSING = ("M600", "M0", "PAUSE", "M25")
