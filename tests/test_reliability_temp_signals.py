@@ -11,6 +11,7 @@ import os
 import signal
 import sys
 import tempfile
+import threading
 from pathlib import Path
 
 import pytest
@@ -26,7 +27,10 @@ def test_a_signal_during_temp_file_creation_leaves_no_file(
 
     def mkstemp_then_signal(*args: object, **kwargs: object) -> tuple[int, str]:
         made = real_mkstemp(*args, **kwargs)  # type: ignore[call-overload]
-        os.kill(os.getpid(), signum)
+        # To this thread, as a lone CLI process's signal comes to its only thread: a signal
+        # sent to the process could go to another thread that does not hold it back (the
+        # pytest-xdist worker's), which a kestimator process never has.
+        signal.pthread_kill(threading.get_ident(), signum)
         # Give the handler every chance to run before the name is returned.
         for _ in range(1000):
             sys.getrecursionlimit()
