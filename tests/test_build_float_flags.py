@@ -15,7 +15,6 @@ The whole-corpus proof on a real build is tests/test_compiled_build.py's FMA-all
 from __future__ import annotations
 
 import platform
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ from types import ModuleType
 import pytest
 
 from .builds import setup_py_module
-from .conftest import IN_CI
+from .conftest import require_program
 
 # CFLAGS a user (or a distribution) may build with: each makes gcc or clang fuse, or take
 # -ffast-math's liberties, unless setup.py's flags undo it.
@@ -43,15 +42,6 @@ def _fma_cpu() -> None:
     with open("/proc/cpuinfo", encoding="ascii", errors="replace") as f:
         if " fma" not in f.read():
             pytest.skip("this CPU has no FMA instructions")
-
-
-def _compiler(name: str) -> str:
-    path = shutil.which(name)
-    if path is None:
-        if IN_CI:
-            pytest.fail("%s is missing (.ci/run installs gcc and clang)" % name)
-        pytest.skip("%s is not installed" % name)
-    return path
 
 
 def _probe_exit(setup_py: ModuleType, library: Path) -> int:
@@ -73,7 +63,7 @@ def _library(compiler: str, tmp_path: Path, flags: list[str]) -> Path:
 def test_the_probe_fails_a_library_built_with_fused_multiply_add(
         compiler: str, tmp_path: Path) -> None:
     _fma_cpu()
-    library = _library(_compiler(compiler), tmp_path, ["-O3", "-march=haswell",
+    library = _library(require_program(compiler), tmp_path, ["-O3", "-march=haswell",
                                                        "-ffp-contract=fast"])
     assert _probe_exit(setup_py_module(), library) == 3
 
@@ -81,7 +71,7 @@ def test_the_probe_fails_a_library_built_with_fused_multiply_add(
 def test_the_probe_fails_a_library_whose_link_zeroes_denormals(tmp_path: Path) -> None:
     if platform.machine() not in ("x86_64", "AMD64"):
         pytest.skip("crtfastmath.o's flush-to-zero is x86's")
-    library = _library(_compiler("gcc"), tmp_path, ["-O2", "-ffast-math"])
+    library = _library(require_program("gcc"), tmp_path, ["-O2", "-ffast-math"])
     assert _probe_exit(setup_py_module(), library) == 4
 
 
@@ -90,7 +80,7 @@ def test_the_probe_fails_a_library_whose_link_zeroes_denormals(tmp_path: Path) -
 def test_the_float_flags_undo_fused_and_fast_math_cflags(
         compiler: str, cflags: str, monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     _fma_cpu()
-    path = _compiler(compiler)
+    path = require_program(compiler)
     # Without setup.py's flags these CFLAGS break Python's arithmetic on this CPU...
     setup_py = setup_py_module()
     unguarded = _library(path, tmp_path, ["-O3", *cflags.split()])
@@ -109,7 +99,7 @@ def test_a_compiler_that_takes_no_float_flags_is_refused(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
     # A cc that compiles plain C but refuses every -f flag: the build must not go on
     # unguarded (setup.py then installs the pure package and says this line's reason).
-    gcc = _compiler("gcc")
+    gcc = require_program("gcc")
     fake = tmp_path / "cc"
     fake.write_text("#!/bin/sh\nfor a in \"$@\"; do case \"$a\" in -ffp-contract=*) "
                     "echo \"cc: unknown option $a\" >&2; exit 1;; esac; done\n"
@@ -127,7 +117,7 @@ def test_on_x87_each_operation_is_rounded_to_a_double_as_cpython_rounds_it(
     # operation's result to a double (it is stored in a float object). GCC keeps mypyc's
     # `t = a * b; u = t + c` in a register unless told -fexcess-precision=standard, which
     # stores and reloads t (fstpl, fldl). Assembly only: no 32-bit libc or Python is needed.
-    gcc = _compiler("gcc")
+    gcc = require_program("gcc")
     source = tmp_path / "probe.c"
     setup_py = setup_py_module()
     source.write_text(setup_py.FLOAT_PROBE_C, encoding="ascii")
