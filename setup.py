@@ -103,6 +103,15 @@ COMPILE_JOB_MIB = 250
 # mypyc's optimisation level (-O3): the probe below is compiled at it too, as contraction
 # into a multiply-add is an optimisation.
 OPT_LEVEL = "3"
+# Each group's level, given after mypyc's -O3 (gcc takes the last). The per-line path (core)
+# keeps -O3. The other two are compiled at -O1: gcc at -O1 takes 35 % less CPU on them
+# (commands 32 -> 21 s, kinematics 17 -> 11 s) and less memory (the commands group's cc1
+# 201 -> 168 MiB), and the estimate's instruction count moves by under 0.5 %, as their code
+# is mostly calls into Python's C API (benchmarks/RESULTS.md, "The first command's time").
+# -ffp-contract=off and the rest of FLOAT_FLAGS hold at every level; -O1 does a subset of
+# -O3's transformations.
+GROUP_OPT_LEVELS = {"kestimator_core": "3", "kestimator_commands": "1",
+                    "kestimator_kinematics": "1"}
 # Float arithmetic as CPython's, whatever CFLAGS say (they come first on gcc's command line,
 # these last): no contraction into fused multiply-adds, none of -ffast-math's parts (each
 # named, as -fno-fast-math leaves one the user set alone), and on x87 every assignment
@@ -357,14 +366,18 @@ def _mypyc_in_child() -> list[object]:
             raise RuntimeError(why)
         with open(result, "rb") as f:
             modules: list[object] = pickle.load(f)  # noqa: S301 (our own child's)
-    # The three groups' libraries first: run side by side, the longest compiles start first
-    # and the modules' small shims fill in around them.
-    modules.sort(key=lambda extension: not extension.name.endswith(  # type: ignore[attr-defined]
-        "__mypyc"))
+    # The three groups' libraries first, in GROUPS' order (the longest compile first): run
+    # side by side on two CPUs, core runs on one while commands then kinematics run on the
+    # other, and the modules' small shims fill in around them (the two end together).
+    libraries = {"%s__mypyc" % name: (index, ["-O" + GROUP_OPT_LEVELS.get(str(name), OPT_LEVEL)])
+                 for index, (_, name) in enumerate(GROUPS)}
+    modules.sort(key=lambda extension: libraries.get(  # type: ignore[attr-defined]
+        extension.name, (len(GROUPS), []))[0])  # type: ignore[attr-defined]
     for extension in modules:
+        level = libraries.get(extension.name, (0, []))[1]  # type: ignore[attr-defined]
         extension.extra_compile_args = [  # type: ignore[attr-defined]
             *extension.extra_compile_args,  # type: ignore[attr-defined]
-            *_COMPILER_FLAGS, *FLOAT_FLAGS]
+            *level, *_COMPILER_FLAGS, *FLOAT_FLAGS]
         extension.extra_link_args = [  # type: ignore[attr-defined]
             *extension.extra_link_args, *FLOAT_LINK_FLAGS]  # type: ignore[attr-defined]
     return modules

@@ -18,6 +18,7 @@ import concurrent.futures
 import json
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -97,6 +98,13 @@ def _compiled_venv(root: Path, python: str, version: tuple[int, int],
     compiles = [line for line in log.splitlines() if " -c " in line and ".c -o " in line]
     assert compiles and all(
         line.rfind("-ffp-contract=off") > line.rfind("-ffp-contract=fast") for line in compiles)
+    # Each group's C file at its level (gcc takes the last -O): the per-line path at -O3,
+    # the commands and the kinematics at -O1; the comparisons below hold for both levels.
+    levels = setup_py_module().GROUP_OPT_LEVELS
+    assert levels["kestimator_core"] == "3"
+    for group, level in levels.items():
+        line = next(line for line in compiles if "__native_%s.c" % group in line)
+        assert re.findall(r"(?<!\S)-O(\w)(?!\S)", line)[-1] == level, line
     assert [line.strip() for line in log.splitlines() if "kestimator build:" in line] == [
         line.strip() for line in log.splitlines() if COMPILED_LINE in line][:1]
     assert "-cp%d%d-" % version in wheel.name
