@@ -85,10 +85,10 @@ GROUPS: list[tuple[list[str], str | None]] = [
 ]
 PREFIX = "kestimator build: "
 MYPYC_CHILD = "--kestimator-mypyc-child"
-# The install's measured peak, summed over pip, the build, mypy and gcc, is 279 MiB with
-# Debian's Python 3.11 (benchmarks/install_memory.py); below this much free memory the
-# install is the pure package. KESTIMATOR_BUILD_MEMORY_MIB sets another bar (a board with
-# zram, say); KESTIMATOR_BUILD=compiled compiles whatever is free.
+# The install's measured peak, summed over pip, the build, mypy and gcc, is 295 MiB with
+# Debian's Python 3.11, at mypy's phase (benchmarks/install_memory.py --jobs 1); below
+# this much free memory the install is the pure package. KESTIMATOR_BUILD_MEMORY_MIB sets
+# another bar (a board with zram, say); KESTIMATOR_BUILD=compiled compiles whatever is free.
 BUILD_MEMORY_MIB = 300
 # gcc's garbage collector tuned for a small board: collect when the heap grows by 10 %
 # past 16 MiB. On this 24 GiB host gcc's defaults (grow 100 % past 128 MiB) let cc1 reach
@@ -96,9 +96,10 @@ BUILD_MEMORY_MIB = 300
 # the parameters change only when memory is collected), the compile takes ~15 % more CPU.
 _GCC_MEMORY_FLAGS = ["--param=ggc-min-expand=10", "--param=ggc-min-heapsize=16384"]
 _COMPILER_FLAGS: list[str] = []  # _GCC_MEMORY_FLAGS when the probe's compiler takes them
-# What one more compiler running at once needs: cc1's largest peak, on the commands group's
-# C file, is 201 MiB (/usr/bin/time, gcc 12, the flags above). The C files are compiled
-# one at a time unless RAM beyond BUILD_MEMORY_MIB holds another (compile_jobs).
+# What one more compiler running at once needs: cc1's largest peak, on the core group's
+# C file, is 184 MiB (/usr/bin/time, gcc 12, the flags above; the commands group's, 201 MiB
+# at -O3, is 168 MiB at -O1). The C files are compiled one at a time unless RAM beyond
+# BUILD_MEMORY_MIB holds another (compile_jobs).
 COMPILE_JOB_MIB = 250
 # mypyc's optimisation level (-O3): the probe below is compiled at it too, as contraction
 # into a multiply-add is an optimisation.
@@ -106,8 +107,9 @@ OPT_LEVEL = "3"
 # Each group's level, given after mypyc's -O3 (gcc takes the last). The per-line path (core)
 # keeps -O3. The other two are compiled at -O1: gcc at -O1 takes 35 % less CPU on them
 # (commands 32 -> 21 s, kinematics 17 -> 11 s) and less memory (the commands group's cc1
-# 201 -> 168 MiB), and the estimate's instruction count moves by under 0.5 %, as their code
-# is mostly calls into Python's C API (benchmarks/RESULTS.md, "The first command's time").
+# 201 -> 168 MiB), and the estimate's instruction count moves by under 0.6 %, as their code
+# is mostly calls into Python's C API (benchmarks/RESULTS.md, "The first command in under
+# a minute"). Core first in GROUPS: with two CPUs the compiles end together.
 # -ffp-contract=off and the rest of FLOAT_FLAGS hold at every level; -O1 does a subset of
 # -O3's transformations.
 GROUP_OPT_LEVELS = {"kestimator_core": "3", "kestimator_commands": "1",
