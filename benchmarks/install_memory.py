@@ -15,6 +15,13 @@ the load average around it (wall time on a shared host is noise; CPU time much l
 `--jobs N` sets KESTIMATOR_BUILD_JOBS (`--jobs 1`: one compile at a time, as setup.py does
 on a small host); without it setup.py decides from the CPUs and memory here.
 
+It also prints the command's wall time by phase, from pip's `-v` lines as they arrive: the
+venv, pip's steps before the build (setuptools and mypy into the isolated build environment,
+the metadata), mypy's child writing the C, the compiles and the wheel (and each group's
+library, from its `building '...' extension` line to its link), installing the wheel and
+rich, the `inject`.
+On an idle machine the phases are the command's critical path.
+
     python3 benchmarks/install_memory.py [--python /usr/bin/python3] [--limit 300] [--jobs N]
 """
 
@@ -23,6 +30,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import re
 import resource
 import subprocess
 import sys
@@ -32,6 +40,15 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent.parent
+# The pip -v lines that start each phase of `pip install`, in order.
+PHASE_MARKS = (
+    ("pip before the build", "Installing build dependencies: started"),
+    ("mypy writes the C", "Building wheel for kestimator (pyproject.toml): started"),
+    ("compiling, the wheel", "running build_ext"),
+    ("installing", "Building wheel for kestimator (pyproject.toml): finished"),
+)
+GROUP_START = re.compile(r"building '(\w+)__mypyc' extension")
+GROUP_LINK = re.compile(r" -shared .*/(\w+)__mypyc\.")
 PAGE_KIB = os.sysconf("SC_PAGE_SIZE") // 1024
 INTERVAL_S = 0.05
 
@@ -107,6 +124,27 @@ def _clone(target: Path) -> Path:
     return clone
 
 
+def _phases(marks: dict[str, float], pip_started: float,
+            groups: dict[str, list[float]]) -> str:
+    """The phases' wall seconds in order ('venv 4.1, pip before the build 12.0, ...'), and
+    each group library's compile within the compiles."""
+    times = dict(marks)
+    times.setdefault("pip before the build", pip_started)
+    order = ["venv", *[name for name, _ in PHASE_MARKS], "inject", "end"]
+    # venv ends where pip starts; a phase whose line never came (a pure build) is left out.
+    present = [name for name in order if name in times]
+    times["pip before the build"] = min(times["pip before the build"], pip_started)
+    parts = []
+    for name, following in zip(present, present[1:]):
+        end = pip_started if name == "venv" else times[following]
+        parts.append("%s %.1f" % (name, end - times[name]))
+        if name == "compiling, the wheel" and groups:
+            parts[-1] += " (%s)" % ", ".join(
+                "%s %.1f" % (group, end_s - start_s)
+                for group, (start_s, end_s) in sorted(groups.items(), key=lambda g: g[1][0]))
+    return ", ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--python", default="/usr/bin/python3",
@@ -141,11 +179,24 @@ def main(argv: list[str] | None = None) -> int:
         sampler = TreeSampler(process.pid)
         sampler.start()
         output = b""
+        marks: dict[str, float] = {"venv": first_started}
+        groups: dict[str, list[float]] = {}
         assert process.stdout is not None
-        for chunk in iter(lambda: process.stdout.read(65536), b""):  # type: ignore[union-attr]
+        for chunk in iter(process.stdout.readline, b""):
+            now = time.monotonic()
             output += chunk
             log.write(chunk)
+            text = chunk.decode(errors="replace")
+            for name, mark in PHASE_MARKS:
+                if mark in text and name not in marks:
+                    marks[name] = now
+            started_group, linked_group = GROUP_START.search(text), GROUP_LINK.search(text)
+            if started_group:
+                groups[started_group.group(1)] = [now, now]
+            elif linked_group and linked_group.group(1) in groups:
+                groups[linked_group.group(1)][1] = now
         process.wait()
+        marks["pip's end"] = time.monotonic()
         sampler.stopped.set()
         sampler.join()
         log.close()
@@ -160,7 +211,9 @@ def main(argv: list[str] | None = None) -> int:
                         "examples/hex_nut_prusaslicer.gcode", "-o", "hex_nut_klipper.gcode",
                         "--printer-cfg", "examples/printer.cfg"], check=True, env=env,
                        cwd=clone, stdout=subprocess.DEVNULL, timeout=300)
+        marks["inject"] = marks["pip's end"]
         first_wall = time.monotonic() - first_started
+        marks["end"] = first_started + first_wall
         first_after = resource.getrusage(resource.RUSAGE_CHILDREN)
         first_cpu = (first_after.ru_utime - first_rusage.ru_utime) + (
             first_after.ru_stime - first_rusage.ru_stime)
@@ -185,6 +238,7 @@ def main(argv: list[str] | None = None) -> int:
           "on %d CPUs, KESTIMATOR_BUILD_JOBS=%s; load average %.2f before, %.2f after" % (
               first_cpu, first_wall, os.cpu_count() or 0, args.jobs or "unset",
               load_before[0], load_after[0]))
+    print("wall s by phase: %s" % _phases(marks, started, groups))
     if peak >= args.limit:
         print("over the limit: %.0f MiB >= %.0f MiB" % (peak, args.limit))
         return 1
