@@ -350,3 +350,28 @@ def test_without_the_version_a_v0_12_0_config_is_minutes_off_on_accel_changes(
                                            read_slicer_environment=False))
     assert resolved.limits.klipper_generation == "mainline"
     assert ref["total_s"] - estimate_file(gcode, resolved.limits).total_s > 60.0
+
+
+def test_the_running_klippers_version_counts_unless_a_setting_names_one(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    """On the printer host the worker is told the version of the Klipper the module runs in
+    (LimitRequest.running_klipper_version); --set, the profile or a printer.cfg comment win,
+    and text that is no version is said on one line and left out."""
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(PRINTER.format(extra="max_accel_to_decel: 1500\n"))
+    running = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                          running_klipper_version="v0.12.0-0-g0d67d9c4"))
+    assert (running.limits.klipper_version, running.limits.klipper_generation) == (
+        "v0.12.0-0-g0d67d9c4", "absolute")
+    assert running.sources["klipper_version"] == (
+        "the Klipper the module runs in: software_version")
+    named = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                        overrides={"klipper_version": "v0.12.0-119"},
+                                        running_klipper_version="v0.12.0-0-g0d67d9c4"))
+    assert (named.limits.klipper_version, named.limits.klipper_generation) == (
+        "v0.12.0-119", "mcr")
+    junk = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                       running_klipper_version="Marlin 2.1\x1b[2J"))
+    assert junk.limits.klipper_version == "" and junk.limits.klipper_generation == "mainline"
+    (line,) = [w for w in junk.warnings if "module runs in" in w]
+    assert "not used" in line and "\x1b" not in line
