@@ -1,19 +1,25 @@
 #!/bin/sh
 # Regenerate the reference JSONs of klipper-<release>/ with the oracle pointed at that Klipper.
 # usage: ORACLE_PYTHON=... sh tests/oracle_refs_releases/make_refs.sh <release> <built tree>
-#   release: v0.12.0 or v0.13.0; the tree built as .ci/klipper-setup builds 84104bbbd, from
-#   ../shared/upstream/klipper-<release>.tar.gz (those tarballs have no lib/kconfiglib: copy the
-#   84104bbbd tree's, only `make olddefconfig` uses it)
+#   release: v0.12.0 or v0.13.0 (klipper-<release>/), or kalico-v2026.07.00; the tree built as
+#   .ci/klipper-setup builds 84104bbbd, from ../shared/upstream/klipper-<release>.tar.gz (those
+#   tarballs have no lib/kconfiglib: copy the 84104bbbd tree's, only `make olddefconfig` uses
+#   it) or ../shared/upstream/kalico-v2026.07.00.tar.gz (ORACLE_PYTHON then a venv with its
+#   scripts/klippy-requirements.txt)
 set -eu
 RELEASE=$1
 TREE=$2
 HERE=$(cd "$(dirname "$0")" && pwd)
 ORACLE=${ORACLE:-$HERE/../../../shared/tools/oracle/oracle.py}
 CORPUS=${CORPUS:-$HERE/../../../shared/corpus}
-DIR=$HERE/klipper-$RELEASE
+case $RELEASE in
+    kalico-*) DIR=$HERE/$RELEASE ;;
+    *) DIR=$HERE/klipper-$RELEASE ;;
+esac
 case $RELEASE in
     v0.12.0) LABEL="Klipper v0.12.0 (0d67d9c45d2d, 2023-11-10; ../shared/upstream/klipper-v0.12.0.tar.gz), klippy batch mode" ;;
     v0.13.0) LABEL="Klipper v0.13.0 (61c0c8d2ef40, 2025-04-11; ../shared/upstream/klipper-v0.13.0.tar.gz), klippy batch mode" ;;
+    kalico-v2026.07.00) LABEL="Kalico v2026.07.00 (30c65e09de06, 2026-07; ../shared/upstream/kalico-v2026.07.00.tar.gz), klippy batch mode" ;;
     *) echo "make_refs.sh: unknown release $RELEASE" >&2; exit 2 ;;
 esac
 for gcode in \
@@ -22,8 +28,10 @@ for gcode in \
     gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
     gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
     gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode; do
+    flush_junctions.gcode kalico_rules.gcode; do
     name=$(basename "$gcode" .gcode)
+    # kalico_rules.gcode runs commands only Kalico has
+    if [ "$name" = kalico_rules ] && [ "${RELEASE#kalico-}" = "$RELEASE" ]; then continue; fi
     # flush_junctions.gcode is kestimator's own (beside the references), the rest the corpus's
     src=$CORPUS/$gcode
     [ -e "$src" ] || src=$HERE/$gcode
