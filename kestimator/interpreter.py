@@ -169,8 +169,10 @@ class Interpreter:
         helper = ToolHeadCommandHelper(limits, toolhead, warn)
         for name in ("G4", "M400", "SET_VELOCITY_LIMIT", "M204"):
             self.register_command(name, getattr(helper, "cmd_" + name))
-        if helper.kalico and "RESET_VELOCITY_LIMIT" not in self.macros:
-            self.register_command("RESET_VELOCITY_LIMIT", helper.cmd_RESET_VELOCITY_LIMIT)
+        for name, kalicos in (("RESET_VELOCITY_LIMIT", helper.kalico),  # its limited_*'s:
+                              ("SET_KINEMATICS_LIMIT", toolhead.kin.kinematics_limits())):
+            if kalicos and name not in self.macros:
+                self.register_command(name, getattr(helper, "cmd_" + name))
         self.extruders = extruders = PrinterExtruders(
             limits, toolhead, gcode_move._handle_activate_extruder)
         # The extruders' commands (an [extruder] or [extruder_stepper] registers them) and

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from math import sqrt
 from typing import ClassVar, Final
 
-from kestimator.errors import MoveError, fixed
+from kestimator.errors import MoveError, ParamError, fixed
 from kestimator.extruder import PrinterExtruder
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.kinematics import load_kinematics
@@ -547,6 +547,7 @@ class ToolHead:
         self.instant_corner_v = self.extruder.instant_corner_v
         # Create kinematics class: homed at X=Y=Z=0 before the file's first line.
         self.kin = load_kinematics(limits)
+        self.kin.attach_toolhead(self)
         self.kin.set_position(self.commanded_pos, "xyz")
 
     # Print time tracking
@@ -931,6 +932,35 @@ class ToolHeadCommandHelper:
                 value = get_float(params, param, above=above)
                 if value is not None:
                     setattr(kin, attr, value)
+
+    def cmd_SET_KINEMATICS_LIMIT(self, cmd: Command) -> None:
+        """Kalico's limited_* kinematics (kestimator.kinematics.limited_*): X_VELOCITY=,
+        Y_VELOCITY=, Z_VELOCITY= (where it has velocities), X_ACCEL=, Y_ACCEL=, Z_ACCEL=,
+        SCALE=0|1, each the current value when not given, set in that order."""
+        params = command_params(cmd)
+        kin = self.toolhead.kin
+        known = kin.kinematics_limits()
+        if known is None:
+            return
+        velocities, accels, _scale = known
+        if velocities is not None:
+            velocities = [get_float(params, ax + "_VELOCITY", max_v, above=0.0)
+                          for max_v, ax in zip(velocities, "XYZ")]
+            kin.set_kinematics_limits(velocities, None, None)
+        accels = [get_float(params, ax + "_ACCEL", max_a, above=0.0)
+                  for max_a, ax in zip(accels, "XYZ")]
+        kin.set_kinematics_limits(None, accels, None)
+        text = params.get("SCALE")
+        if text is not None:
+            try:
+                value = int(text)
+            except ValueError:
+                raise ParamError("unable to parse %s" % text) from None
+            if value < 0:
+                raise ParamError("SCALE must have minimum of 0")
+            if value > 1:
+                raise ParamError("SCALE must have maximum of 1")
+            kin.set_kinematics_limits(None, None, bool(value))
 
     def cmd_RESET_VELOCITY_LIMIT(self, cmd: Command) -> None:
         """Kalico: [printer]'s velocity, accel, kinematics' per-axis limits, square corner

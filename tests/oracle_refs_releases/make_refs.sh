@@ -22,23 +22,18 @@ case $RELEASE in
     kalico-v2026.07.00) LABEL="Kalico v2026.07.00 (30c65e09de06, 2026-07; ../shared/upstream/kalico-v2026.07.00.tar.gz), klippy batch mode" ;;
     *) echo "make_refs.sh: unknown release $RELEASE" >&2; exit 2 ;;
 esac
-for gcode in \
-    gcode/prusaslicer/ps25_nut_accelA_small.gcode \
-    gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode \
-    gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
-    gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
-    gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode kalico_rules.gcode; do
+# make_ref FOLDER GCODE: FOLDER/<name>.json, the oracle run with FOLDER/printer.cfg.
+make_ref() {
+    folder=$1
+    gcode=$2
     name=$(basename "$gcode" .gcode)
-    # kalico_rules.gcode runs commands only Kalico has
-    if [ "$name" = kalico_rules ] && [ "${RELEASE#kalico-}" = "$RELEASE" ]; then continue; fi
-    # flush_junctions.gcode is kestimator's own (beside the references), the rest the corpus's
+    # kestimator's own files are beside the references, the rest the corpus's
     src=$CORPUS/$gcode
     [ -e "$src" ] || src=$HERE/$gcode
-    python3 "$ORACLE" "$src" --cfg "$DIR/printer.cfg" --klipper "$TREE" \
-        --python "$ORACLE_PYTHON" --mark-every 0 --reference > "$DIR/$name.json.tmp"
+    python3 "$ORACLE" "$src" --cfg "$folder/printer.cfg" --klipper "$TREE" \
+        --python "$ORACLE_PYTHON" --mark-every 0 --reference > "$folder/$name.json.tmp"
     # The harness labels its output with the Klipper it was written for: say which one ran.
-    python3 - "$DIR/$name.json.tmp" "$gcode" "$LABEL" <<'PY'
+    python3 - "$folder/$name.json.tmp" "$gcode" "$LABEL" <<'PY'
 import json, sys
 path, gcode, label = sys.argv[1:]
 ref = json.load(open(path))
@@ -47,5 +42,26 @@ with open(path, "w") as out:
     json.dump(ref, out, indent=1)
     out.write("\n")
 PY
-    mv "$DIR/$name.json.tmp" "$DIR/$name.json"
+    mv "$folder/$name.json.tmp" "$folder/$name.json"
+}
+
+NUT=gcode/prusaslicer/ps25_nut_accelA_small.gcode
+ACCELCTL=gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode
+for gcode in "$NUT" "$ACCELCTL" \
+    gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
+    gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
+    gcode/slic3r/slic3r130_torus_x3_accel.gcode \
+    flush_junctions.gcode; do
+    make_ref "$DIR" "$gcode"
 done
+case $RELEASE in
+    kalico-*)
+        # What only Kalico has: its commands, and its limited_* kinematics (each folder's
+        # printer.cfg is the corpus's with that kinematics and its per-axis limits).
+        make_ref "$DIR" kalico_rules.gcode
+        for kinematics in limited_cartesian limited_corexy limited_corexz; do
+            for gcode in "$NUT" "$ACCELCTL" kinematics_limit.gcode; do
+                make_ref "$DIR/$kinematics" "$gcode"
+            done
+        done ;;
+esac
