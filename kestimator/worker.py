@@ -11,7 +11,8 @@ after each), in the order asked. A request::
 
 ``klipper_version`` is the software_version of the Klipper the module runs in ("Kalico
 v2026.07.00-..." for Kalico): the printer's klipper_version unless the user's settings (the
-printer.cfg comment, the profile) name one.
+printer.cfg comment, the profile) name one. A table made without a version holds for a
+Klipper whose version selects today's rules (`_same_release_as`).
 
 The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": ...,
 "offsets": [...], "times": [...], "object_names": [...], "object_offsets": [...],
@@ -231,10 +232,37 @@ def table_mismatch(table: ProgressTable, printer: Printer) -> str | None:
         return ("the file's table records no printer settings (a version-1 table, written "
                 "before kestimator recorded them), so it may be for another printer: "
                 "estimated afresh")
-    if table.settings == printer.settings:
+    made_for = _same_release_as(table.settings, printer.settings)
+    if made_for == printer.settings:
         return None
     return ("the file's table was made for %s: estimated afresh"
-            % describe_differences(settings_differences(table.settings, printer.settings)))
+            % describe_differences(settings_differences(made_for, printer.settings)))
+
+
+def _release_rules(version: str | None) -> object:
+    """What a recorded klipper_version changes in an estimate beside the recorded
+    klipper_generation: its toolhead's rules and whether it is Kalico (no version: today's
+    Klipper's); the text itself when it is no version."""
+    from kestimator.limits import klipper_release
+    if not version:
+        return ("mainline", "mainline", False, False, False)
+    try:
+        release = klipper_release(version)
+    except ValueError:
+        return version
+    return (release.junction, release.print_time, release.pressure_advance_waits,
+            release.pressure_advance_always_flushes, release.is_kalico)
+
+
+def _same_release_as(made_for: Settings, here: Settings) -> Settings:
+    """`made_for` with this printer's klipper_version where the two select the same rules
+    (a table injected without a version holds on a host whose Klipper reports today's)."""
+    theirs, ours = dict(made_for).get("klipper_version"), dict(here).get("klipper_version")
+    if theirs == ours or theirs is None or ours is None or (
+            _release_rules(theirs) != _release_rules(ours)):
+        return made_for
+    return tuple((name, ours if name == "klipper_version" else value)
+                 for name, value in made_for)
 
 
 def _bounded_warnings(warnings: list[str]) -> list[str]:

@@ -109,7 +109,7 @@ def test_kalico_sends_its_version_with_its_name_first_as_printer_info_has_it(
 
 
 def test_a_v0_12_0_klipper_gets_v0_12_0s_times_from_the_worker(
-        tmp_path: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+        tmp_path: Any, monkeypatch: pytest.MonkeyPatch, corpus_root: Any) -> None:
     """The module in Klipper v0.12.0 sends its version; the worker estimates with v0.12.0's
     semantics (max_accel_to_decel absolute, its junction and print-time rules): real
     v0.12.0's own time (tests/oracle_refs_releases/klipper-v0.12.0) on a file that changes
@@ -126,7 +126,7 @@ def test_a_v0_12_0_klipper_gets_v0_12_0s_times_from_the_worker(
     with open(os.path.join(v0_12, "accelctl_orca1.5.0_klipper_m204.json")) as f:
         ref = json.load(f)
     kest, printer, fake = printing(
-        software_version="v0.12.0-0-g0d67d9c4", path=str(CORPUS / ref["file"]),
+        software_version="v0.12.0-0-g0d67d9c4", path=str(corpus_root / ref["file"]),
         printer=stubs.Printer(config_file=os.path.join(v0_12, "printer.cfg")))
     (request,) = fake.requests
     assert request["klipper_version"] == "v0.12.0-0-g0d67d9c4"
