@@ -513,11 +513,12 @@ class Interpreter:
 
     # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:
-        """M84/M18: stop, dwell, disable the motors that were on, dwell again; every axis is
-        unhomed (a later XYZ move without G28 is "Must home axis first")."""
+        """M84/M18: stop, dwell, disable the motors that were on, dwell, unhome every axis;
+        before set_motors_enable (`old_motor_off`) no stop first, and the dwells always."""
         toolhead = self.toolhead
-        toolhead.flush_step_generation()
-        if toolhead.motors_enabled:
+        if not toolhead.old_motor_off:
+            toolhead.flush_step_generation()
+        if toolhead.motors_enabled or toolhead.old_motor_off:
             toolhead.dwell(DISABLE_STALL_T)
             toolhead.get_last_move_time()
             toolhead.dwell(DISABLE_STALL_T)

@@ -528,6 +528,9 @@ class ToolHead:
         # that changes the scan window.
         self.pressure_advance_always_flushes = (release is not None
                                                 and release.pressure_advance_always_flushes)
+        # M84/M18 as extras/stepper_enable.py's motor_off had it before set_motors_enable
+        # (kestimator.interpreter's cmd_M84): the older toolheads' releases.
+        self.old_motor_off = False
         # Print time tracking
         self.print_time = 0.0
         self.special_queuing_state = "NeedPrime"
@@ -755,6 +758,7 @@ class ForceFlushToolHead(ToolHead):
     def __init__(self, limits: Limits,
                  on_moves: Callable[[list[Move], float], None] | None = None) -> None:
         super().__init__(limits, on_moves)
+        self.old_motor_off = True
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH_V0_12)
         # Klipper's force_flush_time and last_kin_move_time: before the origin (the
         # oracle's pre-roll dwell leaves both over a second before the first line).
@@ -830,6 +834,8 @@ class MinRestartToolHead(ToolHead):
     def __init__(self, limits: Limits,
                  on_moves: Callable[[list[Move], float], None] | None = None) -> None:
         super().__init__(limits, on_moves)
+        # v0.13.0's and Kalico v2026.07.00's stepper_enable.py: motor_off without a flush.
+        self.old_motor_off = True
         # The head starts homed: the homing's flush_step_generation at the origin.
         self.motion_queuing.last_step_gen_time = 0.0
 

@@ -408,3 +408,17 @@ def test_reset_velocity_limit_is_kalicos_alone(tmp_path: Path, environ: dict[str
         est = estimate_file(gcode, resolved.limits)
         unknown = [w for w in est.warnings if "'RESET_VELOCITY_LIMIT' is not a Klipper" in w]
         assert bool(unknown) is not known, (version, est.warnings)
+
+
+@pytest.mark.parametrize("folder", list(RELEASE_VERSIONS))
+def test_each_releases_motor_off_agrees_to_the_microsecond(
+        folder: str, environ: dict[str, str]) -> None:
+    """M84 / M18 before set_motors_enable (v0.12.0, v0.13.0, Kalico: no flush first, both
+    dwells whether or not a motor was on): 0.4 s (v0.12.0) and 0.28 s off with today's."""
+    ref, est = _estimate(RELEASES / folder / "motor_off.json", environ)
+    mine = dict(est.layers)
+    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
+    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
+    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
+    assert len(got) == 6 and all(abs(a - b) <= TOL_RULES_S for a, b in zip(got, want)), (
+        got, want)
