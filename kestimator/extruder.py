@@ -193,8 +193,8 @@ class PrinterExtruders:
             raise ParamError("SMOOTH_TIME must have maximum of %s" % MAX_SMOOTH_TIME_T)
         new_window = (pressure_advance_window(advance, smooth_time)
                       != pressure_advance_window(old_advance, old_smooth))
-        if new_window:
-            # Need full kinematic flush to change the smooth time
+        if new_window or self.toolhead.pressure_advance_always_flushes:
+            # Need full kinematic flush to change the smooth time (Kalico: always)
             self.toolhead.flush_step_generation()
         stepper.pressure_advance = advance
         stepper.pressure_advance_smooth_time = smooth_time

@@ -169,6 +169,10 @@ class Interpreter:
         helper = ToolHeadCommandHelper(limits, toolhead, warn)
         for name in ("G4", "M400", "SET_VELOCITY_LIMIT", "M204"):
             self.register_command(name, getattr(helper, "cmd_" + name))
+        for name, kalicos in (("RESET_VELOCITY_LIMIT", helper.kalico),  # its limited_*'s:
+                              ("SET_KINEMATICS_LIMIT", toolhead.kin.kinematics_limits())):
+            if kalicos and name not in self.macros:
+                self.register_command(name, getattr(helper, "cmd_" + name))
         self.extruders = extruders = PrinterExtruders(
             limits, toolhead, gcode_move._handle_activate_extruder)
         # The extruders' commands (an [extruder] or [extruder_stepper] registers them) and
@@ -509,11 +513,12 @@ class Interpreter:
 
     # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:
-        """M84/M18: stop, dwell, disable the motors that were on, dwell again; every axis is
-        unhomed (a later XYZ move without G28 is "Must home axis first")."""
+        """M84/M18: stop, dwell, disable the motors that were on, dwell, unhome every axis;
+        before set_motors_enable (`old_motor_off`) no stop first, and the dwells always."""
         toolhead = self.toolhead
-        toolhead.flush_step_generation()
-        if toolhead.motors_enabled:
+        if not toolhead.old_motor_off:
+            toolhead.flush_step_generation()
+        if toolhead.motors_enabled or toolhead.old_motor_off:
             toolhead.dwell(DISABLE_STALL_T)
             toolhead.get_last_move_time()
             toolhead.dwell(DISABLE_STALL_T)

@@ -95,21 +95,25 @@ APP_NAMES = {"klipper": "Klipper", "kalico": "Kalico"}
 # flush also takes the restart to print_time (min_restart_time: 3d3b87f97, v0.12.0-69, 2024-01,
 # to v0.13.0-237); "mainline", step generation restarts after the last move's steps
 # (1e7c67919, v0.13.0-238, 2025-08; v0.12.0-23 to -68 are not told apart from it). Kalico
-# v2026.07.00 has the mainline junction rule; its print time is taken as mainline's (its
-# toolhead has min_restart_time, not yet held to Kalico itself). The last column: a new
-# pressure-advance window waits for the toolhead as well (SET_PRESSURE_ADVANCE's look-ahead
-# callback after its flush, which with nothing queued is get_last_move_time: c84d78f3f,
-# v0.12.0-262, 2024-07, to v0.13.0-245; 542694350 took it out).
-KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str, bool], ...]] = {
-    "klipper": (((0,), 0, "clamped", "force_flush", False),
-                ((0, 12, 0), 23, "clamped", "mainline", False),
-                ((0, 12, 0), 69, "clamped", "min_restart", False),
-                ((0, 12, 0), 262, "clamped", "min_restart", True),
-                ((0, 12, 0), 383, "clamped_delta_v2", "min_restart", True),
-                ((0, 12, 0), 384, "mainline", "min_restart", True),
-                ((0, 13, 0), 238, "mainline", "mainline", True),
-                ((0, 13, 0), 246, "mainline", "mainline", False)),
-    "kalico": (((0,), 0, "mainline", "mainline", False),),
+# v2026.07.00 has the mainline junction rule and v0.13.0's min_restart_time (its
+# klippy/toolhead.py is v0.13.0's with per-axis limits and RESET_VELOCITY_LIMIT added). The
+# fifth column: a new pressure-advance window waits for the toolhead as well
+# (SET_PRESSURE_ADVANCE's look-ahead callback after its flush, which with nothing queued is
+# get_last_move_time: c84d78f3f, v0.12.0-262, 2024-07, to v0.13.0-245; 542694350 took it
+# out). The last: every SET_PRESSURE_ADVANCE flushes step generation, whether its scan window
+# changes or not (Kalico's kinematics/extruder.py calls note_step_generation_scan_time
+# unconditionally; Klipper only for a new window).
+KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str, bool, bool],
+                                        ...]] = {
+    "klipper": (((0,), 0, "clamped", "force_flush", False, False),
+                ((0, 12, 0), 23, "clamped", "mainline", False, False),
+                ((0, 12, 0), 69, "clamped", "min_restart", False, False),
+                ((0, 12, 0), 262, "clamped", "min_restart", True, False),
+                ((0, 12, 0), 383, "clamped_delta_v2", "min_restart", True, False),
+                ((0, 12, 0), 384, "mainline", "min_restart", True, False),
+                ((0, 13, 0), 238, "mainline", "mainline", True, False),
+                ((0, 13, 0), 246, "mainline", "mainline", False, False)),
+    "kalico": (((0,), 0, "mainline", "min_restart", False, True),),
 }
 
 
@@ -126,10 +130,16 @@ class KlipperRelease:
     rule: str
     note: str | None = None
     # The junction, print-time and pressure-advance rules (KLIPPER_TOOLHEAD_RULES) of this
-    # release.
+    # release, and whether it is Kalico (its commands: RESET_VELOCITY_LIMIT, ...).
     junction: str = "mainline"
     print_time: str = "mainline"
     pressure_advance_waits: bool = False
+    pressure_advance_always_flushes: bool = False
+
+    @property
+    def is_kalico(self) -> bool:
+        """Whether this is Kalico (its own commands and kinematics)."""
+        return self.app == "Kalico"
 
     @property
     def accepts_max_accel_to_decel(self) -> bool:
@@ -160,21 +170,21 @@ def klipper_release(version: str) -> KlipperRelease:
     commits = int(match.group("commits") or 0)
     name = APP_NAMES[app]
     newest_release, newest_commits, generation, rule = rules[-1]
-    junction, print_time, waits = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
+    junction, print_time, waits, always = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
     if (release, commits) > (newest_release, newest_commits):
         return KlipperRelease(name, release, commits, generation, rule,
                               f"klipper_version {version.strip()} is newer than the newest "
                               f"{name} kestimator knows: taken as {rule}", junction, print_time,
-                              waits)
+                              waits, always)
     for start, start_commits, start_generation, start_rule in rules:
         if (release, commits) >= (start, start_commits):
             generation, rule = start_generation, start_rule
-    for start, start_commits, start_junction, start_print_time, start_waits in (
-            KLIPPER_TOOLHEAD_RULES[app]):
-        if (release, commits) >= (start, start_commits):
-            junction, print_time, waits = start_junction, start_print_time, start_waits
+    for row in KLIPPER_TOOLHEAD_RULES[app]:
+        if (release, commits) >= (row[0], row[1]):
+            junction, print_time, waits, always = row[2], row[3], row[4], row[5]
     return KlipperRelease(name, release, commits, generation, rule, junction=junction,
-                          print_time=print_time, pressure_advance_waits=waits)
+                          print_time=print_time, pressure_advance_waits=waits,
+                          pressure_advance_always_flushes=always)
 
 
 # Options of an [extruderN] section that change motion time (kinematics/extruder.py).

@@ -34,7 +34,7 @@ from collections.abc import Callable
 from math import sqrt
 from typing import ClassVar, Final
 
-from kestimator.errors import MoveError, fixed
+from kestimator.errors import MoveError, ParamError, fixed
 from kestimator.extruder import PrinterExtruder
 from kestimator.gcode import Command, command_params, get_float
 from kestimator.kinematics import load_kinematics
@@ -524,6 +524,13 @@ class ToolHead:
         # (kestimator.extruder's SET_PRESSURE_ADVANCE; the releases in KLIPPER_TOOLHEAD_RULES).
         self.pressure_advance_waits = (release is not None
                                        and release.pressure_advance_waits)
+        # Whether every SET_PRESSURE_ADVANCE flushes step generation (Kalico), not only one
+        # that changes the scan window.
+        self.pressure_advance_always_flushes = (release is not None
+                                                and release.pressure_advance_always_flushes)
+        # M84/M18 as extras/stepper_enable.py's motor_off had it before set_motors_enable
+        # (kestimator.interpreter's cmd_M84): the older toolheads' releases.
+        self.old_motor_off = False
         # Print time tracking
         self.print_time = 0.0
         self.special_queuing_state = "NeedPrime"
@@ -543,6 +550,7 @@ class ToolHead:
         self.instant_corner_v = self.extruder.instant_corner_v
         # Create kinematics class: homed at X=Y=Z=0 before the file's first line.
         self.kin = load_kinematics(limits)
+        self.kin.attach_toolhead(self)
         self.kin.set_position(self.commanded_pos, "xyz")
 
     # Print time tracking
@@ -750,6 +758,7 @@ class ForceFlushToolHead(ToolHead):
     def __init__(self, limits: Limits,
                  on_moves: Callable[[list[Move], float], None] | None = None) -> None:
         super().__init__(limits, on_moves)
+        self.old_motor_off = True
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH_V0_12)
         # Klipper's force_flush_time and last_kin_move_time: before the origin (the
         # oracle's pre-roll dwell leaves both over a second before the first line).
@@ -818,12 +827,15 @@ class MinRestartToolHead(ToolHead):
     (its `min_restart_time`, replaced in 1e7c67919), as klippy/toolhead.py of Klipper v0.13.0
     has it: a full flush of step generation (`flush_step_generation`) also takes the restart
     to print_time, so motion restarts at least kin_flush_delay after the flush (after a dwell
-    too), and the homing flush at the origin delays the first move by it. Made by
-    `make_toolhead` when `klipper_version` names such a release."""
+    too), and the homing flush at the origin delays the first move by it. Kalico
+    v2026.07.00's klippy/toolhead.py has it too. Made by `make_toolhead` when
+    `klipper_version` names such a release."""
 
     def __init__(self, limits: Limits,
                  on_moves: Callable[[list[Move], float], None] | None = None) -> None:
         super().__init__(limits, on_moves)
+        # v0.13.0's and Kalico v2026.07.00's stepper_enable.py: motor_off without a flush.
+        self.old_motor_off = True
         # The head starts homed: the homing's flush_step_generation at the origin.
         self.motion_queuing.last_step_gen_time = 0.0
 
@@ -863,6 +875,13 @@ class ToolHeadCommandHelper:
         self.warn = warn
         # Old Klipper's absolute accel_to_decel ("absolute" generation only).
         self.requested_accel_to_decel = limits.max_accel_to_decel or limits.max_accel * 0.5
+        # Kalico's SET_VELOCITY_LIMIT and RESET_VELOCITY_LIMIT (klipper_version names Kalico).
+        self.kalico = bool(limits.klipper_version) and klipper_release(
+            limits.klipper_version).is_kalico
+        # Kalico's orig_cfg: the kinematics' per-axis limits as [printer] gave them.
+        self.configured_axis_limits: dict[str, float] = {
+            attr: getattr(toolhead.kin, attr) for _, attr, _ in self.KALICO_AXIS_LIMITS
+            if self.kalico and hasattr(toolhead.kin, attr)}
         if limits.klipper_generation == "absolute":
             self._apply_absolute_accel_to_decel()
 
@@ -890,8 +909,74 @@ class ToolHeadCommandHelper:
                 mcr = 1.0 - min(1.0, accel_to_decel / accel)
             elif accel_to_decel is not None and generation == "absolute":
                 self.requested_accel_to_decel = accel_to_decel
+        if self.kalico:
+            # Kalico reads them after setting the above, before _calc_junction_deviation.
+            try:
+                self.set_kalico_axis_limits(params)
+            finally:
+                self.toolhead.set_max_velocities(max_velocity, max_accel, scv, mcr)
+            return
         self.toolhead.set_max_velocities(max_velocity, max_accel, scv, mcr)
         self._apply_absolute_accel_to_decel()
+
+    # Kalico's toolhead.py: SET_VELOCITY_LIMIT also sets the kinematics' per-axis limits
+    # it has (X_VELOCITY ... Z_ACCEL: hasattr(self.kin, "max_x_velocity") ...), and
+    # RESET_VELOCITY_LIMIT restores what [printer] gave (its orig_cfg); neither flushes.
+    KALICO_AXIS_LIMITS = (("X_VELOCITY", "max_x_velocity", None),
+                          ("X_ACCEL", "max_x_accel", None),
+                          ("Y_VELOCITY", "max_y_velocity", None),
+                          ("Y_ACCEL", "max_y_accel", None),
+                          ("Z_VELOCITY", "max_z_velocity", 0.0),
+                          ("Z_ACCEL", "max_z_accel", 0.0))
+
+    def set_kalico_axis_limits(self, params: dict[str, str]) -> None:
+        """Kalico's SET_VELOCITY_LIMIT X_VELOCITY=, X_ACCEL=, ... Z_ACCEL= (read after the
+        other parameters, set on the kinematics where it has the attribute)."""
+        kin = self.toolhead.kin
+        for param, attr, above in self.KALICO_AXIS_LIMITS:
+            if hasattr(kin, attr):
+                value = get_float(params, param, above=above)
+                if value is not None:
+                    setattr(kin, attr, value)
+
+    def cmd_SET_KINEMATICS_LIMIT(self, cmd: Command) -> None:
+        """Kalico's limited_* kinematics (kestimator.kinematics.limited_*): X_VELOCITY=,
+        Y_VELOCITY=, Z_VELOCITY= (where it has velocities), X_ACCEL=, Y_ACCEL=, Z_ACCEL=,
+        SCALE=0|1, each the current value when not given, set in that order."""
+        params = command_params(cmd)
+        kin = self.toolhead.kin
+        known = kin.kinematics_limits()
+        if known is None:
+            return
+        velocities, accels, _scale = known
+        if velocities is not None:
+            velocities = [get_float(params, ax + "_VELOCITY", max_v, above=0.0)
+                          for max_v, ax in zip(velocities, "XYZ")]
+            kin.set_kinematics_limits(velocities, None, None)
+        accels = [get_float(params, ax + "_ACCEL", max_a, above=0.0)
+                  for max_a, ax in zip(accels, "XYZ")]
+        kin.set_kinematics_limits(None, accels, None)
+        text = params.get("SCALE")
+        if text is not None:
+            try:
+                value = int(text)
+            except ValueError:
+                raise ParamError("unable to parse %s" % text) from None
+            if value < 0:
+                raise ParamError("SCALE must have minimum of 0")
+            if value > 1:
+                raise ParamError("SCALE must have maximum of 1")
+            kin.set_kinematics_limits(None, None, bool(value))
+
+    def cmd_RESET_VELOCITY_LIMIT(self, cmd: Command) -> None:
+        """Kalico: [printer]'s velocity, accel, kinematics' per-axis limits, square corner
+        velocity and minimum cruise ratio again."""
+        limits, kin = self.limits, self.toolhead.kin
+        for attr, value in self.configured_axis_limits.items():
+            setattr(kin, attr, value)
+        self.toolhead.set_max_velocities(limits.max_velocity, limits.max_accel,
+                                         limits.square_corner_velocity,
+                                         limits.minimum_cruise_ratio)
 
     def cmd_M204(self, cmd: Command) -> None:
         """M204 S<accel>, or both P and T (their minimum); P alone changes nothing."""

@@ -7,7 +7,12 @@ after each), in the order asked. A request::
 
     {"id": 1, "file": "/abs/x.gcode", "config": "/abs/printer.cfg" or null,
      "events": [[byte_offset, "EXCLUDE_OBJECT NAME=A"], ...], "use_table": true,
-     "encoding": "b64" (optional)}
+     "encoding": "b64" (optional), "klipper_version": "v0.12.0-455-g5f2d7bc8" (optional)}
+
+``klipper_version`` is the software_version of the Klipper the module runs in ("Kalico
+v2026.07.00-..." for Kalico): the printer's klipper_version unless the user's settings (the
+printer.cfg comment, the profile) name one. A table made without a version holds for a
+Klipper whose version selects today's rules (`_same_release_as`).
 
 The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": ...,
 "offsets": [...], "times": [...], "object_names": [...], "object_offsets": [...],
@@ -103,6 +108,7 @@ MAX_REQUEST_BYTES = 1 << 20
 MAX_EVENTS = 10000
 MAX_ERROR_CHARS = 500
 MAX_ID_CHARS = 100
+MAX_VERSION_CHARS = 100
 # Warnings sent at most (the Klipper module keeps 20); past them one line says how many more.
 MAX_WARNINGS = 20
 # No answer line is longer (see the module's docstring).
@@ -169,6 +175,11 @@ def _checked(request: dict[str, Any]) -> dict[str, Any]:
         checked.append((event[0], event[1]))
     request["events"] = checked
     request["use_table"] = bool(request.get("use_table", True))
+    version = request.get("klipper_version")
+    if version is not None and (not isinstance(version, str)
+                                or len(version) > MAX_VERSION_CHARS):
+        raise RequestError("'klipper_version' must be the Klipper's software_version (at "
+                           "most %d characters) or null" % MAX_VERSION_CHARS)
     return request
 
 
@@ -192,7 +203,7 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
         config = request.get("config")
         if table is not None and config is not None:
             try:
-                printer = resolve_printer(path, config)
+                printer = resolve_printer(path, config, request.get("klipper_version"))
             except Exception as exc:  # noqa: BLE001 - the table is still the best answer
                 warnings.append("the file's table could not be checked against %s (%s): "
                                 "used as it is" % (config, _one_line(str(exc)
@@ -204,7 +215,8 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
                     table = None
                     source = "estimate"
     if table is None:
-        table, more = estimate_table(path, request.get("config"), request["events"], printer)
+        table, more = estimate_table(path, request.get("config"), request["events"], printer,
+                                     request.get("klipper_version"))
         warnings += more
     doc: dict[str, Any] = {"id": request.get("id"), "ok": True, "source": source}
     doc.update(table.to_json(request.get("encoding")))
@@ -220,10 +232,37 @@ def table_mismatch(table: ProgressTable, printer: Printer) -> str | None:
         return ("the file's table records no printer settings (a version-1 table, written "
                 "before kestimator recorded them), so it may be for another printer: "
                 "estimated afresh")
-    if table.settings == printer.settings:
+    made_for = _same_release_as(table.settings, printer.settings)
+    if made_for == printer.settings:
         return None
     return ("the file's table was made for %s: estimated afresh"
-            % describe_differences(settings_differences(table.settings, printer.settings)))
+            % describe_differences(settings_differences(made_for, printer.settings)))
+
+
+def _release_rules(version: str | None) -> object:
+    """What a recorded klipper_version changes in an estimate beside the recorded
+    klipper_generation: its toolhead's rules and whether it is Kalico (no version: today's
+    Klipper's); the text itself when it is no version."""
+    from kestimator.limits import klipper_release
+    if not version:
+        return ("mainline", "mainline", False, False, False)
+    try:
+        release = klipper_release(version)
+    except ValueError:
+        return version
+    return (release.junction, release.print_time, release.pressure_advance_waits,
+            release.pressure_advance_always_flushes, release.is_kalico)
+
+
+def _same_release_as(made_for: Settings, here: Settings) -> Settings:
+    """`made_for` with this printer's klipper_version where the two select the same rules
+    (a table injected without a version holds on a host whose Klipper reports today's)."""
+    theirs, ours = dict(made_for).get("klipper_version"), dict(here).get("klipper_version")
+    if theirs == ours or theirs is None or ours is None or (
+            _release_rules(theirs) != _release_rules(ours)):
+        return made_for
+    return tuple((name, ours if name == "klipper_version" else value)
+                 for name, value in made_for)
 
 
 def _bounded_warnings(warnings: list[str]) -> list[str]:
@@ -256,10 +295,13 @@ class Printer:
 _slicer_cache: SettingsCache | None = None
 
 
-def resolve_printer(path: str, config: str | None) -> Printer:
+def resolve_printer(path: str, config: str | None,
+                    klipper_version: str | None = None) -> Printer:
     """The settings `path` is estimated with for the printer.cfg `config`, as
     ``kestimator estimate --printer-cfg CONFIG`` resolves them (the profile, the slicer's
-    settings and the learned times, the printer.cfg winning)."""
+    settings and the learned times, the printer.cfg winning). `klipper_version`: the
+    software_version of the Klipper the module runs in, the printer's klipper_version
+    unless the user's settings name one."""
     global _slicer_cache
     from kestimator import learn
     from kestimator.config.resolve import LimitRequest, resolve_limits
@@ -269,7 +311,8 @@ def resolve_printer(path: str, config: str | None) -> Printer:
     if _slicer_cache is None:
         _slicer_cache = SettingsCache()
     resolved = resolve_limits(LimitRequest(gcode=path, printer_cfg=config,
-                                           slicer_cache=_slicer_cache))
+                                           slicer_cache=_slicer_cache,
+                                           running_klipper_version=klipper_version))
     macros = learn.macro_times_for(resolved, True)
     homing = resolved.homing_time_s or 0.0
     heat = resolved.heat_time_s or 0.0
@@ -277,7 +320,8 @@ def resolve_printer(path: str, config: str | None) -> Printer:
 
 
 def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
-                   printer: Printer | None = None) -> tuple[ProgressTable, list[str]]:
+                   printer: Printer | None = None, klipper_version: str | None = None
+                   ) -> tuple[ProgressTable, list[str]]:
     """Estimate `path` as `kestimator estimate --printer-cfg CONFIG` would, with `events`
     (byte offset, command) run at their lines; the table with the file's offsets. `printer`:
     the settings already resolved for `config` (`resolve_printer`), else resolved here."""
@@ -285,7 +329,7 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
 
     check_gcode_file(path)
     if printer is None:
-        printer = resolve_printer(path, config)
+        printer = resolve_printer(path, config, klipper_version)
     lines = event_lines(path, [offset for offset, _ in events])
     resolved, macros = printer.resolved, printer.macros
     warnings = list(resolved.warnings) + list(macros.warnings)

@@ -15,6 +15,8 @@ PACKAGE = PROJECT / "kestimator"
 ARCHITECTURE = PROJECT / "docs" / "ARCHITECTURE.md"
 FIDELITY = PROJECT / "docs" / "KLIPPER-FIDELITY.md"
 KLIPPER_COMMIT = "84104bbbd"
+# Kalico's own kinematics (limited_*) mirror the pinned Kalico release.
+KALICO_RELEASE = "Kalico v2026.07.00"
 MAX_CLASS_LINES = 400
 
 
@@ -118,10 +120,10 @@ def _mirrored() -> dict[Path, str]:
     for path in sorted(PACKAGE.rglob("*.py")):
         doc = ast.get_docstring(ast.parse(path.read_text(encoding="utf-8"))) or ""
         first = doc.splitlines()[0] if doc else ""
-        match = re.match(r"Mirrors (?:the [\w ]+ of )?(klippy/[\w/]+\.py) at Klipper commit "
-                         r"(\w+)", first)
+        match = re.match(r"Mirrors (?:the [\w ]+ of )?(klippy/[\w/]+\.py) (?:at Klipper commit "
+                         r"(\w+)|of (Kalico v[\d.]+))", first)
         if match:
-            assert match.group(2) == KLIPPER_COMMIT, path
+            assert match.group(2) == KLIPPER_COMMIT or match.group(3) == KALICO_RELEASE, path
             found[path] = match.group(1)
     return found
 

@@ -56,26 +56,97 @@ class FakeWorker:
         self.killed = kill
 
 
-def printing(options: dict[str, str] | None = None) -> tuple[Any, stubs.Printer, FakeWorker]:
-    """A module whose printer is printing /sd/x.gcode, its worker faked."""
-    printer = stubs.Printer()
+def printing(options: dict[str, str] | None = None, software_version: str | None = None,
+             printer: stubs.Printer | None = None, path: str = "/sd/x.gcode"
+             ) -> tuple[Any, stubs.Printer, FakeWorker]:
+    """A module whose printer is printing `path`, its worker faked; `software_version`
+    the Klipper's start args report."""
+    printer = printer or stubs.Printer()
+    if software_version is not None:
+        printer.start_args["software_version"] = software_version
     kest = MOD.load_config(stubs.Config(printer, options))
     printer.send_event("klippy:ready")
     kest._stop_worker()            # the one started at klippy:ready
     worker = FakeWorker()
     kest.worker = worker
     vsd = printer.objects["virtual_sdcard"]
-    vsd.path, vsd.active = "/sd/x.gcode", True
+    vsd.path, vsd.active = path, True
     printer.objects["print_stats"].state = "printing"
     printer.reactor.run_timers()
     return kest, printer, worker
 
 
-def test_print_start_asks_the_worker_for_the_file_with_the_printers_config() -> None:
-    kest, printer, worker = printing()
+def test_print_start_asks_the_worker_for_the_file_with_the_printers_config_and_version(
+        ) -> None:
+    kest, printer, worker = printing(software_version="v0.13.0-730-g84104bbbd")
     assert worker.requests == [{"id": 1, "file": "/sd/x.gcode", "config": "/tmp/printer.cfg",
-                                "events": [], "use_table": True, "encoding": "b64"}]
+                                "events": [], "use_table": True, "encoding": "b64",
+                                "klipper_version": "v0.13.0-730-g84104bbbd"}]
     assert kest.get_status(0.)["state"] == "estimating"
+
+
+@pytest.mark.parametrize("software_version", [None, "?", "", 12])
+def test_a_klipper_that_does_not_report_its_version_sends_none(software_version: Any) -> None:
+    """Absent, or Klipper's own "?" (a tree without git): the user's settings decide."""
+    printer = stubs.Printer()
+    if software_version is not None:
+        printer.start_args["software_version"] = software_version
+    kest, printer, worker = printing(printer=printer)
+    assert "klipper_version" not in worker.requests[0]
+
+
+def test_kalico_sends_its_version_with_its_name_first_as_printer_info_has_it(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Kalico's klippy package names itself (klippy/__init__.py APP_NAME = "Kalico") and its
+    start args hold the bare git version."""
+    package = type(sys)("kalico_klippy")
+    package.APP_NAME = "Kalico"  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "kalico_klippy", package)
+    kalico_printer = type("Printer", (stubs.Printer,), {"__module__": "kalico_klippy.printer"})
+    kest, printer, worker = printing(software_version="v2026.07.00-0-g30c65e09",
+                                     printer=kalico_printer())
+    assert worker.requests[0]["klipper_version"] == "Kalico v2026.07.00-0-g30c65e09"
+
+
+def test_a_v0_12_0_klipper_gets_v0_12_0s_times_from_the_worker(
+        tmp_path: Any, monkeypatch: pytest.MonkeyPatch, corpus_root: Any) -> None:
+    """The module in Klipper v0.12.0 sends its version; the worker estimates with v0.12.0's
+    semantics (max_accel_to_decel absolute, its junction and print-time rules): real
+    v0.12.0's own time (tests/oracle_refs_releases/klipper-v0.12.0) on a file that changes
+    the acceleration, 12.9 s away from what the same config gives without it. A version the
+    printer.cfg names wins over the running Klipper's."""
+    import json
+
+    from kestimator import worker as worker_module
+    for key, folder in (("HOME", ""), ("XDG_CONFIG_HOME", "config"),
+                        ("XDG_CACHE_HOME", "cache")):
+        monkeypatch.setenv(key, str(tmp_path / folder))
+    v0_12 = os.path.join(os.path.dirname(os.path.abspath(__file__)), "oracle_refs_releases",
+                         "klipper-v0.12.0")
+    with open(os.path.join(v0_12, "accelctl_orca1.5.0_klipper_m204.json")) as f:
+        ref = json.load(f)
+    kest, printer, fake = printing(
+        software_version="v0.12.0-0-g0d67d9c4", path=str(corpus_root / ref["file"]),
+        printer=stubs.Printer(config_file=os.path.join(v0_12, "printer.cfg")))
+    (request,) = fake.requests
+    assert request["klipper_version"] == "v0.12.0-0-g0d67d9c4"
+
+    def total(req: dict[str, Any]) -> float:
+        doc = worker_module.handle(json.dumps(req).encode())
+        assert doc["ok"], doc
+        return float(doc["total_s"])
+
+    with_version = total(request)
+    without = total({k: v for k, v in request.items() if k != "klipper_version"})
+    named = tmp_path / "named.cfg"
+    with open(request["config"]) as f:
+        named.write_text("# kestimator: klipper_version = v0.12.0-119-g0105aa330\n" + f.read())
+    user_named = total(dict(request, config=str(named)))
+    want = float(ref["total_s"])
+    assert abs(with_version - want) <= 0.01 + 1e-6 * want, (with_version, want)
+    assert want - without > 10.0
+    # v0.12.0-119 turns max_accel_to_decel into minimum_cruise_ratio: another time.
+    assert abs(user_named - with_version) > 1.0
 
 
 def test_remaining_is_the_tables_time_left_plus_what_klipper_has_queued() -> None:

@@ -82,7 +82,7 @@ def test_a_version_as_printer_info_reports_it_selects_that_releases_generation(
     ("v0.13.0-246-g542694350", "mainline", "mainline", False),
     ("v0.13.0-730-g84104bbbd-dirty", "mainline", "mainline", False),
     ("v0.14.0-2-g1234abcd", "mainline", "mainline", False),
-    ("Kalico v2026.07.00-0-g30c65e09", "mainline", "mainline", False),
+    ("Kalico v2026.07.00-0-g30c65e09", "mainline", "min_restart", False),
 ])
 def test_a_version_selects_its_releases_junction_and_print_time_rules(
         version: str, junction: str, print_time: str, waits: bool) -> None:
@@ -96,7 +96,7 @@ def test_a_version_selects_its_releases_junction_and_print_time_rules(
 
 def test_only_the_releases_with_the_old_rules_get_the_old_toolhead() -> None:
     cases = {"": (ToolHead, Move), "v0.13.0-730": (ToolHead, Move),
-             "Kalico v2026.07.00": (ToolHead, Move),
+             "Kalico v2026.07.00": (MinRestartToolHead, Move),
              "v0.13.0": (MinRestartToolHead, Move),
              "v0.12.0-118": (MinRestartToolHead, ClampedJunctionMove),
              "v0.12.0": (ForceFlushToolHead, ClampedJunctionMove)}
@@ -284,7 +284,8 @@ def test_a_klipper_that_does_not_know_its_version_leaves_the_settings_to_decide(
 RELEASES = Path(__file__).parent / "oracle_refs_releases"
 # Each release's references, and the klipper_version (as printer.info reports it) they run as.
 RELEASE_VERSIONS = {"klipper-v0.12.0": "v0.12.0-0-g0d67d9c4",
-                    "klipper-v0.13.0": "v0.13.0-0-g61c0c8d2"}
+                    "klipper-v0.13.0": "v0.13.0-0-g61c0c8d2",
+                    "kalico-v2026.07.00": "Kalico v2026.07.00-0-g30c65e09"}
 
 
 def _release_refs() -> list[object]:
@@ -350,3 +351,74 @@ def test_without_the_version_a_v0_12_0_config_is_minutes_off_on_accel_changes(
                                            read_slicer_environment=False))
     assert resolved.limits.klipper_generation == "mainline"
     assert ref["total_s"] - estimate_file(gcode, resolved.limits).total_s > 60.0
+
+
+def test_the_running_klippers_version_counts_unless_a_setting_names_one(
+        tmp_path: Path, environ: dict[str, str]) -> None:
+    """On the printer host the worker is told the version of the Klipper the module runs in
+    (LimitRequest.running_klipper_version); --set, the profile or a printer.cfg comment win,
+    and text that is no version is said on one line and left out."""
+    cfg = tmp_path / "printer.cfg"
+    cfg.write_text(PRINTER.format(extra="max_accel_to_decel: 1500\n"))
+    running = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                          running_klipper_version="v0.12.0-0-g0d67d9c4"))
+    assert (running.limits.klipper_version, running.limits.klipper_generation) == (
+        "v0.12.0-0-g0d67d9c4", "absolute")
+    assert running.sources["klipper_version"] == (
+        "the Klipper the module runs in: software_version")
+    named = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                        overrides={"klipper_version": "v0.12.0-119"},
+                                        running_klipper_version="v0.12.0-0-g0d67d9c4"))
+    assert (named.limits.klipper_version, named.limits.klipper_generation) == (
+        "v0.12.0-119", "mcr")
+    junk = resolve_limits(LimitRequest(printer_cfg=cfg, environ=environ,
+                                       running_klipper_version="Marlin 2.1\x1b[2J"))
+    assert junk.limits.klipper_version == "" and junk.limits.klipper_generation == "mainline"
+    (line,) = [w for w in junk.warnings if "module runs in" in w]
+    assert "not used" in line and "\x1b" not in line
+
+
+def test_kalicos_own_rules_agree_to_the_microsecond(environ: dict[str, str]) -> None:
+    """What Kalico v2026.07.00 does that Klipper does not (kalico_rules.gcode): every
+    SET_PRESSURE_ADVANCE flushes step generation, RESET_VELOCITY_LIMIT restores [printer]'s
+    limits, SET_VELOCITY_LIMIT Z_VELOCITY / Z_ACCEL set the kinematics' (without the
+    flushes 0.13 s off, without the two commands up to 3.8 s at a layer); and the
+    pressure-advance rule is Kalico's alone."""
+    ref, est = _estimate(RELEASES / "kalico-v2026.07.00" / "kalico_rules.json", environ)
+    mine = dict(est.layers)
+    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
+    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
+    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
+    assert len(got) == 7 and all(abs(a - b) <= TOL_RULES_S for a, b in zip(got, want)), (
+        got, want)
+    flushes = [klipper_release(v).pressure_advance_always_flushes
+               for v in ("Kalico v2026.07.00-0-g30c65e09", "v0.13.0-0-g61c0c8d2", "v0.12.0",
+                         "v0.13.0-730-g84104bbbd")]
+    assert flushes == [True, False, False, False]
+
+
+def test_reset_velocity_limit_is_kalicos_alone(tmp_path: Path, environ: dict[str, str]) -> None:
+    """Klipper has no RESET_VELOCITY_LIMIT: there it is a command Klipper does not know."""
+    gcode = RELEASES / "kalico_rules.gcode"
+    cfg = RELEASES / "kalico-v2026.07.00" / "printer.cfg"
+    for version, known in (("Kalico v2026.07.00-0-g30c65e09", True), ("v0.13.0-0", False)):
+        resolved = resolve_limits(LimitRequest(
+            gcode=gcode, printer_cfg=cfg, environ=environ, use_profile=False,
+            read_slicer_environment=False, overrides={"klipper_version": version}))
+        est = estimate_file(gcode, resolved.limits)
+        unknown = [w for w in est.warnings if "'RESET_VELOCITY_LIMIT' is not a Klipper" in w]
+        assert bool(unknown) is not known, (version, est.warnings)
+
+
+@pytest.mark.parametrize("folder", list(RELEASE_VERSIONS))
+def test_each_releases_motor_off_agrees_to_the_microsecond(
+        folder: str, environ: dict[str, str]) -> None:
+    """M84 / M18 before set_motors_enable (v0.12.0, v0.13.0, Kalico: no flush first, both
+    dwells whether or not a motor was on): 0.4 s (v0.12.0) and 0.28 s off with today's."""
+    ref, est = _estimate(RELEASES / folder / "motor_off.json", environ)
+    mine = dict(est.layers)
+    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
+    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
+    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
+    assert len(got) == 6 and all(abs(a - b) <= TOL_RULES_S for a, b in zip(got, want)), (
+        got, want)

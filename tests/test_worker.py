@@ -371,3 +371,31 @@ def test_a_same_length_edit_after_inject_is_noticed(corpus_root: Path, tmp_path:
         assert got["ok"] and got["source"] == "table", got
     finally:
         _finish(proc)
+
+
+def test_a_table_injected_without_a_version_holds_on_a_host_running_todays_klipper(
+        corpus_root: Path, tmp_path: Path) -> None:
+    """The Klipper module sends the version of the Klipper it runs in: one with today's rules
+    (84104bbbd, or newer) gets the file's table; one with other rules (v0.13.0) an estimate
+    naming the difference."""
+    src = corpus_root / NUT
+    injected = tmp_path / "nut.gcode"
+    shutil.copyfile(src, injected)
+    os.chmod(injected, 0o644)
+    inject_file(injected, limits_from_printer_cfg(CORPUS_CFG)[0])
+    proc = _start(tmp_path)
+    try:
+        asked = {"file": str(injected), "config": str(CORPUS_CFG), "events": [],
+                 "use_table": True}
+        for request_id, version in enumerate(("v0.13.0-730-g84104bbbd",
+                                              "v0.13.0-800-gabcdef12")):
+            today = _ask(proc, dict(asked, id=request_id, klipper_version=version))
+            assert today["ok"] and today["source"] == "table", today
+        older = _ask(proc, dict(asked, id=9, klipper_version="v0.13.0-0-g61c0c8d2"))
+        assert older["ok"] and older["source"] == "estimate", older
+        (why,) = [w for w in older["warnings"] if "the file's table" in w]
+        assert "klipper_version , this printer has v0.13.0-0-g61c0c8d2" in why
+        bad = _ask(proc, dict(asked, id=10, klipper_version=["v0.13.0"]))
+        assert bad["ok"] is False and "klipper_version" in bad["error"]
+    finally:
+        _finish(proc)

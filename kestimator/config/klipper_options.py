@@ -38,6 +38,16 @@ KINEMATICS_OPTIONS: dict[str, frozenset[str]] = {
     "rotary_delta": frozenset((
         "max_z_velocity", "minimum_z_position", "shoulder_height", "shoulder_radius")),
     "winch": frozenset(),
+    # Kalico v2026.07.00's own (klippy/kinematics/limited_*.py, over cartesian / corexy /
+    # corexz's).
+    "limited_cartesian": frozenset((
+        "max_x_accel", "max_x_velocity", "max_y_accel", "max_y_velocity", "max_z_accel",
+        "max_z_velocity", "scale_xy_accel")),
+    "limited_corexy": frozenset((
+        "max_x_accel", "max_y_accel", "max_z_accel", "max_z_velocity", "scale_xy_accel")),
+    "limited_corexz": frozenset((
+        "max_x_accel", "max_x_velocity", "max_y_accel", "max_y_velocity", "max_z_accel",
+        "max_z_velocity", "scale_xy_accel")),
 }
 SECTION_OPTIONS: dict[str, frozenset[str]] = {
     "safe_z_home": frozenset((

@@ -124,6 +124,9 @@ class LimitRequest:
     """Moonraker's cache; None means ``$XDG_CACHE_HOME/kestimator``."""
     estimator_config: str | os.PathLike[str] | None = None
     """A klipper_estimator config file (JSON/JSON5): a stand-in below the machine."""
+    running_klipper_version: str | None = None
+    """The software_version of the Klipper this runs in (the Klipper module's worker): the
+    klipper_version, as a machine's, unless a source names one."""
     guess_fix: str = GUESS_FIX
     """How this front end's user gives the real limits (ends the guessed-limits line)."""
     slicer_cache: SettingsCache | None = dataclasses.field(default=None, compare=False,
@@ -263,6 +266,7 @@ def resolve_limits(request: LimitRequest) -> ResolvedLimits:
 
     candidates = _candidates(overrides, machine, profile, slicer_settings, warnings,
                              estimator)
+    _add_running_version(candidates, request.running_klipper_version, warnings)
     chosen: dict[str, Candidate] = {}
     shadowed: dict[str, tuple[Candidate, ...]] = {}
     for field in Limits.field_names():
@@ -433,6 +437,25 @@ def _candidates(overrides: Mapping[str, object], machine: SourcedValues | None,
         for field, text in ASSUMPTIONS.items():
             add(field, True, text, LEVEL_ASSUMED)
     return found
+
+
+RUNNING_VERSION_SOURCE = "the Klipper the module runs in: software_version"
+
+
+def _add_running_version(candidates: dict[str, list[Candidate]], version: str | None,
+                         warnings: list[str]) -> None:
+    """The running Klipper's version, after every source that names one (the user's
+    settings win), ranked as a machine's value; one line and nothing when it is no version
+    kestimator knows (a Klipper without git reports "?")."""
+    if version is None:
+        return
+    try:
+        value = check_limit_value("klipper_version", version)
+    except ValueError as exc:
+        warnings.append(f"{RUNNING_VERSION_SOURCE}: not used ({exc})")
+        return
+    candidates.setdefault("klipper_version", []).append(
+        Candidate(value, RUNNING_VERSION_SOURCE, LEVEL_MACHINE))
 
 
 def _apply_klipper_version(chosen: dict[str, Candidate], warnings: list[str]) -> None:

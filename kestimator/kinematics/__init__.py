@@ -1,5 +1,5 @@
-"""Every kinematics mainline Klipper (commit 84104bbbd) ships, one module each, and the one
-place that picks the module for a printer: `load_kinematics`.
+"""Every kinematics mainline Klipper (commit 84104bbbd) ships, and Kalico's limited_* ones,
+one module each, and the one place that picks the module for a printer: `load_kinematics`.
 
 A kinematics (`base.Kinematics`) does three things for the toolhead, as its
 `klippy/kinematics/<name>.py` does: `check_move` (range checks raising Klipper's "Move out of
@@ -29,6 +29,9 @@ from kestimator.kinematics import (
     generic_cartesian,
     hybrid_corexy,
     hybrid_corexz,
+    limited_cartesian,
+    limited_corexy,
+    limited_corexz,
     none,
     polar,
     rotary_delta,
@@ -36,11 +39,12 @@ from kestimator.kinematics import (
 )
 from kestimator.kinematics.base import Kinematics
 from kestimator.kinematics.standin import StandInKinematics
+from kestimator.limits import klipper_release
 
 if TYPE_CHECKING:
     from kestimator.limits import Limits
 
-__all__ = ["KINEMATICS", "Kinematics", "load_kinematics"]
+__all__ = ["KALICO_KINEMATICS", "KINEMATICS", "Kinematics", "load_kinematics"]
 
 # [printer] kinematics -> its module's load_kinematics(config, limits)
 _LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {
@@ -59,6 +63,13 @@ _LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {
 }
 KINEMATICS = tuple(_LOADERS)
 """The [printer] kinematics values mainline Klipper 84104bbbd accepts."""
+# Kalico's own (v2026.07.00): modelled where klipper_version names Kalico or no version.
+_KALICO_LOADERS: dict[str, Callable[[MachineConfig, Limits], Kinematics]] = {
+    "limited_cartesian": limited_cartesian.load_kinematics,
+    "limited_corexy": limited_corexy.load_kinematics,
+    "limited_corexz": limited_corexz.load_kinematics,
+}
+KALICO_KINEMATICS = tuple(_KALICO_LOADERS)
 
 # Kinematics whose Z moves are limited by max_z_velocity/max_z_accel scaled along Z
 # (and, from forks, the limited_* names that behave so for Z).
@@ -75,7 +86,7 @@ def _z_rule(name: str) -> str | None:
 # Kinematics that need the printer's own sections to be modelled.
 _NEED_MACHINE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy", "hybrid_corexz",
                            "generic_cartesian", "delta", "deltesian", "rotary_delta", "polar",
-                           "winch"))
+                           "winch", "limited_cartesian", "limited_corexy", "limited_corexz"))
 _CARTESIAN_LIKE = frozenset(("cartesian", "corexy", "corexz", "hybrid_corexy",
                              "hybrid_corexz", "generic_cartesian"))
 
@@ -91,14 +102,24 @@ def load_kinematics(limits: Limits) -> Kinematics:
     """
     name = limits.kinematics
     machine = limits.machine
-    if name not in KINEMATICS:
+    loader = _LOADERS.get(name)
+    if name in _KALICO_LOADERS:
+        release = klipper_release(limits.klipper_version) if limits.klipper_version else None
+        if release is not None and not release.is_kalico:
+            raise KestimatorError(
+                "[printer] kinematics: %s is Kalico's: %s %s has no such kinematics and "
+                "refuses to start (Error loading kinematics '%s'); set klipper_version to "
+                "the Kalico the printer runs" % (name, release.app, limits.klipper_version,
+                                                 name),
+                machine.description if machine is not None else None)
+        loader = _KALICO_LOADERS[name]
+    if loader is None:
         return StandInKinematics(
             name, limits, _z_rule(name),
             "[printer] kinematics: %s is not a kinematics mainline Klipper ships: moves are "
             "not range-checked, G28 homes to 0%s" % (
                 name, " and only max_z_velocity/max_z_accel are applied" if name in Z_SCALED
                 else " and no axis limit is applied"))
-    loader = _LOADERS[name]
     if name not in _NEED_MACHINE:
         return none.NoneKinematics()
     if machine is None:

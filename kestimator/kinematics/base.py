@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from kestimator.toolhead import Move
+    from kestimator.toolhead import Move, ToolHead
 
 try:  # mypyc reads the decorator by this name (kestimator/mypyc_attr.py says why)
     from mypy_extensions import mypyc_attr
@@ -37,6 +37,20 @@ class Kinematics:
     def check_move(self, move: Move) -> None:
         """Raise MoveError for a move Klipper rejects; lower its speed/accel where the
         kinematics limits it."""
+
+    def attach_toolhead(self, toolhead: ToolHead) -> None:
+        """The toolhead that checks its moves here: upstream's kinematics get it when they
+        are made, and those that read its live limits (Kalico's limited_*) keep it."""
+
+    def kinematics_limits(self) -> tuple[list[float] | None, list[float], bool] | None:
+        """The per-axis limits SET_KINEMATICS_LIMIT changes (X, Y, Z velocities or None, X,
+        Y, Z accelerations, whether they scale with the toolhead's acceleration), for the
+        kinematics that register it (Kalico's limited_*); None for the others."""
+        return None
+
+    def set_kinematics_limits(self, velocities: list[float] | None,
+                              accels: list[float] | None, scale: bool | None) -> None:
+        """SET_KINEMATICS_LIMIT: set what is given (only where `kinematics_limits` is)."""
 
     def set_position(self, newpos: Position, homing_axes: str) -> None:
         """The toolhead jumped to newpos; ``homing_axes`` ("xyz" letters) are now homed."""

@@ -397,6 +397,28 @@ class Worker:
             pass
 
 
+def running_klipper_version(printer: Any) -> str | None:
+    """The Klipper this runs in as Moonraker's printer.info reports it: its start args'
+    software_version, with the app's name first where it is not Klipper (Kalico's klippy
+    package names itself in APP_NAME); None when unknown (absent, or Klipper's "?"). The
+    worker takes it as the printer's klipper_version unless the user's settings name one."""
+    try:
+        version = printer.get_start_args().get("software_version")
+        # "?": Klipper's own "unknown" (a tree without git or a .version file).
+        if (not isinstance(version, str) or version.strip() in ("", "?")
+                or len(version) > 100):
+            return None
+        package = sys.modules.get(type(printer).__module__.split(".")[0])
+        app = getattr(package, "APP_NAME", None)
+        if (isinstance(app, str) and app.isalnum() and app.lower() != "klipper"
+                and not version.startswith(app)):
+            version = "%s %s" % (app, version.strip())
+        return version.strip()
+    except Exception:  # noqa: BLE001 - a Klipper without it: the user's settings decide
+        logging.exception("kestimator: the Klipper version is not known")
+        return None
+
+
 class Kestimator:
     """The [kestimator] section: status, updates, the worker."""
 
@@ -412,6 +434,7 @@ class Kestimator:
         start_args = printer.get_start_args()
         config_file = start_args.get("config_file")
         self.config_file = os.path.abspath(config_file) if config_file else None
+        self.klipper_version = running_klipper_version(printer)
         self.gcode = printer.lookup_object("gcode")
         # What the user left set before the print (state_before_print), taken when
         # virtual_sdcard resets for a new file.
@@ -753,7 +776,9 @@ class Kestimator:
                 "config": self.config_file or None,
                 "events": [[pos, text] for pos, text in self.events],
                 "use_table": self.use_table and not self.events,
-                "encoding": "b64"})
+                "encoding": "b64",
+                **({} if self.klipper_version is None
+                   else {"klipper_version": self.klipper_version})})
         except OSError as e:
             # BrokenPipeError: it stopped before reading the request.
             self._worker_failed("cannot write to it: %s" % (e,))

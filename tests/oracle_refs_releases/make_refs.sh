@@ -1,36 +1,39 @@
 #!/bin/sh
 # Regenerate the reference JSONs of klipper-<release>/ with the oracle pointed at that Klipper.
 # usage: ORACLE_PYTHON=... sh tests/oracle_refs_releases/make_refs.sh <release> <built tree>
-#   release: v0.12.0 or v0.13.0; the tree built as .ci/klipper-setup builds 84104bbbd, from
-#   ../shared/upstream/klipper-<release>.tar.gz (those tarballs have no lib/kconfiglib: copy the
-#   84104bbbd tree's, only `make olddefconfig` uses it)
+#   release: v0.12.0 or v0.13.0 (klipper-<release>/), or kalico-v2026.07.00; the tree built as
+#   .ci/klipper-setup builds 84104bbbd, from ../shared/upstream/klipper-<release>.tar.gz (those
+#   tarballs have no lib/kconfiglib: copy the 84104bbbd tree's, only `make olddefconfig` uses
+#   it) or ../shared/upstream/kalico-v2026.07.00.tar.gz (ORACLE_PYTHON then a venv with its
+#   scripts/klippy-requirements.txt)
 set -eu
 RELEASE=$1
 TREE=$2
 HERE=$(cd "$(dirname "$0")" && pwd)
 ORACLE=${ORACLE:-$HERE/../../../shared/tools/oracle/oracle.py}
 CORPUS=${CORPUS:-$HERE/../../../shared/corpus}
-DIR=$HERE/klipper-$RELEASE
+case $RELEASE in
+    kalico-*) DIR=$HERE/$RELEASE ;;
+    *) DIR=$HERE/klipper-$RELEASE ;;
+esac
 case $RELEASE in
     v0.12.0) LABEL="Klipper v0.12.0 (0d67d9c45d2d, 2023-11-10; ../shared/upstream/klipper-v0.12.0.tar.gz), klippy batch mode" ;;
     v0.13.0) LABEL="Klipper v0.13.0 (61c0c8d2ef40, 2025-04-11; ../shared/upstream/klipper-v0.13.0.tar.gz), klippy batch mode" ;;
+    kalico-v2026.07.00) LABEL="Kalico v2026.07.00 (30c65e09de06, 2026-07; ../shared/upstream/kalico-v2026.07.00.tar.gz), klippy batch mode" ;;
     *) echo "make_refs.sh: unknown release $RELEASE" >&2; exit 2 ;;
 esac
-for gcode in \
-    gcode/prusaslicer/ps25_nut_accelA_small.gcode \
-    gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode \
-    gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
-    gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
-    gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode; do
+# make_ref FOLDER GCODE: FOLDER/<name>.json, the oracle run with FOLDER/printer.cfg.
+make_ref() {
+    folder=$1
+    gcode=$2
     name=$(basename "$gcode" .gcode)
-    # flush_junctions.gcode is kestimator's own (beside the references), the rest the corpus's
+    # kestimator's own files are beside the references, the rest the corpus's
     src=$CORPUS/$gcode
     [ -e "$src" ] || src=$HERE/$gcode
-    python3 "$ORACLE" "$src" --cfg "$DIR/printer.cfg" --klipper "$TREE" \
-        --python "$ORACLE_PYTHON" --mark-every 0 --reference > "$DIR/$name.json.tmp"
+    python3 "$ORACLE" "$src" --cfg "$folder/printer.cfg" --klipper "$TREE" \
+        --python "$ORACLE_PYTHON" --mark-every 0 --reference > "$folder/$name.json.tmp"
     # The harness labels its output with the Klipper it was written for: say which one ran.
-    python3 - "$DIR/$name.json.tmp" "$gcode" "$LABEL" <<'PY'
+    python3 - "$folder/$name.json.tmp" "$gcode" "$LABEL" <<'PY'
 import json, sys
 path, gcode, label = sys.argv[1:]
 ref = json.load(open(path))
@@ -39,5 +42,26 @@ with open(path, "w") as out:
     json.dump(ref, out, indent=1)
     out.write("\n")
 PY
-    mv "$DIR/$name.json.tmp" "$DIR/$name.json"
+    mv "$folder/$name.json.tmp" "$folder/$name.json"
+}
+
+NUT=gcode/prusaslicer/ps25_nut_accelA_small.gcode
+ACCELCTL=gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode
+for gcode in "$NUT" "$ACCELCTL" \
+    gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
+    gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
+    gcode/slic3r/slic3r130_torus_x3_accel.gcode \
+    flush_junctions.gcode motor_off.gcode; do
+    make_ref "$DIR" "$gcode"
 done
+case $RELEASE in
+    kalico-*)
+        # What only Kalico has: its commands, and its limited_* kinematics (each folder's
+        # printer.cfg is the corpus's with that kinematics and its per-axis limits).
+        make_ref "$DIR" kalico_rules.gcode
+        for kinematics in limited_cartesian limited_corexy limited_corexz; do
+            for gcode in "$NUT" "$ACCELCTL" kinematics_limit.gcode; do
+                make_ref "$DIR/$kinematics" "$gcode"
+            done
+        done ;;
+esac
