@@ -768,18 +768,15 @@ class ProgressTable:
     @classmethod
     def from_selection(cls, selection: Selection, offsets_of: dict[int, int],
                        content_bytes: int, settings: Settings | None = None,
-                       content_crc32: int | None = None,
-                       stop_offsets_of: dict[int, int] | None = None) -> ProgressTable:
+                       content_crc32: int | None = None) -> ProgressTable:
         """The table once each selected line's byte offset is known (`offsets_of`: line
         -> offset; a line not in it is not in the file: it starts where the file ends),
-        made for the printer `settings` describes; `stop_offsets_of`: where each stop's
-        own line starts, when lines were put before it (else `offsets_of`)."""
-        stops_at = offsets_of if stop_offsets_of is None else stop_offsets_of
+        made for the printer `settings` describes."""
         return cls.from_offsets(
             selection, [offsets_of.get(line, content_bytes) for line in selection.lines],
             [offsets_of.get(line, content_bytes) for line in selection.object_lines],
             content_bytes, settings, content_crc32,
-            [stops_at.get(line, content_bytes) for line in selection.stop_lines])
+            [offsets_of.get(line, content_bytes) for line in selection.stop_lines])
 
     @classmethod
     def from_offsets(cls, selection: Selection, line_offsets: Sequence[int],

@@ -456,7 +456,6 @@ class Rewriter:
         self._table_lines = array("q", plan.table.wanted_lines() if plan.table else ())
         self._table_next = 0
         self._table_offsets: dict[int, int] = {}
-        self._stop_offsets: dict[int, int] = {}  # a stop's line -> its own output's offset
         self._out_pos = self._crc = 0  # the output's length and CRC-32 so far
         self._ends_in_lf = False
         self._old_table = False  # an old table's header was met: its base64 lines go
@@ -715,31 +714,16 @@ class Rewriter:
                 self._ends_in_lf = data[-1:] == b"\n"
             return write(data)
 
-        process_line = self.process
+        process_line = noting_stop_lines(self)
         table_line = self.plan.table_line
-
-        stop_lines = set(self.plan.table.stop_lines if self.plan.table else ())
 
         def process(raw: bytes) -> list[bytes]:
             self._note_table_line()
             if self.lineno + 1 == table_line and self.table is None:
                 eol = _line_ending(raw, self._eol_line, self.eol)
                 return [self._table_block(eol)] + process_line(raw)
-            if self.lineno + 1 in stop_lines:
-                return self._note_stop_line(process_line(raw), raw)
             return process_line(raw)
         return counted, process
-
-    def _note_stop_line(self, out: list[bytes], raw: bytes) -> list[bytes]:
-        """Note where a stop's own line starts in the output (after the time comment and
-        any M73 written before it): the table says the stop is on that line."""
-        pos = self._out_pos
-        for part in out:
-            if part is raw:
-                self._stop_offsets[self.lineno] = pos
-                break
-            pos += len(part)
-        return out
 
     def _note_table_line(self) -> None:
         """Note where the next line's output starts, if the table needs it."""
@@ -753,8 +737,7 @@ class Rewriter:
         assert self.plan.table is not None
         self.table = ProgressTable.from_selection(self.plan.table, self._table_offsets,
                                                   self._out_pos, self.plan.table_settings,
-                                                  self._crc & 0xFFFFFFFF,
-                                                  {**self._table_offsets, **self._stop_offsets})
+                                                  self._crc & 0xFFFFFFFF)
         return self.table.encode(eol)
 
     def finish(self) -> list[bytes]:
@@ -839,6 +822,27 @@ class Rewriter:
                     indent = raw[:len(raw) - len(code)]
                     return [indent + new.encode("utf-8", "surrogateescape") + eol]
         return [raw]
+
+
+def noting_stop_lines(rewriter: Rewriter) -> Callable[[bytes], list[bytes]]:
+    """`rewriter.process`, noting where each stop's own line starts in the output (after
+    the stop's time comment and any M73 written before it) as its table offset: the table
+    says the stop is on that line, and no time passes on the lines put before it."""
+    table = rewriter.plan.table
+    stop_lines = frozenset(table.stop_lines if table is not None else ())
+    process_line = rewriter.process
+
+    def process(raw: bytes) -> list[bytes]:
+        out = process_line(raw)
+        if rewriter.lineno in stop_lines:
+            pos = rewriter._out_pos  # the start of this line's output (written after)
+            for part in out:
+                if part is raw:
+                    rewriter._table_offsets[rewriter.lineno] = pos
+                    break
+                pos += len(part)
+        return out
+    return process
 
 
 def stop_comment(plan: InjectPlan, line: int, eol: bytes) -> list[bytes]:
