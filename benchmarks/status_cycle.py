@@ -5,7 +5,8 @@ get_status() once per 250 ms cycle, in the reactor. The module answers both at t
 eventtime: display_status's progress D / (D + R) and its own remaining time. This times
 those two calls on the module with Klipper's objects stubbed (tests/klipper_module/
 stubs.py) and the largest table the worker may send (20,002 points, 200 objects x 500
-points), against display_status's own get_status without the module.
+points, 1,000 stops: the next one is computed at each call), against display_status's own
+get_status without the module.
 
     python3 benchmarks/status_cycle.py [--cycles N]
 """
@@ -31,6 +32,7 @@ def _b64(kind: str, values: list[Any]) -> str:
 def _largest_answer(request_id: int) -> dict[str, Any]:
     points = 20002
     objects, object_points = 200, 500
+    stops = 1000
     return {"id": request_id, "ok": True, "source": "estimate", "total_s": 20000.,
             "offsets_b64": _b64("q", [i * 1000 for i in range(points)]),
             "times_b64": _b64("d", [i * 20000. / (points - 1) for i in range(points)]),
@@ -38,7 +40,10 @@ def _largest_answer(request_id: int) -> dict[str, Any]:
             "object_offsets_b64": _b64("q", [i * 40000 for i in range(object_points)]),
             "object_remaining_b64": _b64("d", [
                 100. * (object_points - j) / object_points
-                for i in range(objects) for j in range(object_points)])}
+                for i in range(objects) for j in range(object_points)]),
+            "stop_offsets": [i * 20000 for i in range(stops)],
+            "stop_times": [i * 20. for i in range(stops)],
+            "stop_commands": ["M600"] * stops, "stop_lines": [i * 400 for i in range(stops)]}
 
 
 def _per_call_us(func: Any, cycles: int) -> float:
@@ -81,6 +86,7 @@ def main() -> None:
     toolhead.print_time = toolhead.mcu.est = 5000.
     printer.reactor.advance(1.)
     assert kest.get_status(0.)["remaining_s"] is not None, kest.get_status(0.)
+    assert kest.get_status(0.)["next_stop"] is not None
     own = _per_call_us(klipper_own, args.cycles)
     answered = _per_call_us(display.get_status, args.cycles)
     status = _per_call_us(kest.get_status, args.cycles)

@@ -526,8 +526,8 @@ def _crlf_before(path: str, offsets: list[int], layout: Layout) -> list[int]:
 
 
 def relabel_table(table: ProgressTable, output: str, layout: Layout) -> ProgressTable:
-    """`table` (our output's) for the labelled file: offsets where the labelling moves
-    them, the objects named as its labels name them, its length and CRC-32."""
+    """`table` (our output's) for the labelled file: offsets (its stops' too) where the
+    labelling moves them, the objects named as its labels name them, its length and CRC-32."""
     def moved(offsets: list[int]) -> list[int]:
         if not offsets:
             return []
@@ -544,7 +544,7 @@ def relabel_table(table: ProgressTable, output: str, layout: Layout) -> Progress
         raise ValueError("two objects would have one name in Klipper")
     return replace(table, content_bytes=layout.length, offsets=moved(table.offsets),
                    object_offsets=moved(table.object_offsets), object_names=names,
-                   content_crc32=layout.crc32)
+                   stop_offsets=moved(table.stop_offsets), content_crc32=layout.crc32)
 
 
 def table_for_labelled_output(output: str, run: LabelRun, until: float) -> Prelabel:

@@ -24,7 +24,7 @@ first, then by name). An object whose name is over MAX_NAME_BYTES bytes of UTF-8
 another); `Selection.objects_left_out` counts the objects left out for either limit, whose
 time still counts in the total.
 
-Encoding (version 2): a header line and base64 lines, at the end of the file::
+Encoding (versions 2 and 3): a header line and base64 lines, at the end of the file::
 
     ; kestimator_table v2 bytes=<content length> lines=<n> crc32=<8 hex digits>
         content_crc32=<8 hex digits>                   (on the header's line)
@@ -56,6 +56,15 @@ way and trusts the table only when the two are equal; `settings_differences` nam
 differs. A version-1 table (written before, and still by `encode` for a table given no
 settings) records none: it is read, and `settings` is None.
 
+The stops (version 3). After the settings, the estimate's stops (kestimator.stops: the
+commands at which the print waits for a person; at most MAX_TABLE_STOPS): each one's byte
+offset (its line's start), Klipper's time there (the head standing at the stop, every
+earlier move done: the look-ahead runs out) and its command (ASCII, at most
+MAX_STOP_COMMAND_BYTES), so that the Klipper module can say when the next one comes. A
+version-2 table records none, and its times were made without running the look-ahead out
+at a stop: it is read, but whoever follows a print by it must not trust it (the worker
+estimates such a file afresh).
+
 Reading trusts nothing: files are hostile. The reader refuses (TableError) any table the
 writer never writes, and refuses a count past the writer's limits before reading what it
 counts, so a table's memory and the worker's answer stay bounded whatever the file declares:
@@ -82,11 +91,15 @@ from bisect import bisect_left, bisect_right
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any, BinaryIO, Final, Protocol
 
-TABLE_VERSION = 2
-"""The version `encode` writes for a table that records its printer's settings."""
+TABLE_VERSION = 3
+"""The version `encode` writes for a table that records its printer's settings (and its
+stops)."""
 VERSION_WITHOUT_SETTINGS = 1
 """The version of a table that records none (written before settings were recorded)."""
-READ_VERSIONS = (VERSION_WITHOUT_SETTINGS, TABLE_VERSION)
+VERSION_WITHOUT_STOPS = 2
+"""The version of a table that records settings but not the stops (written before stops
+were recorded: its times do not run the look-ahead out at a stop)."""
+READ_VERSIONS = (VERSION_WITHOUT_SETTINGS, VERSION_WITHOUT_STOPS, TABLE_VERSION)
 HEADER_PREFIX = b"; kestimator_table "
 CHUNK_PREFIX = b"; kt "
 CHUNK_CHARS = 200
@@ -137,6 +150,10 @@ MAX_SETTINGS = 200
 MAX_SETTING_BYTES = 64
 DIGEST_PREFIX = "#"
 DIGEST_HEX = 16
+# The stops a table holds at most (kestimator.stops.MAX_STOPS: an estimate lists no more),
+# and the bytes of a stop's command name (a longer one is shortened: it is only shown).
+MAX_TABLE_STOPS = 1000
+MAX_STOP_COMMAND_BYTES = 64
 # How many differing settings `settings_differences` names (the rest are counted).
 NAMED_DIFFERENCES = 3
 
@@ -325,10 +342,16 @@ class Selection:
     the worker, which keeps the candidates' offsets, reads the table's by index."""
     made_from: Candidates | None = dataclasses.field(default=None, compare=False)
     """The candidates with what they were made from (`select`'s `previous`)."""
+    stop_lines: list[int] = dataclasses.field(default_factory=list)
+    """The estimate's stops (kestimator.stops, at most MAX_TABLE_STOPS): each one's line,"""
+    stop_times: list[float] = dataclasses.field(default_factory=list)
+    """... Klipper's time there (the head standing at the stop) ..."""
+    stop_commands: list[str] = dataclasses.field(default_factory=list)
+    """... and its command."""
 
     def wanted_lines(self) -> list[int]:
         """Every line whose byte offset the table needs, ascending, once each."""
-        return sorted(set(self.lines) | set(self.object_lines))
+        return sorted(set(self.lines) | set(self.object_lines) | set(self.stop_lines))
 
 
 def _thin(times: list[float], keep: list[bool], total_s: float, factor: float,
@@ -653,11 +676,21 @@ def select(est: _EstimateLike, max_points: int = MAX_TIME_POINTS,
             factor *= 2.0
     names, object_lines, remaining, left_out = _select_objects(est, max_object_points,
                                                                max_objects)
+    stops = [stop for stop in getattr(est, "stops", ())[:MAX_TABLE_STOPS]
+             if stop.line <= est.n_lines]
     return Selection(total_s=total_s, n_lines=est.n_lines,
                      lines=[lines[i] + 1 for i in kept], times=[times[i] for i in kept],
                      object_names=names, object_lines=object_lines,
                      object_remaining=remaining, objects_left_out=left_out,
-                     candidates=lines, kept=kept, made_from=made_from)
+                     candidates=lines, kept=kept, made_from=made_from,
+                     stop_lines=[stop.line for stop in stops],
+                     stop_times=[min(float(stop.time_s), total_s) for stop in stops],
+                     stop_commands=[stop_command_text(stop.command) for stop in stops])
+
+
+def stop_command_text(command: str) -> str:
+    """A stop's command as a table holds it: ASCII, at most MAX_STOP_COMMAND_BYTES."""
+    return command.encode("ascii", "replace").decode("ascii")[:MAX_STOP_COMMAND_BYTES]
 
 
 def name_bytes(name: str) -> bytes | None:
@@ -715,6 +748,17 @@ class ProgressTable:
     content_crc32: int | None = None
     """CRC-32 of the file's first `content_bytes` bytes, which the table covers (None: not
     recorded, a table written before it was)."""
+    stop_offsets: list[int] = dataclasses.field(default_factory=list)
+    """The byte offset of each stop's line (non-decreasing; version 3),"""
+    stop_times: list[float] = dataclasses.field(default_factory=list)
+    """Klipper's time there, the head standing at the stop (non-decreasing) ..."""
+    stop_commands: list[str] = dataclasses.field(default_factory=list)
+    """... and its command."""
+    read_version: int | None = dataclasses.field(default=None, compare=False)
+    """The version of the table it was read from (None: made here)."""
+    stop_lines: list[int] | None = dataclasses.field(default=None, compare=False)
+    """Each stop's line (from 1) when known (an estimate's; a table read from a file holds
+    none: its lines are counted by whoever needs them)."""
 
     @property
     def fingerprint(self) -> str | None:
@@ -731,16 +775,19 @@ class ProgressTable:
         return cls.from_offsets(
             selection, [offsets_of.get(line, content_bytes) for line in selection.lines],
             [offsets_of.get(line, content_bytes) for line in selection.object_lines],
-            content_bytes, settings, content_crc32)
+            content_bytes, settings, content_crc32,
+            [offsets_of.get(line, content_bytes) for line in selection.stop_lines])
 
     @classmethod
     def from_offsets(cls, selection: Selection, line_offsets: Sequence[int],
                      object_offsets: Sequence[int], content_bytes: int,
                      settings: Settings | None = None,
-                     content_crc32: int | None = None) -> ProgressTable:
+                     content_crc32: int | None = None,
+                     stop_offsets: Sequence[int] = ()) -> ProgressTable:
         """The table from the byte offset of each of the selection's lines (`line_offsets`,
-        aligned with selection.lines) and of its objects' (`object_offsets`, with
-        selection.object_lines); an offset past content_bytes is the file's end."""
+        aligned with selection.lines), of its objects' (`object_offsets`, with
+        selection.object_lines) and of its stops' (`stop_offsets`, with
+        selection.stop_lines); an offset past content_bytes is the file's end."""
         offsets: list[int] = []
         times: list[float] = []
         for line, t, found in zip(selection.lines, selection.times, line_offsets):
@@ -770,15 +817,25 @@ class ProgressTable:
             kept_offsets.append(offset)
             keep_columns.append(j)
         remaining = [[column[j] for j in keep_columns] for column in selection.object_remaining]
+        stops = [min(found, content_bytes) for found in stop_offsets]
+        stop_times: list[float] = []
+        for t in selection.stop_times[:len(stops)]:
+            stop_times.append(max(t, stop_times[-1]) if stop_times else t)
         return cls(total_s=selection.total_s, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=list(selection.object_names),
                    object_offsets=kept_offsets, object_remaining=remaining,
-                   settings=settings, content_crc32=content_crc32)
+                   settings=settings, content_crc32=content_crc32,
+                   stop_offsets=stops, stop_times=stop_times,
+                   stop_commands=list(selection.stop_commands[:len(stops)]),
+                   stop_lines=list(selection.stop_lines[:len(stops)]))
 
     @property
     def version(self) -> int:
-        """The version `encode` writes: TABLE_VERSION, or 1 for a table without settings."""
-        return VERSION_WITHOUT_SETTINGS if self.settings is None else TABLE_VERSION
+        """The version `encode` writes: TABLE_VERSION, or 1 for a table without settings
+        (which records no stops either); a table read from a file, that file's version."""
+        if self.settings is None:
+            return VERSION_WITHOUT_SETTINGS
+        return TABLE_VERSION if self.read_version is None else self.read_version
 
     def time_at(self, offset: int) -> float:
         """Klipper's time when the line starting at byte `offset` is reached: linear
@@ -831,11 +888,22 @@ class ProgressTable:
                     "times_b64": _b64(array("d", self.times)),
                     "object_names": list(self.object_names),
                     "object_offsets_b64": _b64(array("q", self.object_offsets)),
-                    "object_remaining_b64": _b64(flat)}
+                    "object_remaining_b64": _b64(flat), **self._stops_json()}
         return {"total_s": self.total_s, "offsets": list(self.offsets),
                 "times": list(self.times), "object_names": list(self.object_names),
                 "object_offsets": list(self.object_offsets),
-                "object_remaining": [list(c) for c in self.object_remaining]}
+                "object_remaining": [list(c) for c in self.object_remaining],
+                **self._stops_json()}
+
+    def _stops_json(self) -> dict[str, Any]:
+        """The stops as the worker's answer gives them (JSON lists in either encoding: at
+        most MAX_TABLE_STOPS); `stop_lines` only when known."""
+        doc: dict[str, Any] = {"stop_offsets": list(self.stop_offsets),
+                               "stop_times": list(self.stop_times),
+                               "stop_commands": list(self.stop_commands)}
+        if self.stop_lines is not None and len(self.stop_lines) == len(self.stop_offsets):
+            doc["stop_lines"] = list(self.stop_lines)
+        return doc
 
     # Encoding
     def payload(self) -> bytes:
@@ -878,6 +946,18 @@ class ProgressTable:
                                          % (MAX_SETTING_BYTES, text))
                     out.uint(len(raw))
                     out.raw(raw)
+        if self.version >= TABLE_VERSION:
+            out.uint(len(self.stop_offsets))
+            previous_offset = previous_ms = 0
+            for offset, t, command in zip(self.stop_offsets, self.stop_times,
+                                          self.stop_commands):
+                ms = max(_ms(t), previous_ms)
+                out.uint(offset - previous_offset)
+                out.uint(ms - previous_ms)
+                raw = stop_command_text(command).encode("ascii")
+                out.uint(len(raw))
+                out.raw(raw)
+                previous_offset, previous_ms = offset, ms
         return out.bytes()
 
     def encode(self, eol: bytes = b"\n") -> bytes:
@@ -957,6 +1037,7 @@ class ProgressTable:
                     column.append(ms / MS)
                 remaining.append(column)
             settings = None if version == VERSION_WITHOUT_SETTINGS else _read_settings(data)
+            stops = _read_stops(data, content_bytes, total_ms) if version >= 3 else ([], [], [])
         except IndexError:
             raise TableError("the table ends early") from None
         if data.pos != len(payload):
@@ -965,7 +1046,8 @@ class ProgressTable:
             raise TableError("the table's offsets do not fit the file")
         return cls(total_s=total_ms / MS, content_bytes=content_bytes, offsets=offsets,
                    times=times, object_names=names, object_offsets=object_offsets,
-                   object_remaining=remaining, settings=settings)
+                   object_remaining=remaining, settings=settings, stop_offsets=stops[0],
+                   stop_times=stops[1], stop_commands=stops[2], read_version=version)
 
 
 def _versions_text() -> str:
@@ -989,6 +1071,31 @@ def _read_settings(data: _Reader) -> Settings:
         names.add(name)
         settings.append((name, value))
     return tuple(settings)
+
+
+def _read_stops(data: _Reader, content_bytes: int, total_ms: int
+                ) -> tuple[list[int], list[float], list[str]]:
+    """A version-3 table's stops (after its settings), checked as the writer writes them:
+    offsets and times non-decreasing, within the file and the total."""
+    offsets: list[int] = []
+    times: list[float] = []
+    commands: list[str] = []
+    offset = ms = 0
+    for _ in range(data.count(MAX_TABLE_STOPS, "stops")):
+        offset += data.uint()
+        ms += data.uint()
+        if offset > content_bytes:
+            raise TableError("a stop's offset in the table does not fit the file")
+        if ms > total_ms:
+            raise TableError("a stop's time in the table is past its total")
+        raw = data.raw(data.count(MAX_STOP_COMMAND_BYTES, "bytes in a stop's command"))
+        try:
+            commands.append(raw.decode("ascii"))
+        except UnicodeDecodeError:
+            raise TableError("a stop's command in the table is not ASCII") from None
+        offsets.append(offset)
+        times.append(ms / MS)
+    return offsets, times, commands
 
 
 def _b64(values: array[Any]) -> str:

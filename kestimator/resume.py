@@ -376,6 +376,23 @@ class Resumable:
                                                      line_bytes)
         return [offsets[i] for i in selection.kept], objects
 
+    def stop_offsets(self, path: str, selection: Selection, line_bytes: float) -> list[int]:
+        """The byte offsets of the selection's stops' lines (a line past the file's end at
+        its end), each counted from the closest candidate before it (`line_offsets` has
+        found the candidates' offsets) or checkpoint."""
+        lines = selection.stop_lines
+        if not lines:
+            return []
+        with open(path, "rb", buffering=0) as f:
+            def read_at(size: int, offset: int) -> bytes:
+                f.seek(offset)
+                return f.read(size) or b""
+            if self.candidates and self.candidates == selection.candidates:
+                return self._offsets_among_candidates(read_at, lines, line_bytes)
+            known = self._anchors()
+            found = line_offsets_from(read_at, lines, known, sorted(known), line_bytes)
+        return [found.get(line, self.size) for line in lines]
+
     def _anchors(self) -> dict[int, int]:
         """Lines whose byte offsets the checkpoints give (line -> offset): line 1's and
         each checkpoint's next line's."""

@@ -714,7 +714,7 @@ class Rewriter:
                 self._ends_in_lf = data[-1:] == b"\n"
             return write(data)
 
-        process_line = self.process
+        process_line = noting_stop_lines(self)
         table_line = self.plan.table_line
 
         def process(raw: bytes) -> list[bytes]:
@@ -822,6 +822,27 @@ class Rewriter:
                     indent = raw[:len(raw) - len(code)]
                     return [indent + new.encode("utf-8", "surrogateescape") + eol]
         return [raw]
+
+
+def noting_stop_lines(rewriter: Rewriter) -> Callable[[bytes], list[bytes]]:
+    """`rewriter.process`, noting where each stop's own line starts in the output (after
+    the stop's time comment and any M73 written before it) as its table offset: the table
+    says the stop is on that line, and no time passes on the lines put before it."""
+    table = rewriter.plan.table
+    stop_lines = frozenset(table.stop_lines if table is not None else ())
+    process_line = rewriter.process
+
+    def process(raw: bytes) -> list[bytes]:
+        out = process_line(raw)
+        if rewriter.lineno in stop_lines:
+            pos = rewriter._out_pos  # the start of this line's output (written after)
+            for part in out:
+                if part is raw:
+                    rewriter._table_offsets[rewriter.lineno] = pos
+                    break
+                pos += len(part)
+        return out
+    return process
 
 
 def stop_comment(plan: InjectPlan, line: int, eol: bytes) -> list[bytes]:

@@ -16,9 +16,13 @@ Klipper whose version selects today's rules (`_same_release_as`).
 
 The answer: ``{"id": 1, "ok": true, "source": "table" | "estimate", "total_s": ...,
 "offsets": [...], "times": [...], "object_names": [...], "object_offsets": [...],
-"object_remaining": [[...], ...], "warnings": [...], "elapsed_s": ...}``, or
+"object_remaining": [[...], ...], "stop_offsets": [...], "stop_times": [...],
+"stop_commands": [...], "stop_lines": [...], "warnings": [...], "elapsed_s": ...}``, or
 ``{"id": 1, "ok": false, "error": "one line"}``. With ``"encoding": "b64"`` the lists come
-as base64 machine arrays instead (`ProgressTable.to_json`: ``offsets_b64``, ...).
+as base64 machine arrays instead (`ProgressTable.to_json`: ``offsets_b64``, ...; the
+stops, at most 1,000, stay JSON lists). The stops (kestimator.stops: where the print waits
+for a person) are each one's byte offset and line, Klipper's time there and its command;
+from a table, their lines are counted in the file.
 
 With `use_table`, no events and a valid table at the file's end (`kestimator inject` wrote
 it), the answer is that table, read from the file's end (and the bytes it covers read once,
@@ -29,8 +33,10 @@ with those the table records (kestimator.progress_table, "The printer it was mad
 When they differ (another printer, a changed max_accel, another homing time in
 the profile, ...) the file is estimated afresh, with a warning naming the first differing
 settings ("the file's table was made for max_accel 3000, this printer has 5000: estimated
-afresh"); a version-1 table, which records no settings, is estimated afresh too, with a
-warning saying so. When the settings cannot be resolved (a printer.cfg kestimator cannot
+afresh"); a version-1 table, which records no settings, and a version-2 table, which
+records no stops (its times were made without the look-ahead running out at a colour change
+or a pause: under a second off at each), are estimated afresh too, with a warning saying
+so. When the settings cannot be resolved (a printer.cfg kestimator cannot
 read) the table is used, with a warning that it could not be checked; with `config` null
 nothing is known to check it against, and it is used as it is. Otherwise the file is
 estimated as ``kestimator estimate FILE --printer-cfg CONFIG`` would (the profile, the
@@ -86,6 +92,7 @@ from typing import IO, TYPE_CHECKING, Any
 from kestimator.progress_table import (
     MAX_NAME_BYTES,
     MAX_OBJECTS,
+    TABLE_VERSION,
     ProgressTable,
     Settings,
     TableError,
@@ -218,6 +225,8 @@ def answer(request: dict[str, Any]) -> dict[str, Any]:
         table, more = estimate_table(path, request.get("config"), request["events"], printer,
                                      request.get("klipper_version"))
         warnings += more
+    elif table.stop_offsets:
+        table = dataclasses.replace(table, stop_lines=stop_lines(path, table.stop_offsets))
     doc: dict[str, Any] = {"id": request.get("id"), "ok": True, "source": source}
     doc.update(table.to_json(request.get("encoding")))
     doc["warnings"] = _bounded_warnings(warnings)
@@ -232,6 +241,10 @@ def table_mismatch(table: ProgressTable, printer: Printer) -> str | None:
         return ("the file's table records no printer settings (a version-1 table, written "
                 "before kestimator recorded them), so it may be for another printer: "
                 "estimated afresh")
+    if table.version < TABLE_VERSION:
+        return ("the file's table records no stops (a version-%d table, written before "
+                "kestimator recorded them: its times do not stand at a colour change or a "
+                "pause): estimated afresh" % table.version)
     made_for = _same_release_as(table.settings, printer.settings)
     if made_for == printer.settings:
         return None
@@ -263,6 +276,13 @@ def _same_release_as(made_for: Settings, here: Settings) -> Settings:
         return made_for
     return tuple((name, ours if name == "klipper_version" else value)
                  for name, value in made_for)
+
+
+def stop_lines(path: str, offsets: list[int]) -> list[int]:
+    """The line (from 1) that starts at each of a table's stop offsets: counted in one
+    pass up to the last."""
+    with open(path, "rb") as f:
+        return lines_at_offsets(f.read, offsets)
 
 
 def _bounded_warnings(warnings: list[str]) -> list[str]:
@@ -342,10 +362,11 @@ def estimate_table(path: str, config: str | None, events: list[tuple[int, str]],
                         "%d bytes): their time counts in the total only"
                         % (selection.objects_left_out, MAX_OBJECTS, MAX_NAME_BYTES))
     size = os.path.getsize(path)
-    offsets, object_offsets = resumable.line_offsets(path, selection,
-                                                     size / max(1, est.n_lines))
+    line_bytes = size / max(1, est.n_lines)
+    offsets, object_offsets = resumable.line_offsets(path, selection, line_bytes)
+    stop_offsets = resumable.stop_offsets(path, selection, line_bytes)
     return ProgressTable.from_offsets(selection, offsets, object_offsets, size,
-                                      printer.settings), warnings
+                                      printer.settings, stop_offsets=stop_offsets), warnings
 
 
 # The checkpoints of the file estimated last (kestimator.resume): one file at a time.

@@ -897,3 +897,145 @@ def test_a_print_started_after_a_cancel_gets_its_time_without_waiting_for_the_la
         assert busy.wait(timeout=10) is not None  # the cancelled file's worker is gone
     finally:
         kest._stop_worker()
+
+
+def stops_answer(request_id: int, **fields: Any) -> dict[str, Any]:
+    """`answer` with two stops: M600 at byte 600 (line 30, 60 s) and PAUSE at byte 900
+    (line 45, 90 s)."""
+    doc = answer(request_id)
+    doc.update({"stop_offsets": [600, 900], "stop_times": [60., 90.],
+                "stop_commands": ["M600", "PAUSE"], "stop_lines": [30, 45]})
+    doc.update(fields)
+    return doc
+
+
+def test_the_next_stop_is_the_tables_time_to_it_from_where_the_head_is() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position = 500        # table: 50 s done
+    toolhead.lookahead.queue.append(stubs.Move())
+    printer.reactor.advance(1.)
+    toolhead.plan(40.)
+    toolhead.mcu.est = 38.5        # the head 1.5 s behind the moves queued
+    printer.reactor.advance(1.)
+    now = printer.reactor.monotonic()
+    status = kest.get_status(now)
+    stop = status["next_stop"]
+    assert (stop["command"], stop["line"]) == ("M600", 30)
+    assert stop["in_s"] == pytest.approx(60. - 50. + 1.5)
+    assert stop["eta"] == pytest.approx(status["eta"] - status["remaining_s"] + stop["in_s"])
+
+
+def test_paused_at_a_stop_the_next_one_is_named_and_none_after_the_last() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position = 600        # the M600 line is next: still ahead
+    toolhead.print_time = 60.
+    toolhead.mcu.est = 59.
+    printer.reactor.advance(1.)
+    assert kest.get_status(printer.reactor.monotonic())["next_stop"]["command"] == "M600"
+    vsd.file_position = 610        # M600 ran (PAUSE): the file is read past it
+    vsd.active = False
+    printer.objects["print_stats"].state = "paused"
+    toolhead.mcu.est = 200.        # the head stands
+    printer.reactor.advance(1.)
+    first = kest.get_status(printer.reactor.monotonic())["next_stop"]
+    printer.reactor.advance(30.)
+    later = kest.get_status(printer.reactor.monotonic())["next_stop"]
+    assert (first["command"], first["line"]) == ("PAUSE", 45)
+    # (the table's time at byte 600 is its point at 500's: 50 s)
+    assert first["in_s"] == later["in_s"] == pytest.approx(90. - 50.)  # stands while paused
+    assert later["eta"] > first["eta"]
+    vsd.file_position, vsd.active = 950, True
+    printer.objects["print_stats"].state = "printing"
+    toolhead.print_time, toolhead.mcu.est = 300., 299.
+    printer.reactor.advance(1.)
+    assert kest.get_status(printer.reactor.monotonic())["next_stop"] is None
+
+
+def test_a_speed_change_scales_the_time_to_the_next_stop_until_estimated_again() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position = 500
+    toolhead.print_time, toolhead.mcu.est = 50., 50.
+    printer.reactor.advance(1.)
+    printer.gcode.run("M220", S="200")
+    stop = kest.get_status(printer.reactor.monotonic())["next_stop"]
+    assert stop["in_s"] == pytest.approx((60. - 50.) / 2.)
+    kest.on_answer(stops_answer(2, stop_times=[55., 70.]))
+    stop = kest.get_status(printer.reactor.monotonic())["next_stop"]
+    assert stop["in_s"] == pytest.approx(5.)
+
+
+@pytest.mark.parametrize("bad", [
+    {"stop_times": [90., 60.]}, {"stop_times": [60., 1000.]}, {"stop_offsets": [900, 600]},
+    {"stop_offsets": [600]}, {"stop_commands": ["M600", "X" * 65]},
+    {"stop_offsets": list(range(1001)), "stop_times": [1.] * 1001,
+     "stop_commands": ["M600"] * 1001}, {"stop_offsets": [600, True]}])
+def test_stops_from_the_worker_are_checked_before_they_are_used(bad: dict[str, Any]) -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1, **bad))
+    status = kest.get_status(0.)
+    assert status["state"] == "error" and status["next_stop"] is None
+    assert "refused" in status["error"]
+
+
+def test_display_next_stop_shows_the_time_to_it_but_never_over_the_users_message() -> None:
+    kest, printer, worker = printing({"display_next_stop": "True"})
+    kest.on_answer(stops_answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    display = printer.objects["display_status"]
+    vsd.file_position = 500
+    toolhead.print_time, toolhead.mcu.est = 50., 50.
+    printer.reactor.advance(1.)
+    assert display.message == "M600 in 10s"
+    display.message = "Hello"      # the user's M117
+    vsd.file_position = 950
+    printer.reactor.advance(1.)
+    assert display.message == "Hello"
+    display.message = None         # the user's M117 with no text
+    vsd.file_position = 700
+    printer.reactor.advance(1.)
+    assert display.message == "PAUSE in 40s"
+    vsd.file_position = 950        # after the last stop: ours is cleared
+    printer.reactor.advance(1.)
+    assert display.message is None
+
+
+def test_without_display_next_stop_the_display_message_is_left_alone() -> None:
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1))
+    printer.objects["virtual_sdcard"].file_position = 500
+    printer.reactor.advance(1.)
+    assert printer.objects["display_status"].message is None
+    assert kest.get_status(printer.reactor.monotonic())["next_stop"] is not None
+
+
+def test_the_modules_stop_limits_are_the_table_writers() -> None:
+    from kestimator import progress_table
+
+    assert MOD.MAX_STOPS == progress_table.MAX_TABLE_STOPS
+    assert MOD.MAX_STOP_COMMAND_CHARS == progress_table.MAX_STOP_COMMAND_BYTES
+
+
+def test_after_resuming_from_a_stop_it_stays_behind() -> None:
+    """Paused at the M600 with the head standing a little short of its time by the table,
+    then resumed: the next stop is the PAUSE, from the moment it stood there on."""
+    kest, printer, worker = printing()
+    kest.on_answer(stops_answer(1, stop_times=[50.3, 90.]))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position = 610
+    vsd.active = False
+    printer.objects["print_stats"].state = "paused"
+    toolhead.print_time, toolhead.mcu.est = 60., 200.
+    printer.reactor.advance(1.)
+    assert kest.get_status(printer.reactor.monotonic())["next_stop"]["command"] == "PAUSE"
+    vsd.active = True
+    printer.objects["print_stats"].state = "printing"
+    toolhead.mcu.est = 201.
+    printer.reactor.advance(0.5)
+    stop = kest.get_status(printer.reactor.monotonic())["next_stop"]
+    assert stop["command"] == "PAUSE"

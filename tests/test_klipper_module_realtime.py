@@ -14,7 +14,9 @@ on the wall clock); all of them take about 9 minutes.
 from __future__ import annotations
 
 import concurrent.futures
+import math
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Any
@@ -105,17 +107,72 @@ def _case_velocity_limit(work: Path) -> dict[str, Any]:
         script=[{"at": 0.35, "cmd": "SET_VELOCITY_LIMIT ACCEL=8000 SQUARE_CORNER_VELOCITY=8"}])
 
 
+STOPS = Path(__file__).parent / "stop_refs"
+STOPS_FILE = STOPS / "ps25_box_color_pause.gcode"
+# The guide's stop-notice macro, told 20 s ahead (its loop asks every 10 s).
+NOTICE_LEAD_S = 20
+NOTICE_PERIOD_S = 10
+
+
+def _guide_block(marker: str) -> str:
+    """The ini block of plugins/klipper/README.md that starts with `marker`, as written."""
+    guide = (Path(run_print.ROOT) / "plugins" / "klipper" / "README.md").read_text()
+    return marker + guide.split("```ini\n" + marker)[1].split("```")[0]
+
+
+def _line_fraction(path: Path, line: int) -> float:
+    """Where `line` (from 1) starts, as a fraction of the file's bytes."""
+    data = path.read_bytes()
+    return sum(len(text) + 1 for text in data.split(b"\n")[:line - 1]) / len(data)
+
+
+def _case_colour_change_pause_resume(work: Path) -> dict[str, Any]:
+    """PrusaSlicer's colour change (M600, a macro running PAUSE) and pause (PAUSE) from
+    its layer slider really pause the print, each resumed 8 s later; a PAUSE and a RESUME
+    typed before them; a display message set and cleared by the user meanwhile. The
+    module shows the next stop as the display message, and the guide's macro notifies
+    through Moonraker's notifier."""
+    stops = [(494, "M600"), (682, "PAUSE")]
+    script: list[dict[str, Any]] = [{"at": 0.12, "cmd": "PAUSE"}, {"after": 4.0, "cmd": "RESUME"},
+                                    {"after": 3.0, "cmd": "M117 Hello"},
+                                    {"after": 6.0, "cmd": "M117"}]
+    for line, _ in stops:
+        script += [{"at": _line_fraction(STOPS_FILE, line - 16), "cmd": "ECHO MSG=soon"},
+                   {"after": 8.0, "cmd": "RESUME"}]
+    notice = _guide_block("# Notify through Moonraker's [notifier kestimator]")
+    return run_realtime.run_realtime(
+        str(STOPS_FILE), str(work), base_cfg=str(STOPS / "printer.cfg"), script=script,
+        extra_cfg="display_next_stop: True\n\n" + notice,
+        before=["SET_GCODE_VARIABLE MACRO=KESTIMATOR_STOP_NOTICE VARIABLE=lead_s VALUE=%d"
+                % NOTICE_LEAD_S])
+
+
+def _case_speed_change_before_stops(work: Path) -> dict[str, Any]:
+    """A held-out PrusaSlicer file (tests/stop_refs: two colour changes and a pause), a
+    speed change typed before its stops; each stop's pause resumed 6 s later."""
+    src = STOPS / "ps25_bar_two_colours_pause.gcode"
+    script: list[dict[str, Any]] = [{"at": 0.15, "cmd": "M220 S150"}]
+    for line in (463, 808, 982):
+        script += [{"at": _line_fraction(src, line - 16), "cmd": "ECHO MSG=soon"},
+                   {"after": 6.0, "cmd": "RESUME"}]
+    return run_realtime.run_realtime(str(src), str(work), base_cfg=str(STOPS / "printer.cfg"),
+                                     script=script)
+
+
 # Longest first: they run three at a time.
 CASES = {
+    "speed_change_before_stops": _case_speed_change_before_stops,
     "exclusion_pause_heater_wait": _case_exclusion_pause_heater_wait,
+    "colour_change_pause_resume": _case_colour_change_pause_resume,
     "delta_state_typed_before": _case_delta_with_state_typed_before,
     "injected_table": _case_injected_table,
     "plain_pa_shaper": _case_plain_pa_shaper,
     "velocity_limit": _case_velocity_limit,
     "speed_change": _case_speed_change,
 }
-# Typed commands that do not change the time left (a pause's time is left out).
-TIMELESS = ("PAUSE", "RESUME")
+# Typed commands that do not change the time left (a pause's time is left out; a
+# display message; an echo).
+TIMELESS = ("PAUSE", "RESUME", "M117", "ECHO")
 
 
 @pytest.fixture(scope="module")
@@ -275,3 +332,122 @@ def test_mainsail_by_its_own_code_shows_klippers_remaining_time(prints: dict[str
             if view[field] is None or abs(view[field]) > 1.:
                 off.append((round(sample["print_time"], 2), field, view[field]))
     assert off == []
+
+
+# Each case's stops (command, line), and whether a pause is typed before them.
+CASE_STOPS = {"colour_change_pause_resume": ([("M600", 494), ("PAUSE", 682)], True),
+              "speed_change_before_stops": ([("M600", 463), ("M600", 808), ("PAUSE", 982)],
+                                            False)}
+
+
+def _stop_pauses(result: dict[str, Any], name: str) -> list[tuple[str, int, float]]:
+    """The file's stops (command, line) with the print_time at which the head stood at each:
+    the start of the idle gap each left (a typed pause's comes first)."""
+    stops, typed_pause = CASE_STOPS[name]
+    idle = [old for old, new in result["gaps"] if old > 0.0 and new - old > 1.0]
+    assert len(idle) == len(stops) + typed_pause, result["gaps"]
+    if typed_pause:
+        typed = result["typed"][0]
+        assert typed["cmd"] == "PAUSE"
+        assert idle[0] < typed["done_eventtime"] + result["clock_offset"] + 3.0 < idle[1]
+        idle = idle[1:]
+    return [(command, line, at) for (command, line), at in zip(stops, idle)]
+
+
+def _next_stop_truth(sample: dict[str, Any], result: dict[str, Any],
+                     stops: list[tuple[str, int, float]]) -> tuple[str, int, float] | None:
+    """The stop the head has not reached yet at the sample, with the printing time Klipper
+    then took to stand there (idle gaps left out); None after the last."""
+    for command, line, at in stops:
+        if at > sample["print_time"]:
+            return command, line, run_realtime.truth_at(sample["print_time"], at,
+                                                        result["gaps"])
+    return None
+
+
+@pytest.mark.parametrize("name", sorted(CASE_STOPS))
+def test_the_next_stop_follows_klipper_at_every_status_cycle(prints: dict[str, Any],
+                                                             name: str) -> None:
+    """`next_stop`: the command and line of the stop the head has not reached, and
+    `in_s` within the bar `remaining_s` is held to (0.5 s + 0.2 % of the printing time
+    Klipper then took to stand there; 1 s + 1 % after a speed change), through a typed
+    pause, the colour changes' and the pauses' own pauses (while paused at one it names
+    the next) and their resumes; null after the last."""
+    result = _result(prints, name)
+    stops = _stop_pauses(result, name)
+    checked = _checked(result["samples"], result["typed"])
+    assert len(checked) > 200
+    off = []
+    seen = set()
+    for sample, absolute, relative in checked:
+        truth = _next_stop_truth(sample, result, stops)
+        shown = _kest(sample).get("next_stop")
+        if truth is None:
+            if shown is not None:
+                off.append((round(sample["print_time"], 2), shown, None))
+            continue
+        command, line, in_s = truth
+        seen.add((command, sample["status"]["print_stats"]["state"]))
+        if (shown is None or (shown["command"], shown["line"]) != (command, line)
+                or abs(shown["in_s"] - in_s) > absolute + relative * in_s):
+            off.append((round(sample["print_time"], 2), shown, (command, line, round(in_s, 3))))
+            continue
+        assert shown["eta"] == pytest.approx(_kest(sample)["eta"] - _kest(sample)["remaining_s"]
+                                             + shown["in_s"], abs=0.002)
+    assert off == []
+    # Checked printing toward each stop, and paused (at the stop before it, or typed).
+    assert {(command, "printing") for command, _, _ in stops} <= seen
+    assert {(command, "paused") for command, _, _ in stops[1:]} <= seen
+
+
+def test_the_guides_macro_notifies_through_moonrakers_notifier_before_each_stop(
+        prints: dict[str, Any]) -> None:
+    """plugins/klipper/README.md's macro, as written there, in real Klipper: one call of
+    Moonraker's "notify" remote method per stop, to the notifier it names, saying the stop
+    and its line, once the stop is at most `lead_s` ahead (it asks every 10 s)."""
+    result = _result(prints, "colour_change_pause_resume")
+    stops = _stop_pauses(result, "colour_change_pause_resume")
+    calls = result["remote_calls"]
+    assert [call["params"]["name"] for call in calls] == ["kestimator", "kestimator"]
+    for call, (command, line, at) in zip(calls, stops):
+        message = call["params"]["message"]
+        assert message.startswith("%s in " % command) and message.endswith("(line %d)" % line)
+        print_time = call["eventtime"] + result["clock_offset"]
+        left = run_realtime.truth_at(print_time, at, result["gaps"])
+        assert NOTICE_LEAD_S - NOTICE_PERIOD_S - 1.0 < left <= NOTICE_LEAD_S + 1.0
+        assert message == "%s in %d min (line %d)" % (command, math.ceil(left / 60), line)
+
+
+def test_display_next_stop_shows_the_time_to_it_but_never_over_the_users_message(
+        prints: dict[str, Any]) -> None:
+    """`display_next_stop: True`: the display message is the next stop and the time to it
+    (as the status says it, within the 0.5 s between updates), but the user's own M117
+    stays until the user clears it; after the last stop, no message."""
+    result = _result(prints, "colour_change_pause_resume")
+    typed = {t["cmd"]: t for t in result["typed"]}
+    set_at, cleared_at = typed["M117 Hello"]["done_eventtime"], typed["M117"]["done_eventtime"]
+    # The message is set at the module's updates (every 0.5 s): at a stop it names the
+    # next one up to then after the status does.
+    turns = [b["eventtime"] for a, b in zip(result["samples"], result["samples"][1:])
+             if (_kest(a).get("next_stop") or {}).get("command")
+             != (_kest(b).get("next_stop") or {}).get("command")]
+    shown = users = 0
+    for sample in result["samples"]:
+        message = sample["status"].get("display_status", {}).get("message")
+        stop = _kest(sample).get("next_stop")
+        state = sample["status"].get("print_stats", {}).get("state")
+        if any(abs(sample["eventtime"] - turn) < 1.0 for turn in turns):
+            continue
+        if set_at + 0.1 < sample["eventtime"] < cleared_at:
+            assert message == "Hello"
+            users += 1
+        elif sample["eventtime"] > cleared_at + 1.0 and stop is not None and state == "printing":
+            match = re.fullmatch(r"(\w+) in (?:(\d+)m )?(\d+)s", message or "")
+            assert match is not None and match[1] == stop["command"], message
+            seconds = int(match[2] or 0) * 60 + int(match[3])
+            assert abs(seconds - stop["in_s"]) <= 1.5
+            shown += 1
+        elif state == "complete":
+            # The file's own M117 at its pause stays (PrusaSlicer's "Insert magnets").
+            assert message == "Insert magnets"
+    assert users > 10 and shown > 100

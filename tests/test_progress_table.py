@@ -428,7 +428,7 @@ def test_a_table_records_the_printer_settings_it_was_made_for() -> None:
     without settings is still written and read as version 1."""
     table = dataclasses.replace(_table(), settings=SETTINGS)
     block = table.encode()
-    assert block.startswith(b"; kestimator_table v2 ")
+    assert block.startswith(b"; kestimator_table v3 ")
     back = decode_block(block, table.content_bytes)
     assert back == table and back.settings == SETTINGS
     assert back.fingerprint == settings_digest(SETTINGS) and len(back.fingerprint) == 16
@@ -470,15 +470,15 @@ def test_differences_name_the_first_few_settings_and_count_the_rest() -> None:
 def test_forged_settings_are_refused(bad: str) -> None:
     table = dataclasses.replace(_table(), settings=(("a", "1"),))
     payload = table.payload()
-    assert payload.endswith(b"\x01\x01a\x011")
-    head = payload[:-len(b"\x01\x01a\x011")]
+    assert payload.endswith(b"\x01\x01a\x011\x00")  # the settings, then no stops
+    head = payload[:-len(b"\x01\x01a\x011\x00")]
     tail = {"over_count": b"\xc9\x01",  # MAX_SETTINGS + 1 = 201
             "long_name": b"\x01\x41" + b"a" * 65 + b"\x011",
             "long_value": b"\x01\x01a\x41" + b"1" * 65,
             "twice": b"\x02\x01a\x011\x01a\x012",
             "ascii": b"\x01\x02\xc3\xa4\x011"}[bad]
     with pytest.raises(TableError):
-        ProgressTable.from_payload(head + tail)
+        ProgressTable.from_payload(head + tail + b"\x00")
 
 
 @pytest.mark.parametrize("appended", [b"M104 S0\nM84\n", b"; a note\n" * 500],
@@ -804,3 +804,33 @@ def test_candidates_going_on_from_an_earlier_estimates_are_a_whole_walks() -> No
     finally:
         progress_table._go_on_from = original
     assert went_on.count(True) > 40 and went_on.count(False) > 30
+
+
+def test_a_version_3_table_carries_its_stops_and_a_version_2_one_is_still_read() -> None:
+    """Version 3 ends with the stops (offset, Klipper's time there, command); a version-2
+    table (settings, no stops) reads with none, for the worker to refuse to follow."""
+    table = dataclasses.replace(_table(), settings=SETTINGS, stop_offsets=[200, 9_000_000],
+                                stop_times=[0.25, 1000.5], stop_commands=["M600", "PAUSE"])
+    block = table.encode()
+    assert block.startswith(b"; kestimator_table v3 ")
+    back = decode_block(block, table.content_bytes)
+    assert back == table
+    assert (back.stop_offsets, back.stop_times, back.stop_commands) == (
+        [200, 9_000_000], [0.25, 1000.5], ["M600", "PAUSE"])
+    assert table.to_json("b64")["stop_commands"] == ["M600", "PAUSE"]
+
+
+def test_a_forged_stop_past_the_file_or_the_total_is_refused() -> None:
+    for change in ({"stop_offsets": [20_000_000]}, {"stop_times": [5000.0]}):
+        forged = dataclasses.replace(_table(), settings=SETTINGS, stop_offsets=[200],
+                                     stop_times=[0.25], stop_commands=["M600"])
+        forged = dataclasses.replace(forged, **change)  # type: ignore[arg-type]
+        with pytest.raises(TableError, match="stop"):
+            decode_block(forged.encode(), forged.content_bytes)
+
+
+def test_the_table_holds_as_many_stops_as_an_estimate_lists() -> None:
+    from kestimator.progress_table import MAX_TABLE_STOPS
+    from kestimator.stops import MAX_STOPS
+
+    assert MAX_TABLE_STOPS == MAX_STOPS

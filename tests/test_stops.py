@@ -284,3 +284,60 @@ def test_a_progress_table_records_the_stop_commands_it_was_made_with() -> None:
     assert "stop_commands" not in plain
     assert named["stop_commands"] != plain.get("stop_commands")
     assert {k: v for k, v in named.items() if k != "stop_commands"} == plain
+
+
+# Held out (tests/stop_refs/make_files.py): multi-colour files from PrusaSlicer, Cura and
+# OrcaSlicer made after the code, never used to write it; the OrcaSlicer one is the corpus
+# file with its pauses written in as OrcaSlicer writes them.
+HELDOUT = ("ps25_bar_two_colours_pause.gcode", "cura413_bar_pause_at_height.gcode",
+           "orca150_accelctl_pauses.gcode")
+
+
+def _heldout(name: str, tmp_path: Path) -> Path:
+    if (STOPS / name).exists():
+        return STOPS / name
+    sys.path.insert(0, str(STOPS))
+    import make_files
+
+    path = tmp_path / name
+    path.write_bytes(make_files.orca_paused(CORPUS / "gcode" / "orcaslicer"
+                                            / "accelctl_orca1.5.0_klipper_m204.gcode"))
+    return path
+
+
+@pytest.mark.parametrize("name", HELDOUT)
+def test_on_held_out_files_every_stop_time_is_klippers_in_the_estimate_and_the_module(
+        name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each stop of a held-out file at Klipper's time to that line (the oracle's, within a
+    microsecond's rounding), in the estimate and in what the Klipper module is given: the
+    worker's answer from an estimate, and from the table `inject` wrote (whole
+    milliseconds), each stop at its own line of the file printed."""
+    from kestimator import worker
+    from kestimator.rewrite import inject_file
+
+    ref = json.loads((STOPS / name).with_suffix(".json").read_text())
+    expected = [(s["command"], s["line"]) for s in ref["stops"]]
+    assert len(expected) >= 2
+    src = _heldout(name, tmp_path)
+    isolate_user_environment(tmp_path / "home", monkeypatch)  # the worker reads no profile
+    est = _estimate(src)
+    assert [(s.command, s.line) for s in est.stops] == expected
+    for stop, want in zip(est.stops, ref["stops"]):
+        assert stop.time_s == pytest.approx(want["t"], abs=TOLERANCE_S), stop
+    assert est.total_s == pytest.approx(ref["total_s"], abs=TOLERANCE_S)
+    injected = tmp_path / ("injected_" + name)
+    shutil.copyfile(src, injected)
+    inject_file(injected, resolve_limits(LimitRequest(
+        gcode=str(src), printer_cfg=str(STOPS_CFG), use_profile=False)).limits)
+    for path, source, tolerance in ((src, "estimate", TOLERANCE_S),
+                                    (injected, "table", 5e-4 + TOLERANCE_S)):
+        answer = worker.handle(json.dumps({"id": 1, "file": str(path),
+                                           "config": str(STOPS_CFG)}).encode())
+        assert answer["ok"] and answer["source"] == source, answer
+        assert answer["stop_commands"] == [command for command, _ in expected]
+        assert len(answer["stop_times"]) == len(ref["stops"])
+        for t, want in zip(answer["stop_times"], ref["stops"]):
+            assert t == pytest.approx(want["t"], abs=tolerance)
+        lines = path.read_bytes().split(b"\n")
+        assert [command_word(lines[n - 1].decode()) for n in answer["stop_lines"]] == [
+            command for command, _ in expected]

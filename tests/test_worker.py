@@ -399,3 +399,74 @@ def test_a_table_injected_without_a_version_holds_on_a_host_running_todays_klipp
         assert bad["ok"] is False and "klipper_version" in bad["error"]
     finally:
         _finish(proc)
+
+
+STOPS = Path(__file__).parent / "stop_refs"
+
+
+def _as_version_2(table: Any) -> bytes:
+    """`table`'s lines as a kestimator before the stops wrote them: version 2, its
+    settings and no stops."""
+    return dataclasses.replace(table, stop_offsets=[], stop_times=[], stop_commands=[],
+                               read_version=2).encode()
+
+
+def test_the_answer_gives_each_stop_its_line_command_and_klippers_time(
+        tmp_path: Path) -> None:
+    """From an estimate and from the table inject wrote: each stop's time is the oracle's
+    (tests/stop_refs), its offset the start of the stop's own line, and its line that
+    line's number in the file being printed (inject's lines before it counted)."""
+    ref = json.loads((STOPS / "ps25_box_color_pause.json").read_text())
+    src = STOPS / "ps25_box_color_pause.gcode"
+    injected = tmp_path / "box.gcode"
+    shutil.copyfile(src, injected)
+    inject_file(injected, limits_from_printer_cfg(STOPS / "printer.cfg")[0])
+    proc = _start(tmp_path)
+    try:
+        for request_id, path, source, tolerance in ((1, src, "estimate", 2e-6),
+                                                    (2, injected, "table", 5e-4)):
+            answer = _ask(proc, {"id": request_id, "file": str(path),
+                                 "config": str(STOPS / "printer.cfg"), "use_table": True,
+                                 "encoding": "b64"})
+            assert answer["ok"] and answer["source"] == source, answer
+            assert answer["stop_commands"] == [s["command"] for s in ref["stops"]]
+            assert len(answer["stop_times"]) == len(ref["stops"])
+            for t, stop in zip(answer["stop_times"], ref["stops"]):
+                assert abs(t - stop["t"]) <= tolerance
+            lines = path.read_bytes().split(b"\n")
+            starts = [0]
+            for line in lines:
+                starts.append(starts[-1] + len(line) + 1)
+            assert [lines[n - 1] for n in answer["stop_lines"]] == [b"M600", b"PAUSE"]
+            assert answer["stop_offsets"] == [starts[n - 1] for n in answer["stop_lines"]]
+        assert answer["stop_lines"] != [s["line"] for s in ref["stops"]]  # inject's lines
+    finally:
+        _finish(proc)
+
+
+def test_a_table_written_before_stops_were_recorded_is_estimated_afresh(
+        tmp_path: Path) -> None:
+    """A version-2 table (settings, no stops) was made without the look-ahead running out
+    at the file's M600 and PAUSE: for the very printer it was made for, the worker
+    estimates the file again (the stops' times Klipper's), saying why."""
+    ref = json.loads((STOPS / "ps25_box_color_pause.json").read_text())
+    injected = tmp_path / "box.gcode"
+    shutil.copyfile(STOPS / "ps25_box_color_pause.gcode", injected)
+    inject_file(injected, limits_from_printer_cfg(STOPS / "printer.cfg")[0])
+    from kestimator.progress_table import read_table_file
+
+    table = read_table_file(injected)
+    assert table.version == 3 and len(table.stop_offsets) == 2
+    data = injected.read_bytes()[:table.content_bytes]
+    injected.write_bytes(data + _as_version_2(table))
+    old = read_table_file(injected)
+    assert old.version == 2 and old.settings == table.settings and not old.stop_offsets
+    proc = _start(tmp_path)
+    try:
+        answer = _ask(proc, {"id": 1, "file": str(injected),
+                             "config": str(STOPS / "printer.cfg"), "use_table": True})
+        assert answer["ok"] and answer["source"] == "estimate", answer
+        assert any("records no stops (a version-2 table" in w for w in answer["warnings"])
+        assert [round(t, 6) for t in answer["stop_times"]] == [s["t"] for s in ref["stops"]]
+    finally:
+        _finish(proc)

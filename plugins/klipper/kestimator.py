@@ -2,9 +2,12 @@
 #
 # A Klipper extras module (link it into klippy/extras/ and add a [kestimator]
 # section). During a virtual-SD print it publishes `printer.kestimator`:
-#   remaining_s, eta, progress, total_s, source, objects, state, error, ...
-# and answers for display_status with progress D / (D + R) (print duration,
-# remaining time), so the front ends' own D / progress - D is Klipper's time.
+#   remaining_s, eta, progress, total_s, source, objects, next_stop, state,
+#   error, ...
+# (next_stop: the next colour change or pause the table lists, and the time to
+# it, Klipper's as remaining_s is; optionally the display message), and answers
+# for display_status with progress D / (D + R) (print duration, remaining
+# time), so the front ends' own D / progress - D is Klipper's time.
 #
 # How: a table maps byte offsets of the file to the time Klipper's planner
 # needs to reach them (read from the table `kestimator inject` wrote into the
@@ -60,6 +63,12 @@ MAX_TIME_POINTS = 20002
 MAX_OBJECT_POINTS = 500
 MAX_OBJECTS = 200
 MAX_NAME_CHARS = 256
+# The stops a table holds at most and a stop command's length (progress_table.py's
+# MAX_TABLE_STOPS, MAX_STOP_COMMAND_BYTES).
+MAX_STOPS = 1000
+MAX_STOP_COMMAND_CHARS = 64
+# A stop the file was read past is behind once the head is within this of it.
+STOP_REACHED_S = 0.05
 # The worker's answer is refused past this many bytes: the largest table the
 # limits above allow is under 2 MiB with base64 (kestimator/worker.py answers
 # at most its own MAX_ANSWER_BYTES, 3.5 MiB).
@@ -211,6 +220,7 @@ class Table:
                       self.total_s * (1. + 1e-9) + 1e-6)
         self.object_remaining = [flat[i * n:(i + 1) * n]
                                  for i in range(len(self.object_names))]
+        self._read_stops(answer)
         warnings = answer.get("warnings") or []
         if not isinstance(warnings, list):
             warnings = []
@@ -219,6 +229,44 @@ class Table:
         self.nbytes = sum(a.buffer_info()[1] * a.itemsize for a in
                           [self.offsets, self.times, self.object_offsets]
                           + self.object_remaining)
+
+    def _read_stops(self, answer: dict[str, Any]) -> None:
+        """The stops (where the print waits for a person): each one's byte offset,
+        Klipper's time there, command and line (None when the answer has no lines)."""
+        offsets = answer.get("stop_offsets") or []
+        times = answer.get("stop_times") or []
+        commands = answer.get("stop_commands") or []
+        lines = answer.get("stop_lines")
+        if not (isinstance(offsets, list) and isinstance(times, list)
+                and isinstance(commands, list)) or len(offsets) > MAX_STOPS:
+            raise ValueError("more than %d stops" % (MAX_STOPS,))
+        if not len(offsets) == len(times) == len(commands):
+            raise ValueError("stops of the wrong size")
+        if not isinstance(lines, list) or len(lines) != len(offsets):
+            lines = [None] * len(offsets)
+        for offset, line in zip(offsets, lines):
+            if not (_is_int(offset) and (line is None or _is_int(line))):
+                raise ValueError("a stop's offset or line is not a whole number")
+        for command in commands:
+            if not isinstance(command, str) or len(command) > MAX_STOP_COMMAND_CHARS:
+                raise ValueError("a stop's command is not a string of at most %d "
+                                 "characters" % (MAX_STOP_COMMAND_CHARS,))
+        self.stop_offsets = array.array("q", offsets)
+        _check_values(self.stop_offsets, "stop offsets", 0, grow=True)
+        for t in times:
+            if not isinstance(t, (int, float)) or isinstance(t, bool):
+                raise ValueError("a stop's time is not a number")
+        self.stop_times = array.array("d", times)
+        _check_values(self.stop_times, "stop times", 0.,
+                      self.total_s * (1. + 1e-9) + 1e-6, grow=True)
+        self.stop_commands = list(commands)
+        self.stop_lines: list[int | None] = list(lines)
+
+    def stop_after(self, position: int, passed: int) -> int:
+        """The index of the first stop at or after file `position` and past the stop at
+        offset `passed` (-1: none passed); len(stop_offsets) when no stop is left."""
+        return max(bisect.bisect_left(self.stop_offsets, position),
+                   bisect.bisect_right(self.stop_offsets, passed) if passed >= 0 else 0)
 
     def time_at(self, offset: int) -> float:
         """Table time at byte offset `offset`: that of the last point at or
@@ -429,6 +477,9 @@ class Kestimator:
         self.python = os.path.expanduser(python) if python else default_python()
         self.use_table = config.getboolean("use_file_table", True)
         self.set_progress = config.getboolean("set_progress", True)
+        self.display_next_stop = config.getboolean("display_next_stop", False)
+        # The display message we set last (display_next_stop); another is the user's.
+        self.shown_message: str | None = None
         self.interval = config.getfloat("update_interval", UPDATE_INTERVAL,
                                         minval=0.1, maxval=10.)
         start_args = printer.get_start_args()
@@ -708,6 +759,8 @@ class Kestimator:
         self.provisional: tuple[str, Any] | None = None
         self.excluded: list[str] = []
         self.speed_factor: float | None = None
+        # The offset of the last stop the print paused at (-1: none yet).
+        self.stop_passed = -1
         self.status = self._idle_status()
         if busy:
             self._spawn_worker()
@@ -717,7 +770,7 @@ class Kestimator:
                 "progress": None, "total_s": None, "source": None,
                 "objects": {}, "excluded_objects": [], "file": None,
                 "error": self.error, "max_callback_ms": 0., "table_bytes": 0,
-                "warnings": []}
+                "warnings": [], "next_stop": None}
 
     def _unknown_status(self, state: str) -> dict[str, Any]:
         """The status when the time is not known (`error` says why)."""
@@ -964,6 +1017,24 @@ class Kestimator:
         has seen yet: an arc, a macro), the head is that much further into the table, but
         never past the end of the line being run; when the toolhead is idle (a heater wait,
         a pause) nothing is taken off."""
+        left = self._table_left(print_time)
+        table = self.table
+        if left is None or table is None or self.anchor is None:
+            return None
+        position = self.anchor[1]
+        provisional = self.provisional
+        if provisional is not None and provisional[0] == "speed":
+            left *= provisional[1]
+        elif provisional is not None and provisional[0] == "exclude":
+            # Klipper upper-cases object names; the file may not.
+            gone = set(provisional[1])
+            cut = sum([left for name, left in table.objects_at(position).items()
+                       if name.upper() in gone])
+            left = max(0., left - cut)
+        return left
+
+    def _table_left(self, print_time: float) -> float | None:
+        """`remaining_at` as the table says it, before a provisional change."""
         table = self.table
         anchor = self.anchor
         if table is None or anchor is None:
@@ -978,16 +1049,41 @@ class Kestimator:
                 floor = max(0., table.total_s - table.time_at(self._line_end()))
                 elapsed = min(print_time, moving_until) - anchor_pt
                 left = max(min(left, floor), left - elapsed)
+        return left
+
+    def next_stop_at(self, print_time: float, eventtime: float,
+                     paused: bool) -> dict[str, Any] | None:
+        """The next stop (where the print waits for a person) with the head at
+        `print_time`: its command, line, seconds until the head stands there (`in_s`,
+        Klipper's time from the table, as `remaining_s`) and wall-clock `eta`; None when
+        no stop is left or the time is not known. A stop the file has been read past is
+        behind once the head has reached it by the table, or once the print was `paused`
+        with the head standing (every planned move done) after it: it stays behind after
+        the resume."""
+        table = self.table
+        left = self._table_left(print_time)
+        if table is None or left is None or self.anchor is None:
+            return None
+        done = table.total_s - left
+        n = len(table.stop_offsets)
+        i = table.stop_after(self.anchor[1], self.stop_passed)
+        position = int(self.vsd.file_position)
+        standing = paused and self._head_stands(print_time)
+        while i < n and table.stop_offsets[i] < position:
+            if standing:
+                self.stop_passed = int(table.stop_offsets[i])
+            elif table.stop_times[i] > done + STOP_REACHED_S:
+                break
+            i += 1
+        if i >= n:
+            return None
+        in_s = max(0., table.stop_times[i] - done)
         provisional = self.provisional
         if provisional is not None and provisional[0] == "speed":
-            left *= provisional[1]
-        elif provisional is not None and provisional[0] == "exclude":
-            # Klipper upper-cases object names; the file may not.
-            gone = set(provisional[1])
-            cut = sum([left for name, left in table.objects_at(position).items()
-                       if name.upper() in gone])
-            left = max(0., left - cut)
-        return left
+            in_s *= provisional[1]
+        return {"command": table.stop_commands[i], "line": table.stop_lines[i],
+                "in_s": round(in_s, 3),
+                "eta": round(self.wall_offset + eventtime + in_s, 3)}
 
     def _moving_until(self) -> float:
         """The print_time up to which the toolhead is known to move: the end of the
@@ -995,6 +1091,16 @@ class Kestimator:
         timed: after a heater wait or a pause they wait for Klipper to prime the queue
         again, and the head is idle meanwhile."""
         return float(self.toolhead.print_time)
+
+    def _head_stands(self, print_time: float) -> bool:
+        """Every move is planned (the look-ahead queue empty) and done by `print_time`."""
+        toolhead = self.toolhead
+        queue = getattr(toolhead, "lookahead", None)
+        if queue is None:
+            queue = getattr(toolhead, "move_queue", None)
+        if queue is not None and queue.get_last() is not None:
+            return False
+        return print_time >= self._moving_until()
 
     def _line_end(self) -> int:
         """File position after the line virtual_sdcard is running (its start between
@@ -1030,6 +1136,8 @@ class Kestimator:
         if remaining is None:
             return status
         status.update(self._time_fields(remaining, eventtime))
+        status["next_stop"] = (None if state == "complete" else
+                               self.next_stop_at(print_time, eventtime, state == "paused"))
         status["source"] = "provisional" if self.provisional else table.source
         # Keyed as Klipper names objects (upper-cased), as exclude_object's status does.
         at = table.objects_at(self.vsd.file_position)
@@ -1151,6 +1259,25 @@ class Kestimator:
                 self.want_anchor = False
                 self.anchor_here(vsd.file_position)
         self.status = self.status_at(self.now_print_time(eventtime), eventtime)
+        if self.display_next_stop and self.display_status is not None:
+            self._show_next_stop()
+
+    def _show_next_stop(self) -> None:
+        """display_next_stop: the time to the next stop as display_status's message
+        (M117's), never over a message the user set (shown again once it is cleared);
+        cleared when no stop is left."""
+        stop = self.status.get("next_stop")
+        text = None
+        if stop is not None and self.status.get("state") in ("printing", "paused"):
+            text = "%s in %s" % (stop["command"], _duration(stop["in_s"]))
+        ds = self.display_status
+        current = getattr(ds, "message", None)
+        if current is not None and current != self.shown_message:
+            self.shown_message = None  # the user's message: left alone
+            return
+        if text != current:
+            ds.message = text
+        self.shown_message = text
 
     def state_before_print(self, eventtime: float) -> list[str]:
         """Commands that take the printer from its printer.cfg to the state it is in as a
@@ -1171,9 +1298,13 @@ class Kestimator:
                 # every object with one eventtime per cycle (Moonraker's 250 ms), and
                 # print_stats' duration in the same cycle is of this moment.
                 try:
-                    remaining = self.remaining_at(self.now_print_time(eventtime))
+                    print_time = self.now_print_time(eventtime)
+                    remaining = self.remaining_at(print_time)
                     if remaining is not None:
                         status.update(self._time_fields(remaining, eventtime))
+                        if status.get("next_stop") is not None:
+                            status["next_stop"] = self.next_stop_at(
+                                print_time, eventtime, status.get("state") == "paused")
                 except Exception:
                     pass
         status["error"] = self.error
@@ -1193,6 +1324,20 @@ class Kestimator:
                 status["remaining_s"], status["total_s"],
                 status["progress"] * 100., status["source"]))
 
+
+
+def _duration(seconds: float) -> str:
+    """`1h 02m`, `9m 58s`, `42s`."""
+    s = int(max(0., seconds) + 0.5)
+    if s >= 3600:
+        return "%dh %02dm" % (s // 3600, s % 3600 // 60)
+    if s >= 60:
+        return "%dm %02ds" % (s // 60, s % 60)
+    return "%ds" % (s,)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1 << 62
 
 
 def _differ(live: Any, conf: Any) -> bool:

@@ -57,16 +57,20 @@ class _Connection:
 
 
 class _Request:
-    """A web request for objects/subscribe, as Moonraker sends it."""
+    """A web request for objects/subscribe (or register_remote_method), as Moonraker
+    sends it."""
 
-    def __init__(self, conn, objects):
+    def __init__(self, conn, objects, method=None):
         self.conn = conn
-        self.params = {"objects": objects, "response_template": {}}
+        self.params = {"objects": objects, "response_template": {}, "remote_method": method}
 
     def get_client_connection(self):
         return self.conn
 
     def get_dict(self, item, default=None):
+        return self.params.get(item, default)
+
+    def get_str(self, item, default=None):
         return self.params.get(item, default)
 
     def send(self, data):
@@ -81,6 +85,7 @@ class KTestRealtime:
         self.out_path = os.environ.get("KTEST_OUT", "/dev/null")
         self.script = json.loads(os.environ.get("KTEST_SCRIPT", "[]"))
         self.stream = []
+        self.remote_calls = []
         self.typed = []
         self.errors = []
         self.end_print_time = None
@@ -125,6 +130,10 @@ class KTestRealtime:
                        if self.printer.lookup_object(k, None) is not None)
         conn = _Connection(self._cycle)
         self.reactor.register_callback(lambda e: subscribe(_Request(conn, objects)))
+        # Moonraker's notifier registers the remote method "notify" (a macro's
+        # action_call_remote_method("notify", name=..., message=...) reaches it): recorded.
+        register = lookup("webhooks")._endpoints["register_remote_method"]
+        register(_Request(_Connection(self._remote_call), {}, "notify"))
         self.reactor.register_timer(self._script_timer, self.reactor.NOW)
 
     def _heater_wait(self, original):
@@ -143,6 +152,10 @@ class KTestRealtime:
     def _cycle(self, params):
         self.stream.append({"eventtime": params.get("eventtime"),
                             "status": params.get("status", {})})
+
+    def _remote_call(self, params):
+        self.remote_calls.append({"eventtime": self.reactor.monotonic(),
+                                  "params": params})
 
     # The console
     def _script_timer(self, eventtime):
@@ -202,6 +215,7 @@ class KTestRealtime:
             json.dump({"end_print_time": self.end_print_time, "state": state,
                        "clock_offset": self.offset, "stream": self.stream,
                        "typed": self.typed, "gaps": oracle.syncs,
+                       "remote_calls": self.remote_calls,
                        "errors": self.errors, "n_runout_flushes": oracle.n_runout,
                        "stalls": self.toolhead.print_stall,
                        "worker_pid": proc.pid if proc is not None else None}, f)

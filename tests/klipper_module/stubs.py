@@ -206,13 +206,14 @@ class PrintStats:
 class DisplayStatus:
     def __init__(self, gcode: GCode) -> None:
         self.progress: float | None = None
+        self.message: str | None = None
         self.expire_progress = 0.
         gcode.register_command("M73", self.cmd_M73)
 
     def get_status(self, eventtime: float) -> dict[str, Any]:
-        """As Klipper's: the M73 progress, else (here) 0."""
+        """As Klipper's: the M73 progress, else (here) 0; M117's message."""
         return {"progress": self.progress if self.progress is not None else 0.,
-                "message": None}
+                "message": self.message}
 
     def cmd_M73(self, gcmd: GCodeCommand) -> None:
         progress = gcmd.get_float("P")

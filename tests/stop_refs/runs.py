@@ -2,7 +2,7 @@
 (made by make_files.py with real slicers), with this folder's printer.cfg.
 
 Regenerate with the oracle (mainline Klipper 84104bbbd, batch mode):
-    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/stop_refs/runs.py
+    ORACLE_KLIPPER=... ORACLE_PYTHON=... python3 tests/stop_refs/runs.py [heldout]
 
 A printer that pauses stops reading the file: Klipper's toolhead runs its look-ahead out
 (`_handle_step_flush` -> `_flush_lookahead(is_runout=True)`) and stands there until RESUME.
@@ -30,6 +30,11 @@ ORACLE = HERE.parents[1].parent / "shared" / "tools" / "oracle" / "oracle.py"
 # [virtual_sdcard]'s M25, and its macros M600 and M0 (each runs PAUSE).
 PAUSING = ("M600", "M0", "PAUSE", "M25")
 FILES = ("ps25_box_color_pause.gcode", "cura413_box_pause_at_height.gcode")
+# Held out (make_files.py): not used to write the code they test. The OrcaSlicer one is made
+# from the corpus where it is used (make_files.orca_paused).
+HELDOUT = ("ps25_bar_two_colours_pause.gcode", "cura413_bar_pause_at_height.gcode",
+           "orca150_accelctl_pauses.gcode")
+ORCA_DERIVED = "orca150_accelctl_pauses.gcode"
 MARK = b";LAYER:999999"
 
 
@@ -77,10 +82,24 @@ def reference(src: Path, work: Path) -> dict[str, object]:
     return ref
 
 
+def source(name: str, work: Path) -> Path:
+    """The file `name` of this folder, or made in `work` (the OrcaSlicer one)."""
+    if name != ORCA_DERIVED:
+        return HERE / name
+    sys.path.insert(0, str(HERE))
+    import make_files
+
+    path = work / "src" / name
+    path.parent.mkdir(exist_ok=True)
+    path.write_bytes(make_files.orca_paused())
+    return path
+
+
 def main() -> int:
+    names = HELDOUT if sys.argv[1:] == ["heldout"] else FILES + HELDOUT
     with tempfile.TemporaryDirectory() as tmp:
-        for name in FILES:
-            ref = reference(HERE / name, Path(tmp))
+        for name in names:
+            ref = reference(source(name, Path(tmp)), Path(tmp))
             out = HERE / (Path(name).stem + ".json")
             out.write_text(json.dumps(ref, indent=1) + "\n")
             print("wrote", out.name, [(s["line"], s["t"]) for s in ref["stops"]])
