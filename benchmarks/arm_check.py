@@ -57,7 +57,19 @@ CORPUS = PROJECT.parent / "shared" / "corpus"
 CHROOT_SCRIPT = PROJECT / ".ci" / "arm-chroot"
 DEFAULT_ROOT = Path("/var/tmp/kestimator-arm")
 ARCHES = ("arm64", "armhf")
-BUILDS = ("compiled", "pure")
+BUILDS = ("compiled", "pure", "group")
+# The "group" build: the compiled build made of one mypyc group (one C file, one gcc run under
+# emulation, about a third of the whole build), the smaller ARM step .ci/run takes
+# (tests/test_arm_chroot.py). Its modules are the float arithmetic of the two files below:
+# the look-ahead (toolhead) and the arcs (gcode_arcs) their G2/G3 lines go through. Built on
+# x86 with the float flags taken away and `-march=haswell` (fused multiply-add allowed), this
+# group alone gives the issue's 1471.917574 s and 354.288496 s (toolhead alone, or the whole
+# per-line group without gcode_arcs, gives Klipper's times: the fused difference is in the
+# arcs); with setup.py's flags it must give x86's pure results.
+GROUP_MODULES = ("kestimator/toolhead.py", "kestimator/gcode_arcs.py")
+GROUP_NAME = "kestimator_hot"
+# Where the staged setup.py takes the one group instead of its own: just before it runs.
+SETUP_RUNS = 'if __name__ == "__main__" and sys.argv[1:2] == [MYPYC_CHILD]:'
 # Where OrcaSlicer 2.3.1's files came out 1471.918 s and 354.288 s with fused multiply-add
 # (Klipper: 1473.045 s and 355.192 s).
 TWO_FILES = ("orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode",
@@ -292,6 +304,8 @@ def stage(chroot: Chroot, names: Sequence[str]) -> None:
                 shutil.copytree(PROJECT / name, src / name, ignore=ignore)
             else:
                 shutil.copyfile(PROJECT / name, src / name)
+    group_setup = stage_dir / "src-group" / "setup.py"
+    group_setup.write_text(one_group_setup(group_setup.read_text()))
     tools = stage_dir / "tools"
     tools.mkdir()
     shutil.copyfile(Path(__file__).resolve(), tools / "arm_check.py")
@@ -305,21 +319,45 @@ def stage(chroot: Chroot, names: Sequence[str]) -> None:
     shutil.copyfile(bundle, stage_dir / "ca.crt")
 
 
+def one_group_setup(text: str) -> str:
+    """setup.py's text made to compile GROUP_MODULES alone, in one group, with everything
+    else of setup.py (its float flags, its probe, its fallbacks) unchanged."""
+    if text.count(SETUP_RUNS) != 1:
+        raise RuntimeError("setup.py no longer has %r: the group build cannot be staged"
+                           % SETUP_RUNS)
+    override = "COMPILED_MODULES = %r\nGROUPS = [(list(COMPILED_MODULES), %r)]\n" % (
+        list(GROUP_MODULES), GROUP_NAME)
+    return text.replace(SETUP_RUNS, override + SETUP_RUNS)
+
+
+# Which of setup.py's compiled modules a build's python holds as extensions.
+COMPILED_NOW = """\
+import importlib, sys
+for path in sys.argv[1:]:
+    module = importlib.import_module(path[:-len(".py")].replace("/", "."))
+    if not module.__file__.endswith(".py"):
+        print(path)
+"""
+
+
 @dataclasses.dataclass
 class Built:
     """One build installed in the chroot: its python, what it says it is, how long it took
-    (wall clock and CPU)."""
+    (wall clock and CPU), which of setup.py's compiled modules it holds compiled."""
 
     python: str
     version: str
     seconds: float
     cpu_seconds: float
     build_line: str
+    meant: list[str]  # the modules its setup.py compiles
+    compiled: list[str]  # those it holds compiled
 
 
 def install(chroot: Chroot, kind: str) -> Built:
     """The checkout installed into a fresh venv in the chroot as install.sh's build does
-    (plugins/moonraker/build-venv's pip command), KESTIMATOR_BUILD=`kind`."""
+    (plugins/moonraker/build-venv's pip command), KESTIMATOR_BUILD=`kind` ("group": the
+    compiled build of GROUP_MODULES alone)."""
     venv = STAGE + "/venv-" + kind
     src = STAGE + "/src-" + kind
     started, cpu = time.monotonic(), children_cpu_s()
@@ -334,7 +372,8 @@ def install(chroot: Chroot, kind: str) -> Built:
         if got.returncode != 0:
             raise RuntimeError("setuptools: " + got.stderr[-2000:])
         args.append("--no-build-isolation")
-    proc = chroot.run([python, "-m", "pip", *args, src], env={"KESTIMATOR_BUILD": kind},
+    proc = chroot.run([python, "-m", "pip", *args, src],
+                      env={"KESTIMATOR_BUILD": "pure" if kind == "pure" else "compiled"},
                       timeout=BUILD_TIMEOUT_S)
     seconds, cpu = time.monotonic() - started, children_cpu_s() - cpu
     if proc.returncode != 0:
@@ -344,7 +383,39 @@ def install(chroot: Chroot, kind: str) -> Built:
     version = chroot.run([python, "-m", "kestimator", "--version"])
     if version.returncode != 0:
         raise RuntimeError("kestimator --version: " + version.stderr[-2000:])
-    return Built(python, version.stdout.strip(), seconds, cpu, (lines or ["?"])[0][:120])
+    setup_py = (chroot.root / src.lstrip("/") / "setup.py").read_text()
+    meant = _compiled_modules_of(setup_py)
+    compiled = chroot.run([python, "-c", COMPILED_NOW, *meant])
+    if compiled.returncode != 0:
+        raise RuntimeError("the compiled modules: " + compiled.stderr[-2000:])
+    return Built(python, version.stdout.strip(), seconds, cpu, (lines or ["?"])[0][:120],
+                 meant, compiled.stdout.split())
+
+
+def _compiled_modules_of(setup_py: str) -> list[str]:
+    """The modules a staged setup.py compiles (its COMPILED_MODULES, the group build's
+    override included), read by running its definitions without building anything."""
+    namespace: dict[str, object] = {"__name__": "kestimator_setup", "__file__": str(
+        PROJECT / "setup.py")}
+    exec(compile(setup_py, "setup.py", "exec"), namespace)  # noqa: S102 (our own setup.py)
+    return [str(name) for name in namespace["COMPILED_MODULES"]]  # type: ignore[attr-defined]
+
+
+def wrong_build(kind: str, built: Built) -> str | None:
+    """Why `built` is not the build `kind` asked for (None when it is): the compiled build
+    says "compiled" and holds every module setup.py compiles, the group build holds
+    GROUP_MODULES compiled and no other, the pure build none."""
+    says = "(compiled)" if kind == "compiled" else "(pure Python)"
+    if not built.version.endswith(says):
+        return "says %r (%s)" % (built.version, built.build_line)
+    meant = [] if kind == "pure" else built.meant
+    if kind == "group" and sorted(meant) != sorted(GROUP_MODULES):
+        return "its setup.py compiles %s, not %s" % (", ".join(meant), ", ".join(GROUP_MODULES))
+    if sorted(built.compiled) != sorted(meant):
+        return "holds %s compiled, not %s (%s)" % (
+            ", ".join(built.compiled) or "nothing", ", ".join(meant) or "nothing",
+            built.build_line)
+    return None
 
 
 def chroot_outputs(chroot: Chroot, built: Built,
@@ -383,10 +454,9 @@ def check(arch: str, kinds: Sequence[str], names: Sequence[str], root: Path,
         stage(chroot, names)
         for kind in kinds:
             built = install(chroot, kind)
-            if not built.version.endswith("(compiled)" if kind == "compiled"
-                                          else "(pure Python)"):
-                raise RuntimeError("%s %s build says %r (%s)" % (
-                    arch, kind, built.version, built.build_line))
+            wrong = wrong_build(kind, built)
+            if wrong is not None:
+                raise RuntimeError("%s %s build: %s" % (arch, kind, wrong))
             started, cpu = time.monotonic(), children_cpu_s()
             records = chroot_outputs(chroot, built, names)
             found.append(Outcome(

@@ -1,10 +1,17 @@
-"""benchmarks/arm_check.py's judgement: what it calls a difference from x86 and from Klipper.
+"""kestimator built and run on arm64 (the printer host's CPU) gives x86's and Klipper's results.
 
-The tool builds kestimator in a Debian ARM chroot run through qemu-user and compares every
-file's estimate, `estimate --json` bytes and `inject` bytes with pure CPython on this x86
-host, and its totals and layers with Klipper's references; here its comparisons are pinned
-on the numbers fused multiply-add once gave on arm64 (calicat 1471.918 s against Klipper's
-1473.045 s, xyzcube 354.288 s against 355.192 s).
+The first test is .ci/run's ARM step: in the arm64 Debian bookworm chroot .ci/run builds
+(.ci/arm-chroot, run through qemu-user; KESTIMATOR_ARM64_ROOT), benchmarks/arm_check.py
+installs the checkout with build-venv's pip command twice, as one compiled mypyc group (the
+look-ahead and the arcs, whose fused multiply-adds once made calicat and xyzcube wrong on
+arm64) and pure, and both must equal pure CPython on this x86 host in every field, every
+layer, `estimate --json`'s bytes and `inject`'s bytes, and Klipper's references, on calicat
+and xyzcube. The whole check (every build, 30 files, armhf, install.sh) is the tool's, its
+last result in benchmarks/RESULTS.md.
+
+The other tests pin the tool's judgement: what it calls a difference from x86 and from
+Klipper, on the numbers fused multiply-add once gave on arm64 (calicat 1471.918 s against
+Klipper's 1473.045 s, xyzcube 354.288 s against 355.192 s), and which build it calls which.
 """
 
 from __future__ import annotations
@@ -20,7 +27,9 @@ from types import ModuleType
 
 import pytest
 
-from .conftest import PROJECT
+from .conftest import IN_CI, PROJECT
+
+ROOT_ENVIRONMENT = "KESTIMATOR_ARM64_ROOT"
 
 
 def _arm_check() -> ModuleType:
@@ -31,6 +40,85 @@ def _arm_check() -> ModuleType:
     sys.modules[spec.name] = module  # its dataclasses look their module up there
     spec.loader.exec_module(module)
     return module
+
+
+def _arm64_root() -> Path:
+    """The arm64 chroot .ci/run built (skips outside CI without one; fails under CI)."""
+    given = os.environ.get(ROOT_ENVIRONMENT, "")
+    problem = None
+    if not given or not (Path(given) / "usr" / "bin" / "python3").exists():
+        problem = "no arm64 chroot in %s (.ci/arm-chroot arm64 DIR builds one)" % (
+            ROOT_ENVIRONMENT)
+    elif os.geteuid() != 0:
+        problem = "the arm64 chroot needs root (chroot, mounts)"
+    elif shutil.which("chroot") is None or shutil.which("mount") is None:
+        problem = "chroot or mount is missing"
+    if problem is not None:
+        if IN_CI:
+            pytest.fail(problem + ": .ci/run builds it")
+        pytest.skip(problem)
+    return Path(given)
+
+
+def test_arm64_one_compiled_group_and_the_pure_build_equal_x86_and_klipper_on_two_files(
+        ) -> None:
+    root = _arm64_root()
+    arm_check = _arm_check()
+    names = list(arm_check.TWO_FILES)
+    x86 = arm_check.x86_outputs(names)
+    assert {n: arm_check.klipper_differences(x86[n]) for n in names} == {n: [] for n in names}
+    found = {}
+    with arm_check.Chroot(root) as chroot:
+        arch = chroot.run(["dpkg", "--print-architecture"])
+        assert arch.stdout.strip() == "arm64", arch
+        arm_check.stage(chroot, names)
+        for kind in ("group", "pure"):
+            built = arm_check.install(chroot, kind)
+            assert arm_check.wrong_build(kind, built) is None, built
+            records = arm_check.chroot_outputs(chroot, built, names)
+            found[kind] = {n: (arm_check.build_differences(records[n], x86[n]),
+                               arm_check.klipper_differences(records[n])) for n in names}
+    assert found == {kind: {n: ([], []) for n in names} for kind in ("group", "pure")}
+    # Nothing stays mounted in the chroot once the check is done (.ci/run removes it).
+    assert not any(os.path.ismount(root / name) for name in ("proc", "sys", "dev"))
+
+
+def test_the_group_build_compiles_the_look_ahead_and_the_arcs_with_setup_pys_flags() -> None:
+    arm_check = _arm_check()
+    own = (PROJECT / "setup.py").read_text()
+    staged = arm_check.one_group_setup(own)
+    assert arm_check._compiled_modules_of(staged) == list(arm_check.GROUP_MODULES)
+    namespace: dict[str, object] = {"__name__": "staged", "__file__": str(PROJECT / "setup.py")}
+    exec(compile(staged, "setup.py", "exec"), namespace)
+    assert namespace["GROUPS"] == [(list(arm_check.GROUP_MODULES), arm_check.GROUP_NAME)]
+    # Only the modules and groups differ: the float flags, the probe and the rest are setup.py's.
+    assert staged.replace(staged[staged.rindex("COMPILED_MODULES = ["):staged.index(
+        arm_check.SETUP_RUNS)], "") == own
+    with pytest.raises(RuntimeError, match="cannot be staged"):
+        arm_check.one_group_setup(own.replace(arm_check.SETUP_RUNS, "if True:"))
+
+
+def test_a_build_is_called_what_it_holds_compiled() -> None:
+    arm_check = _arm_check()
+    group = list(arm_check.GROUP_MODULES)
+    every = arm_check._compiled_modules_of((PROJECT / "setup.py").read_text())
+
+    def built(version: str, meant: list[str], compiled: list[str]) -> object:
+        return arm_check.Built("python", "kestimator 0.1.0 (%s)" % version, 1.0, 1.0,
+                               "kestimator build: ...", meant, compiled)
+
+    assert arm_check.wrong_build("group", built("pure Python", group, group)) is None
+    assert arm_check.wrong_build("compiled", built("compiled", every, every)) is None
+    assert arm_check.wrong_build("pure", built("pure Python", every, [])) is None
+    # mypyc failed and the build fell back to the pure package, or compiled one module only.
+    assert "holds nothing compiled" in arm_check.wrong_build(
+        "group", built("pure Python", group, []))
+    assert "holds kestimator/toolhead.py compiled" in arm_check.wrong_build(
+        "group", built("pure Python", group, group[:1]))
+    assert "compiles" in arm_check.wrong_build("group", built("pure Python", every, every))
+    assert "says" in arm_check.wrong_build("compiled", built("pure Python", every, []))
+    assert "holds" in arm_check.wrong_build("compiled", built("compiled", every, every[:-1]))
+    assert "says" in arm_check.wrong_build("pure", built("compiled", every, every))
 
 
 def test_a_total_a_second_off_klippers_is_reported() -> None:
