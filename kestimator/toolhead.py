@@ -709,7 +709,8 @@ class ToolHead:
 
     def lookahead_callback_barrier(self) -> None:
         """Upstream's register_lookahead_callback of a callback that only keeps order
-        (extras/heaters.py set_temperature: M104, M140, M109, M190, SET_HEATER_TEMPERATURE).
+        (extras/heaters.py set_temperature: M104, M140, M109, M190, SET_HEATER_TEMPERATURE;
+        extras/fan.py set_speed_from_command: M106, M107, SET_FAN_SPEED).
         With nothing queued Klipper calls get_last_move_time, which moves no time with
         today's print-time rule (left out); the older rules' toolheads do it."""
 

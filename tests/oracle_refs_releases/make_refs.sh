@@ -54,6 +54,8 @@ for gcode in "$NUT" "$ACCELCTL" \
     flush_junctions.gcode motor_off.gcode heater_first.gcode; do
     make_ref "$DIR" "$gcode"
 done
+# fan/printer.cfg: this release's with a [fan]
+make_ref "$DIR/fan" fan_first.gcode
 case $RELEASE in
     kalico-*)
         # What only Kalico has: its commands, and its limited_* kinematics (each folder's
