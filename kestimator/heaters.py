@@ -113,6 +113,7 @@ class PrinterHeaters:
     def set_temperature(self, heater: Heater, temp: float, wait: bool = False,
                         name: str = "") -> None:
         """Set a heater's target (Klipper's range check) and, with `wait`, wait for it."""
+        self.toolhead.lookahead_callback_barrier()
         heater.set_temp(temp)
         limits = heater.limits
         if limits is not None and temp >= limits.min_extrude_temp:

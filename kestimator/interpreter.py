@@ -104,6 +104,9 @@ MAX_COMMAND_NAMES: Final = 1000
 _MESH_COMMAND_RE = re.compile(r"\bBED_MESH_(?:PROFILE|CALIBRATE)\b", re.IGNORECASE)
 # stepper_enable's dwell before and after turning motors off.
 DISABLE_STALL_T: Final = 0.100
+# extras/fan.py's and fan_generic.py's commands: set_speed_from_command queues the speed in a
+# look-ahead callback (kestimator.toolhead's lookahead_callback_barrier).
+FAN_COMMANDS: Final = frozenset(("M106", "M107", "SET_FAN_SPEED"))
 
 # warn(message, key): warnings with the same key are reported once, with a count.
 WarnFn = Callable[[str, "str | None"], None]
@@ -382,6 +385,8 @@ class Interpreter:
             return name in NO_TIME_COMMANDS
         if name not in self.registered:
             return False
+        if name in FAN_COMMANDS:
+            self.toolhead.lookahead_callback_barrier()
         if name not in self._registered_anyway:
             self._count(KIND_MODULE, name)
         return True
@@ -511,10 +516,8 @@ class Interpreter:
         if self.preflight is not None:
             self.preflight.may_stop(self.gcode_move.tag, SAVE_CONFIG_MAY_STOP)
 
-    # stepper_enable.py PrinterStepperEnable.motor_off (with its set_motors_enable dwells)
     def cmd_M84(self, cmd: Command) -> None:
-        """M84/M18: stop, dwell, disable the motors that were on, dwell, unhome every axis;
-        before set_motors_enable (`old_motor_off`) no stop first, and the dwells always."""
+        """stepper_enable.py motor_off, set_motors_enable's or older (`old_motor_off`)."""
         toolhead = self.toolhead
         if not toolhead.old_motor_off:
             toolhead.flush_step_generation()

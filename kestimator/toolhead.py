@@ -707,6 +707,13 @@ class ToolHead:
         else:
             last_move.timing_callbacks.append(callback)
 
+    def lookahead_callback_barrier(self) -> None:
+        """Upstream's register_lookahead_callback of a callback that only keeps order
+        (extras/heaters.py set_temperature: M104, M140, M109, M190, SET_HEATER_TEMPERATURE;
+        extras/fan.py set_speed_from_command: M106, M107, SET_FAN_SPEED).
+        With nothing queued Klipper calls get_last_move_time, which moves no time with
+        today's print-time rule (left out); the older rules' toolheads do it."""
+
     def _calc_junction_deviation(self) -> None:
         # upstream: square_corner_velocity**2 (math.pow: the same bits, and an overflow
         # is OverflowError on PyPy as on CPython, where ** gives PyPy inf)
@@ -838,6 +845,12 @@ class MinRestartToolHead(ToolHead):
         self.old_motor_off = True
         # The head starts homed: the homing's flush_step_generation at the origin.
         self.motion_queuing.last_step_gen_time = 0.0
+
+    def lookahead_callback_barrier(self) -> None:
+        """With nothing queued, get_last_move_time: in a flushed state that takes
+        print_time to min_restart_time + kin_flush_delay (before the first move too)."""
+        if self.lookahead.get_last() is None:
+            self.get_last_move_time()
 
     def flush_step_generation(self) -> None:
         """Bring the toolhead to rest; motion restarts no sooner than after this time."""

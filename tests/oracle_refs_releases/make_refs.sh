@@ -51,9 +51,11 @@ for gcode in "$NUT" "$ACCELCTL" \
     gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
     gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
     gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode motor_off.gcode; do
+    flush_junctions.gcode motor_off.gcode heater_first.gcode; do
     make_ref "$DIR" "$gcode"
 done
+# fan/printer.cfg: this release's with a [fan]
+make_ref "$DIR/fan" fan_first.gcode
 case $RELEASE in
     kalico-*)
         # What only Kalico has: its commands, and its limited_* kinematics (each folder's
