@@ -56,6 +56,31 @@ def test_no_anchor_is_taken_from_a_line_half_queued() -> None:
     assert kest.anchor == before and kest.anchor_pending == 0
 
 
+def test_a_script_run_while_a_line_holds_the_gcode_mutex_takes_no_anchor() -> None:
+    """A delayed_gcode (the guide's stop notice) or a typed command while virtual_sdcard
+    waits inside a line: Klipper runs it once the line is done, so it is no line start
+    (anchoring there counted the line's queued half as still to come: 0.7 s too much);
+    the next line start anchors."""
+    kest, printer, worker = printing()
+    kest.on_answer(answer(1))
+    toolhead, vsd = printer.objects["toolhead"], printer.objects["virtual_sdcard"]
+    vsd.file_position, vsd.next_file_position, vsd.cmd_from_sd = 400, 500, True
+    toolhead.lookahead.queue.append(stubs.Move())
+    printer.reactor.advance(1.)
+    before = kest.anchor
+    assert kest.want_anchor
+    printer.gcode.mutex.locked = True            # the line at byte 400 runs
+    printer.gcode.run_script("SET_GCODE_VARIABLE MACRO=X VARIABLE=Y VALUE=1")
+    toolhead.plan(40.)
+    assert kest.anchor == before and kest.want_anchor
+    printer.gcode.mutex.locked = False           # the line is done: the next one starts
+    vsd.file_position = 500
+    toolhead.lookahead.queue.append(stubs.Move())
+    printer.gcode.run_script("G1 X10")
+    toolhead.plan(45.)
+    assert kest.anchor == (45., 500)
+
+
 def test_a_typed_command_anchors_before_it_runs() -> None:
     """A PAUSE's park move (typed, not the file's) never counts as the file's time."""
     kest, printer, worker = printing()

@@ -648,14 +648,20 @@ class Kestimator:
         virtual_sdcard hands Klipper its next line (gcode.run_script, which it calls once a
         line): a boolean test per line when none is wanted. A command typed at the console
         (run_script with cmd_from_sd false) is also a line boundary: anchored before it
-        runs, so that a PAUSE's park move or a typed move never counts as the file's."""
+        runs, so that a PAUSE's park move or a typed move never counts as the file's. A
+        script called while Klipper's G-code mutex is held (a delayed_gcode or a typed
+        command while virtual_sdcard waits inside a line: it runs once that line is done)
+        is no line boundary: the line start after it anchors."""
         gcode = self.gcode
         original = gcode.run_script
         vsd = self.vsd
         anchor = self._guard(self._anchor_line_start)
+        get_mutex = getattr(gcode, "get_mutex", None)
+        mutex = get_mutex() if get_mutex is not None else None
 
         def run_script(script: str) -> Any:
-            if self.want_anchor or not vsd.cmd_from_sd:
+            if ((self.want_anchor or not vsd.cmd_from_sd)
+                    and (mutex is None or not mutex.test())):
                 anchor()
             return original(script)
         gcode.run_script = run_script

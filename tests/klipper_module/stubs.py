@@ -98,10 +98,24 @@ class GCodeCommand:
         self.responses.append(msg)
 
 
+class Mutex:
+    """Klipper's ReactorMutex as gcode.get_mutex() gives it: held while a script runs."""
+
+    def __init__(self) -> None:
+        self.locked = False
+
+    def test(self) -> bool:
+        return self.locked
+
+
 class GCode:
     def __init__(self) -> None:
         self.handlers: dict[str, Callable[[Any], None]] = {}
         self.outputs: list[Callable[[str], None]] = []
+        self.mutex = Mutex()
+
+    def get_mutex(self) -> Mutex:
+        return self.mutex
 
     def register_command(self, name: str, func: Any, when_not_ready: bool = False,
                          desc: str | None = None) -> Any:
