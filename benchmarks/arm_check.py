@@ -48,7 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from types import TracebackType
 
@@ -543,17 +543,23 @@ def _same_answer(mine: dict[str, object], x86: dict[str, object],
     return plain(mine, paths[0]) == plain(x86, paths[1])
 
 
-def install_check(root: Path) -> list[str]:
+def install_check(root: Path, say: Callable[[str], None] = print) -> list[str]:
     """install.sh, the worker's first answer, an update pulled (the hook's rebuild) and the
     worker's answer again, in the arm64 chroot: one line per step ("DIFFERENT ..." when a
-    step's result is not what it must be)."""
+    step's result is not what it must be), each given to `say` as soon as it is known (the
+    steps take an hour or more under emulation)."""
     x86_paths = (str(CORPUS / "gcode" / WORKER_FILE), str(CORPUS / "printer.cfg"))
     x86 = ask_worker(str(PROJECT), *x86_paths)
     paths = ((DATA + "/gcodes/" + os.path.basename(WORKER_FILE), DATA + "/config/printer.cfg"),
              x86_paths)
     if x86.get("ok") is not True:
         raise RuntimeError("x86's worker: %r" % x86)
-    steps = []
+    steps: list[str] = []
+
+    def step(line: str) -> None:
+        steps.append(line)
+        say(line)
+
     with Chroot(make_chroot("arm64", root)) as chroot:
         stage(chroot, [WORKER_FILE])
         host_dir = chroot.root / HOST.lstrip("/")
@@ -584,14 +590,14 @@ def install_check(root: Path) -> list[str]:
             ("kestimator build:", "Installed:"))]
         ok = installed.returncode == 0 and any(
             line.endswith("(compiled)") for line in said if line.startswith("Installed:"))
-        steps.append("%sinstall.sh: exit %d in %.0f s (CPU %.0f s): %s" % (
+        step("%sinstall.sh: exit %d in %.0f s (CPU %.0f s): %s" % (
             "" if ok else "DIFFERENT ", installed.returncode, seconds, cpu,
             " / ".join(said) or (installed.stdout + installed.stderr)[-1500:]))
         if installed.returncode != 0:
             return steps
         python = CHECKOUT + "/.venv-host/bin/python"
         first = _worker_answer(chroot, python)
-        steps.append("%sthe worker's first answer: %s, total %r s (x86: %r s)" % (
+        step("%sthe worker's first answer: %s, total %r s (x86: %r s)" % (
             "" if _same_answer(first, x86, paths) else "DIFFERENT ", first.get("source"),
             first.get("total_s"), x86.get("total_s")))
         started, cpu = time.monotonic(), children_cpu_s()
@@ -604,13 +610,13 @@ def install_check(root: Path) -> list[str]:
         ok = (pulled.returncode == 0 and built.is_file()
               and built.read_text().strip() == head
               and version.stdout.strip().endswith(".1 (compiled)"))
-        steps.append("%sthe update's rebuild (git pull, post-merge hook): exit %d in %.0f s "
+        step("%sthe update's rebuild (git pull, post-merge hook): exit %d in %.0f s "
                      "(CPU %.0f s), %s%s" % ("" if ok else "DIFFERENT ", pulled.returncode,
                                             seconds, cpu,
                                version.stdout.strip(),
                                "" if ok else ": " + (pulled.stdout + pulled.stderr)[-1500:]))
         again = _worker_answer(chroot, python)
-        steps.append("%sthe worker's answer after the update: %s, total %r s" % (
+        step("%sthe worker's answer after the update: %s, total %r s" % (
             "" if _same_answer(again, x86, paths) else "DIFFERENT ", again.get("source"),
             again.get("total_s")))
     return steps
@@ -653,12 +659,10 @@ def main(argv: Sequence[str]) -> int:
     args = parser.parse_args(argv)
     if args.install:
         try:
-            steps = install_check(args.root)
+            steps = install_check(args.root, lambda line: print(line, flush=True))
         except (RuntimeError, subprocess.SubprocessError, OSError) as exc:
             print("arm64 install: could not run: %s" % exc, flush=True)
             return 1
-        for step in steps:
-            print(step, flush=True)
         return 0 if all(not step.startswith("DIFFERENT") for step in steps) else 1
     names = corpus_names(args.files)
     started = time.monotonic()

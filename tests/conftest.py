@@ -25,6 +25,7 @@ IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 # most of a core to the other process. Each file's time in a whole run: benchmarks/RESULTS.md.
 LONGEST_FIRST = (
     "test_klipper_module_realtime.py",
+    "test_arm_chroot.py",
     "test_compiled_build.py",
     "test_cura_gui.py",
     "test_pypy.py",
