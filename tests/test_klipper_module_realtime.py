@@ -8,8 +8,8 @@ after a change typed mid-print.
 
 Real-printer configs beyond the corpus's: pressure advance with input shaper, a delta; and
 state typed before the print. A change typed mid-print is checked from 2 s after it, one
-change (that alters the time) per print. The prints run three at a time (they mostly wait
-on the wall clock); all of them take about 9 minutes.
+change (that alters the time) per print. The prints all run at once (they mostly wait on the
+wall clock); together they take as long as the longest, about 5 minutes.
 """
 from __future__ import annotations
 
@@ -105,7 +105,6 @@ def _case_velocity_limit(work: Path) -> dict[str, Any]:
         script=[{"at": 0.35, "cmd": "SET_VELOCITY_LIMIT ACCEL=8000 SQUARE_CORNER_VELOCITY=8"}])
 
 
-# Longest first: they run three at a time.
 CASES = {
     "exclusion_pause_heater_wait": _case_exclusion_pause_heater_wait,
     "delta_state_typed_before": _case_delta_with_state_typed_before,
@@ -120,9 +119,9 @@ TIMELESS = ("PAUSE", "RESUME")
 
 @pytest.fixture(scope="module")
 def prints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """Every case's print, started at once (three at a time); each test waits for its own."""
+    """Every case's print, started at once; each test waits for its own."""
     require_klipper()
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=3)
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(CASES))
     futures = {name: pool.submit(case, tmp_path_factory.mktemp(name))
                for name, case in CASES.items()}
     pool.shutdown(wait=False)
