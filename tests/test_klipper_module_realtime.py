@@ -27,6 +27,7 @@ import run_realtime  # noqa: E402
 
 from tests.conftest import require_klipper, require_program  # noqa: E402
 
+pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
 PLAIN_ABS, PLAIN_REL = 0.5, 0.002
