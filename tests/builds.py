@@ -2,8 +2,9 @@
 (`estimate --json` bytes, `inject` bytes) and field by field (tests/estimate_digest.py).
 
 Shared by tests/test_compiled_build.py (mypyc-compiled vs pure CPython) and
-tests/test_pypy.py (PyPy vs pure CPython). The pure CPython side is computed once per test
-session and cached here, so both comparisons reuse it.
+tests/test_pypy.py (PyPy vs pure CPython). The pure CPython side of the corpus files is
+computed once in a whole run (conftest.once_per_run: whichever process asks first), so every
+comparison, in whichever process, reuses it.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from types import ModuleType
 
-from .conftest import CORPUS_CFG, PROJECT, corpus_files
+from .conftest import CORPUS, CORPUS_CFG, PROJECT, corpus_files, once_per_run
 
 DIGEST_SCRIPT = PROJECT / "tests" / "estimate_digest.py"
 RUN_TIMEOUT_S = 900
@@ -214,14 +215,44 @@ def cli_outputs(python: str, path: Path, on_path: bool = True) -> tuple[bytes, s
 
 @functools.cache
 def pure_cli_outputs(path: Path) -> tuple[bytes, str]:
-    """`cli_outputs` of the pure package under this CPython (computed once per session)."""
-    return cli_outputs(sys.executable, path)
+    """`cli_outputs` of the pure package under this CPython (computed once per run: the
+    corpus's files are read-only)."""
+    def make(_: Path) -> list[str]:
+        stdout, digest = cli_outputs(sys.executable, path)
+        return [stdout.decode("latin-1"), digest]
+
+    stdout, digest = once_per_run("pure cli_outputs %s %s" % (path, CORPUS_CFG), make)
+    return stdout.encode("latin-1"), digest
 
 
 def digests(python: str, paths: Sequence[Path], on_path: bool = True,
             printer_cfg: Path = CORPUS_CFG) -> list[str]:
     """tests/estimate_digest.py's lines for `paths` timed with `printer_cfg`, run by `python`
-    (first line: the build)."""
+    (first line: the build). The pure package under this CPython gives the corpus's files'
+    lines once per run (they are read-only); the other files' lines are computed each time."""
+    if python != sys.executable or not on_path:
+        return _run_digests(python, paths, on_path, printer_cfg)
+    shared = [path for path in paths if CORPUS in path.parents]
+    own = [path for path in paths if CORPUS not in path.parents]
+    lines: dict[Path, str] = {}
+    build_line = None
+    if shared:
+        names = "\n".join(map(str, shared))
+        shared_lines = once_per_run(
+            "pure digests %s\n%s" % (printer_cfg, names),
+            lambda _: _run_digests(sys.executable, shared, True, printer_cfg))
+        build_line = shared_lines[0]
+        lines.update(zip(shared, shared_lines[1:]))
+    if own or not shared:
+        own_lines = _run_digests(sys.executable, own, True, printer_cfg)
+        build_line = own_lines[0]
+        lines.update(zip(own, own_lines[1:]))
+    assert build_line is not None and len(lines) == len(set(paths))
+    return [build_line] + [lines[path] for path in paths]
+
+
+def _run_digests(python: str, paths: Sequence[Path], on_path: bool,
+                 printer_cfg: Path) -> list[str]:
     proc = subprocess.run(
         [python, str(DIGEST_SCRIPT), str(printer_cfg), *map(str, paths)],
         env=_env(None, on_path), cwd=tempfile.gettempdir(), capture_output=True, text=True,

@@ -1,13 +1,21 @@
-"""Shared paths (the corpus is read in place from ../shared beside the checkout), and how the
-suite is spread over two processes (pytest-xdist, `-n 2 --dist loadfile` in pyproject.toml)."""
+"""Shared paths (the corpus is read in place from ../shared beside the checkout); how the
+suite is spread over processes (pytest-xdist, `-n 3 --dist loadfile` in pyproject.toml: the
+files longest first by tests/file_times.json, which `--record-file-times` writes); what a run
+makes once for all of them (once_per_run)."""
 
 from __future__ import annotations
 
+import fcntl
+import hashlib
 import importlib.util
+import json
 import os
+import resource
 import shutil
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import pytest
 
@@ -18,29 +26,158 @@ CORPUS_CFG = CORPUS / "printer.cfg"
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
 
-# Long test files start first, so neither process is left with a long file at the end
-# (`--dist loadfile`: a file's tests run in one process, in order, so its module-scoped
-# fixtures run once; `--no-loadscope-reorder` keeps this order); the rest follow in file
-# order. The real-time prints mostly wait on the wall clock, so they start first and leave
-# most of a core to the other process. Each file's time in a whole run: benchmarks/RESULTS.md.
-LONGEST_FIRST = (
-    "test_klipper_module_realtime.py",
-    "test_arm_chroot.py",
-    "test_compiled_build.py",
-    "test_cura_gui.py",
-    "test_pypy.py",
-    "test_accuracy_corpus.py",
-    "test_klipper_module_real.py",
-    "test_moonraker_e2e.py",
-    "test_hook_prusaslicer.py",
-    "test_code_quality.py",
-)
+# Each test file's seconds in a whole run (tests/file_times.json, written by
+# `pytest --record-file-times tests/file_times.json`) order the files (`--dist loadfile`: a
+# file's tests run in one process, in order, so its module-scoped fixtures run once;
+# `--no-loadscope-reorder` keeps this order), so that no process is left with a long file at
+# the end: first a file not in it yet (a new one: it may be long), then the files marked
+# `wall_clock` (their time is the clock's, which their CPU seconds do not show: the real-time
+# prints, a GUI's processes), then the rest by CPU seconds, the most first. CPU seconds, not
+# wall: on a shared machine the wall time of a file that computes is mostly the others' load.
+FILE_TIMES = PROJECT / "tests" / "file_times.json"
+WALL_CLOCK = "wall_clock"
+
+
+def recorded_file_times(path: Path | None = None) -> dict[str, dict[str, Any]]:
+    """{test file name: {"wall_s", "cpu_s", "tests", "wall_clock"}} as recorded in `path`
+    (FILE_TIMES); empty without the file."""
+    try:
+        with open(path or FILE_TIMES, encoding="utf-8") as f:
+            data: dict[str, dict[str, Any]] = json.load(f)
+    except FileNotFoundError:
+        return {}
+    return data
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """The longest files first (a stable sort: the rest keep their order)."""
-    rank = {name: index for index, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+    """Files not timed yet first, then those marked wall_clock, then the rest by recorded CPU
+    seconds, the most first; a file's tests keep their order (a stable sort)."""
+    times = recorded_file_times()
+    clock_bound = {item.path.name for item in items if item.get_closest_marker(WALL_CLOCK)}
+
+    def rank(item: pytest.Item) -> tuple[int, float]:
+        name = item.path.name
+        if name not in times:
+            return (0, 0.0)
+        if name in clock_bound:
+            return (1, -float(times[name]["wall_s"]))
+        return (2, -float(times[name]["cpu_s"]))
+
+    items.sort(key=rank)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--record-file-times", metavar="PATH", default=None,
+        help="write each test file's seconds in this run (wall: its tests' setup, call and "
+             "teardown; CPU: the process's and its waited-for children's) into PATH (JSON), "
+             "keeping the files this run did not run")
+
+
+_CPU_START = pytest.StashKey[float]()
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_runtest_setup(item: pytest.Item) -> None:
+    if item.config.getoption("record_file_times"):
+        item.stash[_CPU_START] = _cpu_s()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) -> Any:
+    outcome = yield
+    if call.when == "teardown" and _CPU_START in item.stash:
+        # Carried to the controlling process with the report (pytest-xdist).
+        report = outcome.get_result()
+        report.user_properties.append(("cpu_s", _cpu_s() - item.stash[_CPU_START]))
+        if item.get_closest_marker(WALL_CLOCK):
+            report.user_properties.append((WALL_CLOCK, True))
+
+
+_RUN_TIMES: dict[str, dict[str, float]] = {}
+_RUN_CLOCK_BOUND: set[str] = set()
+_CONTROLLER: list[bool] = []  # [True] in the process the reports end up in
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    """Sums each file's seconds where the reports end up (not in pytest-xdist's workers)."""
+    if not _CONTROLLER:
+        return
+    name = report.nodeid.split("::")[0].rsplit("/", 1)[-1]
+    entry = _RUN_TIMES.setdefault(name, {"wall_s": 0.0, "cpu_s": 0.0, "tests": 0})
+    entry["wall_s"] += report.duration
+    for key, value in report.user_properties:
+        if key == "cpu_s" and isinstance(value, float):
+            entry["cpu_s"] += value
+        if key == WALL_CLOCK:
+            _RUN_CLOCK_BOUND.add(name)
+    if report.when == "teardown":
+        entry["tests"] += 1
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    target = session.config.getoption("record_file_times")
+    if not target or not _CONTROLLER or not _RUN_TIMES:
+        return
+    times = recorded_file_times(Path(target))
+    for name, entry in _RUN_TIMES.items():
+        times[name] = {"wall_s": round(entry["wall_s"], 3), "cpu_s": round(entry["cpu_s"], 3),
+                       "tests": int(entry["tests"]), WALL_CLOCK: name in _RUN_CLOCK_BOUND}
+    ordered = dict(sorted(times.items(), key=lambda kv: (-kv[1]["cpu_s"], kv[0])))
+    Path(target).write_text(json.dumps(ordered, indent=1) + "\n", encoding="utf-8")
+
+
+# What a whole run makes once and every process reads (once_per_run): a folder the
+# controlling process makes, named to pytest-xdist's workers by this variable.
+RUN_FOLDER_ENV = "KESTIMATOR_TEST_RUN_FOLDER"
+_RUN_FOLDER = pytest.StashKey[str]()
+T = TypeVar("T")
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if not hasattr(config, "workerinput"):  # the controlling process (or the only one)
+        folder = tempfile.mkdtemp(prefix="kestimator-tests-")
+        config.stash[_RUN_FOLDER] = folder
+        os.environ[RUN_FOLDER_ENV] = folder  # pytest-xdist's workers start after this
+        _CONTROLLER.append(True)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    folder = config.stash.get(_RUN_FOLDER, None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def once_per_run(name: str, make: Callable[[Path], T]) -> T:
+    """What `make(folder)` returns (JSON data), made once in a whole run, in the first
+    process that asks; the others wait for it and read it (pytest-xdist's workers would each
+    make it). A `make` that raises (a skip, a failure) leaves nothing: the next one asking
+    tries again. `folder` is empty, kept to the end of the run."""
+    given = os.environ.get(RUN_FOLDER_ENV)
+    if not given or not os.path.isdir(given):  # not under this conftest's pytest
+        return make(Path(tempfile.mkdtemp(prefix="kestimator-once-")))
+    key = hashlib.sha256(name.encode()).hexdigest()[:24]
+    root = Path(given)
+    done = root / (key + ".json")
+    with open(root / (key + ".lock"), "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if done.exists():
+            value: T = json.loads(done.read_text(encoding="utf-8"))
+            return value
+        folder = root / key
+        shutil.rmtree(folder, ignore_errors=True)
+        folder.mkdir()
+        value = make(folder)
+        part = root / (key + ".part")
+        part.write_text(json.dumps(value), encoding="utf-8")
+        part.replace(done)
+        return value
 
 
 def corpus_files(pattern: str = "*/*.gcode") -> list[Path]:

@@ -1,7 +1,8 @@
 """The real Moonraker (PyPI `moonraker`) in a temporary data folder, for the end-to-end tests.
 
-Moonraker is installed into a throwaway venv once per session (it pins many packages of its
-own); set KESTIMATOR_MOONRAKER_PYTHON to a Python that already has it to skip the install.
+Moonraker is installed into a throwaway venv once per run, for every process (it pins many
+packages of its own); set KESTIMATOR_MOONRAKER_PYTHON to a Python that already has it to skip
+the install.
 It runs on 127.0.0.1 without Klipper (its socket does not exist) and without systemd
 (`[machine] provider: none`).
 """
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.conftest import IN_CI
+from tests.conftest import IN_CI, once_per_run
 
 MOONRAKER_REQUIREMENT = "moonraker==0.11.0"
 PYTHON_ENVIRONMENT = "KESTIMATOR_MOONRAKER_PYTHON"
@@ -40,12 +41,16 @@ def _missing(reason: str) -> None:
 
 
 @pytest.fixture(scope="session")
-def moonraker_python(tmp_path_factory: pytest.TempPathFactory) -> str:
-    """A Python that can run `python -m moonraker`."""
+def moonraker_python() -> str:
+    """A Python that can run `python -m moonraker` (one venv for the whole run)."""
     given = os.environ.get(PYTHON_ENVIRONMENT)
     if given:
         return given
-    venv = tmp_path_factory.mktemp("moonraker-venv")
+    return once_per_run("moonraker-venv " + MOONRAKER_REQUIREMENT, _install_moonraker)
+
+
+def _install_moonraker(folder: Path) -> str:
+    venv = folder / "venv"
     try:
         subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True,
                        capture_output=True, timeout=INSTALL_TIMEOUT_S)

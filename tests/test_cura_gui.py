@@ -25,6 +25,7 @@ import pytest
 
 from .conftest import CORPUS_CFG, IN_CI
 
+pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 SCRIPT = Path(__file__).resolve().parent / "cura_harness" / "gui_check.py"
 CURA5_ROOT_VARIABLE = "KESTIMATOR_CURA5_ROOT"
 GUI_TIMEOUT_S = 900

@@ -8,8 +8,8 @@ after a change typed mid-print.
 
 Real-printer configs beyond the corpus's: pressure advance with input shaper, a delta; and
 state typed before the print. A change typed mid-print is checked from 2 s after it, one
-change (that alters the time) per print. The prints run three at a time (they mostly wait
-on the wall clock); all of them take about 9 minutes.
+change (that alters the time) per print. The prints all run at once (they mostly wait on the
+wall clock); together they take as long as the longest, about 5 minutes.
 """
 from __future__ import annotations
 
@@ -29,6 +29,7 @@ import run_realtime  # noqa: E402
 
 from tests.conftest import require_klipper, require_program  # noqa: E402
 
+pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
 PLAIN_ABS, PLAIN_REL = 0.5, 0.002
@@ -159,7 +160,6 @@ def _case_speed_change_before_stops(work: Path) -> dict[str, Any]:
                                      script=script)
 
 
-# Longest first: they run three at a time.
 CASES = {
     "speed_change_before_stops": _case_speed_change_before_stops,
     "exclusion_pause_heater_wait": _case_exclusion_pause_heater_wait,
@@ -177,9 +177,9 @@ TIMELESS = ("PAUSE", "RESUME", "M117", "ECHO")
 
 @pytest.fixture(scope="module")
 def prints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """Every case's print, started at once (three at a time); each test waits for its own."""
+    """Every case's print, started at once; each test waits for its own."""
     require_klipper()
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=3)
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(CASES))
     futures = {name: pool.submit(case, tmp_path_factory.mktemp(name))
                for name, case in CASES.items()}
     pool.shutdown(wait=False)
