@@ -150,9 +150,10 @@ def _case_colour_change_pause_resume(work: Path) -> dict[str, Any]:
 
 def _case_speed_change_before_stops(work: Path) -> dict[str, Any]:
     """A held-out PrusaSlicer file (tests/stop_refs: two colour changes and a pause), a
-    speed change typed before its stops; each stop's pause resumed 6 s later."""
+    speed change typed before its stops (slower: a faster print of its short moves starved
+    the busy test host's real-time Klipper of input); each stop's pause resumed 6 s later."""
     src = STOPS / "ps25_bar_two_colours_pause.gcode"
-    script: list[dict[str, Any]] = [{"at": 0.15, "cmd": "M220 S150"}]
+    script: list[dict[str, Any]] = [{"at": 0.15, "cmd": "M220 S80"}]
     for line in (463, 808, 982):
         script += [{"at": _line_fraction(src, line - 16), "cmd": "ECHO MSG=soon"},
                    {"after": 6.0, "cmd": "RESUME"}]
