@@ -41,10 +41,12 @@ def oracle_paths() -> tuple[str, str] | None:
 
 
 def run_klippy(cfg: str, batch: str, log: str, out: str, env: dict[str, str],
-               timeout: float) -> dict[str, Any]:
+               timeout: float, klipper_tree: tuple[str, str] | None = None
+               ) -> dict[str, Any]:
     """Klipper's klippy.py in batch mode on `cfg` with the commands of `batch`, the test
-    module writing its results (JSON) to `out`: those results, with `returncode`."""
-    paths = oracle_paths()
+    module writing its results (JSON) to `out`: those results, with `returncode`.
+    `klipper_tree`: (Klipper tree, its Python) instead of the oracle's."""
+    paths = klipper_tree or oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
     klipper, kpython = paths
@@ -121,10 +123,12 @@ def run_print(src: str, work: str, samples: int = 12,
               users: list[tuple[float, str]] | None = None, inject: bool = False,
               base_cfg: str = CORPUS_CFG, python: str | None = None,
               extra_cfg: str = "",
-              finish_file: Callable[[str], None] | None = None) -> dict[str, Any]:
+              finish_file: Callable[[str], None] | None = None,
+              klipper_tree: tuple[str, str] | None = None) -> dict[str, Any]:
     """Print `src` in Klipper with the module; returns the probe's results, each sample
-    with `truth_s` (Klipper's remaining time from there) and `error_s`."""
-    paths = oracle_paths()
+    with `truth_s` (Klipper's remaining time from there) and `error_s`. `klipper_tree`:
+    (Klipper tree, its Python) to print in instead of the oracle's."""
+    paths = klipper_tree or oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
     klipper, _ = paths
@@ -153,7 +157,7 @@ def run_print(src: str, work: str, samples: int = 12,
     out = os.path.join(work, "ktest.json")
     log = os.path.join(work, "klippy.log")
     env = dict(os.environ, KTEST_OUT=out, ORACLE_OUT=os.path.join(work, "oracle.json"))
-    result = run_klippy(cfg, batch, log, out, env, 1800.)
+    result = run_klippy(cfg, batch, log, out, env, 1800., klipper_tree)
     end = result["end_print_time"]
     for sample in result["samples"]:
         sample["truth_s"] = end - sample["print_time"]
