@@ -45,8 +45,11 @@ class KTestProbe:
 
     def _handle_connect(self):
         self.toolhead = self.printer.lookup_object("toolhead")
-        self.mq = self.printer.lookup_object("motion_queuing")
-        self.mq.flush_timer.callback = self._bg_flush
+        # motion_queuing's (84104bbbd); the toolhead's own in v0.13.0 and Kalico, whose
+        # batch-mode flush timer never runs the look-ahead dry (v0.12.0 has no such timer).
+        self.mq = self.printer.lookup_object("motion_queuing", None)
+        if self.mq is not None:
+            self.mq.flush_timer.callback = self._bg_flush
         oracle = self.printer.lookup_object("oracle_probe")
         self.gcode.register_command("G28", None)
         self.gcode.register_command("G28", oracle.cmd_ORACLE_HOME)
@@ -111,7 +114,7 @@ class KTestProbe:
     def _last_move(self):
         # get_last is renamed last_queued_move in the test tree where the module must
         # find that hook missing (tests/test_klipper_module_hooks.py).
-        queue = self.toolhead.lookahead
+        queue = getattr(self.toolhead, "lookahead", None) or self.toolhead.move_queue
         get_last = getattr(queue, "get_last", None) or queue.last_queued_move
         return get_last()
 
