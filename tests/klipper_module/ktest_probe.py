@@ -45,8 +45,9 @@ class KTestProbe:
 
     def _handle_connect(self):
         self.toolhead = self.printer.lookup_object("toolhead")
-        # motion_queuing's (84104bbbd); the toolhead's own in v0.13.0 and Kalico, whose
-        # batch-mode flush timer never runs the look-ahead dry (v0.12.0 has no such timer).
+        # motion_queuing's batch-mode flush (84104bbbd) replaced; older releases and Kalico
+        # have no motion_queuing and their toolhead's own flush timer is left as it is (the
+        # oracle probe's n_runout, 0 in every test, shows it never ran the look-ahead dry).
         self.mq = self.printer.lookup_object("motion_queuing", None)
         if self.mq is not None:
             self.mq.flush_timer.callback = self._bg_flush
