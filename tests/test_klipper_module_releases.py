@@ -2,8 +2,9 @@
 (tests/klipper_module/run_print.py, as in tests/test_klipper_module_real.py) in Klipper
 v0.12.0, v0.13.0, 84104bbbd and Kalico v2026.07.00, each with its own printer.cfg (the
 one tests/oracle_refs_releases/ made its references with), against today's bars: plain
-prints within 0.5 s + 0.2 % of the time Klipper then took, after a change typed mid-print
-1 s + 1 %, the exact answer within 2 s.
+prints (and a file's own table) within 0.5 s + 0.2 % of the time Klipper then took; after a
+change typed mid-print (M220, SET_VELOCITY_LIMIT, EXCLUDE_OBJECT) 1 s + 1 %, the exact answer
+within 2 s.
 
 The release trees are built as .ci/klipper-setup builds 84104bbbd
 (tests/oracle_refs_releases/make_refs.sh says how); their places are taken from
@@ -136,3 +137,38 @@ def test_a_velocity_limit_typed_mid_print_is_re_estimated_on_each_release(
     after = _after_change(result)
     assert len(after) >= 5
     assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_the_files_own_table_is_used_only_when_made_for_the_release(
+        tmp_path: Path, release: str) -> None:
+    """`kestimator inject` without the printer's klipper_version times the file with
+    today's rules: on today's Klipper the module starts from that table; on an older
+    release or Kalico the table was not made for the rules of the Klipper it runs in (the
+    worker's table_mismatch compares them) and the module estimates the file instead.
+    Either way the time is within the plain bars."""
+    result = _print(tmp_path, release, "prusaslicer", inject=True)
+    sources = {s["source"] for s in result["samples"]}
+    assert sources == ({"table"} if release == "84104bbbd" else {"estimate"})
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_an_object_excluded_mid_print_is_re_estimated_on_each_release(
+        tmp_path: Path, release: str) -> None:
+    tree, cfg = release_tree(release)
+    source = CORPUS / "orcaslicer" / "helixscreen_xyzcube_orca2.3.1_klipper.gcode"
+    names = [line.split(b"NAME=")[1].split()[0].decode()
+             for line in source.read_bytes().split(b"\n")
+             if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
+    assert names
+    result = run_print.run_print(str(source), str(tmp_path), base_cfg=cfg, klipper_tree=tree,
+                                 users=[(0.45, "EXCLUDE_OBJECT NAME=%s" % names[-1])])
+    assert result["kestimator_error"] is None and result["errors"] == []
+    assert result["n_runout_flushes"] == 0
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    for sample in after:
+        left = {name.upper(): t for name, t in sample["objects"].items()}
+        assert left[names[-1].upper()] == 0.
