@@ -13,6 +13,7 @@ ORACLE_KLIPPER_V0_12_0, ORACLE_KLIPPER_V0_13_0, ORACLE_KALICO and ORACLE_KALICO_
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 from pathlib import Path
 from typing import Any
@@ -172,3 +173,25 @@ def test_an_object_excluded_mid_print_is_re_estimated_on_each_release(
     for sample in after:
         left = {name.upper(): t for name, t in sample["objects"].items()}
         assert left[names[-1].upper()] == 0.
+
+
+def test_a_release_reporting_no_version_is_timed_by_the_version_printer_cfg_names(
+        tmp_path: Path) -> None:
+    """v0.12.0 installed without git or klippy/.version reports "?": the module's worker
+    then times the print with today's rules, 4.4 s off over this 6-minute print; the
+    guide's `# kestimator: klipper_version = v0.12.0` in printer.cfg makes it exact."""
+    (tree, python), cfg = release_tree("v0.12.0")
+    copy = tmp_path / "klipper"
+    shutil.copytree(os.path.join(tree, "klippy"), copy / "klippy", symlinks=True)
+    (copy / "klippy" / ".version").unlink()
+    os.symlink(os.path.join(tree, "out"), copy / "out")
+    errors = {}
+    for named in (False, True):
+        result = run_print.run_print(
+            str(CORPUS / FILES["orcaslicer"]), str(tmp_path / str(named)), base_cfg=cfg,
+            klipper_tree=(str(copy), python),
+            extra_cfg="# kestimator: klipper_version = v0.12.0\n" if named else "")
+        assert result["kestimator_error"] is None and result["errors"] == []
+        errors[named] = max(abs(s["error_s"]) for s in result["samples"])
+    assert errors[False] > 1.
+    assert errors[True] < 0.01
