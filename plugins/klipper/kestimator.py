@@ -96,6 +96,30 @@ MAX_STATUS_OBJECTS = 64
 # during a print, each is an event the rest of the file is estimated again with.
 FOLLOWED_COMMANDS = ("SET_VELOCITY_LIMIT", "M204", "SET_PRESSURE_ADVANCE",
                      "SET_INPUT_SHAPER", "SET_RETRACTION")
+# Every Klipper internal the module takes: (object, attribute path, needed). A path's
+# first part may name alternatives (older releases' toolhead.move_queue). Checked at
+# klippy:ready (the gcode ones when the section loads); a Klipper without one of them
+# (a newer one that renamed or dropped it) gets one line in klippy.log and the status's
+# `error` and `missing_hooks`, display_status stays exactly Klipper's, the print goes on.
+# Beside these the module listens to the events klippy:ready, klippy:shutdown,
+# klippy:disconnect, toolhead:sync_print_time and virtual_sdcard:reset_file, and appends
+# to a queued move's `timing_callbacks` list (checked when first used).
+KLIPPER_HOOKS: tuple[tuple[str, str, bool], ...] = (
+    ("gcode", "run_script", True),
+    ("gcode", "register_command", True),
+    ("gcode", "register_output_handler", True),
+    ("toolhead", "lookahead|move_queue.get_last", True),
+    ("toolhead", "print_time", True),
+    ("toolhead", "mcu.estimated_print_time", True),
+    ("virtual_sdcard", "file_path", True),
+    ("virtual_sdcard", "is_active", True),
+    ("virtual_sdcard", "is_cmd_from_sd", True),
+    ("virtual_sdcard", "file_position", True),
+    ("virtual_sdcard", "cmd_from_sd", True),
+    ("print_stats", "get_status", False),
+    ("gcode_move", "get_status", False),
+    ("display_status", "get_status", False),
+)
 # Worker niceness: estimating must never compete with Klipper for the CPU.
 WORKER_NICE = 10
 # `python3 -m kestimator.worker`. The build in the checkout's .venv-host (install.sh's,
@@ -445,6 +469,45 @@ class Worker:
             pass
 
 
+class KlipperChangedError(Exception):
+    """A hook the module takes from Klipper (KLIPPER_HOOKS) is missing or changed."""
+
+    def __init__(self, missing: list[str]) -> None:
+        self.missing = missing
+        super().__init__(
+            "Klipper's %s %s missing or changed (a Klipper newer than this module "
+            "knows): not following prints; display_status is Klipper's own"
+            % (", ".join(missing), "is" if len(missing) == 1 else "are"))
+
+
+def _has_path(obj: Any, path: str) -> bool:
+    """`obj` has the attribute `path` (dotted; a part may be alternatives, `a|b`)."""
+    for part in path.split("."):
+        for name in part.split("|"):
+            if hasattr(obj, name):
+                obj = getattr(obj, name)
+                break
+        else:
+            return False
+    return True
+
+
+def missing_hooks(printer: Any, objects: tuple[str, ...] | None = None) -> list[str]:
+    """The KLIPPER_HOOKS (of `objects`, default all) this Klipper lacks, as
+    `object.path`; an optional object that is not configured lacks nothing."""
+    missing = []
+    for name, path, needed in KLIPPER_HOOKS:
+        if objects is not None and name not in objects:
+            continue
+        obj = printer.lookup_object(name, None)
+        if obj is None:
+            if needed:
+                missing.append(name)
+        elif not _has_path(obj, path):
+            missing.append("%s.%s" % (name, path))
+    return missing
+
+
 def running_klipper_version(printer: Any) -> str | None:
     """The Klipper this runs in as Moonraker's printer.info reports it: its start args'
     software_version, with the app's name first where it is not Klipper (Kalico's klippy
@@ -487,6 +550,8 @@ class Kestimator:
         self.config_file = os.path.abspath(config_file) if config_file else None
         self.klipper_version = running_klipper_version(printer)
         self.gcode = printer.lookup_object("gcode")
+        # The KLIPPER_HOOKS this Klipper lacks (then the module stays off).
+        self.missing_hooks: list[str] = []
         # What the user left set before the print (state_before_print), taken when
         # virtual_sdcard resets for a new file.
         self.state_at_start: list[str] | None = None
@@ -525,6 +590,10 @@ class Kestimator:
         self.on_answer = self._guard(self._handle_answer)
         self.on_line = self._guard(self._handle_line)
         self._reset_print(None)
+        missing = missing_hooks(printer, ("gcode",))
+        if missing:
+            self._disable(KlipperChangedError(missing))
+            return
         printer.register_event_handler("klippy:ready", self._guard(
             self._handle_ready))
         printer.register_event_handler("klippy:shutdown", self._guard(
@@ -565,8 +634,13 @@ class Kestimator:
         if self.disabled:
             return
         self.disabled = True
-        self.error = "%s: %s" % (type(exc).__name__, str(exc)[:200])
-        logging.error("kestimator: disabled after an error: %s", self.error)
+        if isinstance(exc, KlipperChangedError):
+            self.missing_hooks = list(exc.missing)
+            self.error = str(exc)[:400]
+            logging.warning("kestimator: %s", self.error)
+        else:
+            self.error = "%s: %s" % (type(exc).__name__, str(exc)[:200])
+            logging.error("kestimator: disabled after an error: %s", self.error)
         try:
             self._stop_worker()
         except Exception:
@@ -601,6 +675,9 @@ class Kestimator:
 
     # Set-up
     def _handle_ready(self) -> None:
+        missing = missing_hooks(self.printer)
+        if missing:
+            raise KlipperChangedError(missing)
         lookup = self.printer.lookup_object
         self.toolhead = lookup("toolhead")
         self.vsd = lookup("virtual_sdcard", None)
@@ -776,7 +853,8 @@ class Kestimator:
                 "progress": None, "total_s": None, "source": None,
                 "objects": {}, "excluded_objects": [], "file": None,
                 "error": self.error, "max_callback_ms": 0., "table_bytes": 0,
-                "warnings": [], "next_stop": None}
+                "warnings": [], "next_stop": None,
+                "missing_hooks": list(getattr(self, "missing_hooks", []))}
 
     def _unknown_status(self, state: str) -> dict[str, Any]:
         """The status when the time is not known (`error` says why)."""
@@ -989,6 +1067,8 @@ class Kestimator:
             self.anchor_idle = True
             self.anchor_stale = False
             return
+        if not isinstance(getattr(last, "timing_callbacks", None), list):
+            raise KlipperChangedError(["toolhead move.timing_callbacks"])
         self.anchor_pending += 1
 
         def planned(print_time: float, position: int = position) -> None:

@@ -19,6 +19,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from typing import Any, Callable
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -41,26 +42,71 @@ def oracle_paths() -> tuple[str, str] | None:
 
 
 def run_klippy(cfg: str, batch: str, log: str, out: str, env: dict[str, str],
-               timeout: float) -> dict[str, Any]:
+               timeout: float, klipper_tree: tuple[str, str] | None = None
+               ) -> dict[str, Any]:
     """Klipper's klippy.py in batch mode on `cfg` with the commands of `batch`, the test
-    module writing its results (JSON) to `out`: those results, with `returncode`."""
-    paths = oracle_paths()
+    module writing its results (JSON) to `out`: those results, with `returncode`.
+    `klipper_tree`: (Klipper tree, its Python) instead of the oracle's."""
+    paths = klipper_tree or oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
     klipper, kpython = paths
-    proc = subprocess.run(
-        [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", batch,
-         "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"), "-l", log],
-        env=env, stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper, timeout=timeout)
+    with open(os.path.join(klipper, "klippy", "extras", "virtual_sdcard.py")) as f:
+        waits_for_print = "gcode:debuginput_exit" in f.read()
+    if waits_for_print:
+        proc = subprocess.run(
+            [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", batch,
+             "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"), "-l", log],
+            env=env, stdin=subprocess.DEVNULL, capture_output=True, cwd=klipper,
+            timeout=timeout)
+        returncode = proc.returncode
+    else:
+        returncode = _run_klippy_until(out, klipper, kpython, cfg, batch, log, env, timeout)
     if not os.path.exists(out):
         with open(log, errors="replace") as f:
             tail = f.read()[-3000:]
         raise RuntimeError("Klipper did not finish the print (rc %d):\n%s"
-                           % (proc.returncode, tail))
+                           % (returncode, tail))
     with open(out) as f:
         result: dict[str, Any] = json.load(f)
-    result["returncode"] = proc.returncode
+    result["returncode"] = returncode
     return result
+
+
+def _run_klippy_until(out: str, klipper: str, kpython: str, cfg: str, batch: str,
+                      log: str, env: dict[str, str], timeout: float) -> int:
+    """klippy.py in batch mode where the end of the batch input ends Klipper at once, its
+    print not waited for (v0.12.0, v0.13.0, Kalico: their virtual_sdcard has no
+    gcode:debuginput_exit handler): the input is a pipe, held open until the test module
+    wrote `out` (or Klipper stopped). Its return code."""
+    fifo = batch + ".fifo"
+    os.mkfifo(fifo)
+    # Read-write: opening never waits for Klipper, and the pipe ends (EOF) at our close.
+    fd = os.open(fifo, os.O_RDWR)
+    try:
+        with open(batch, "rb") as f:
+            os.write(fd, f.read())
+        with open(log + ".out", "wb") as output:
+            proc = subprocess.Popen(
+                [kpython, os.path.join(klipper, "klippy", "klippy.py"), cfg, "-i", fifo,
+                 "-o", "/dev/null", "-d", os.path.join(klipper, "out", "klipper.dict"),
+                 "-l", log], env=env, stdin=subprocess.DEVNULL, stdout=output,
+                stderr=subprocess.STDOUT, cwd=klipper)
+            try:
+                deadline = time.monotonic() + timeout
+                while (proc.poll() is None and not os.path.exists(out)
+                       and time.monotonic() < deadline):
+                    time.sleep(0.1)
+                os.close(fd)
+                fd = -1
+                return proc.wait(max(1., deadline - time.monotonic()))
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait()
+    finally:
+        if fd >= 0:
+            os.close(fd)
 
 
 def _link(src: str, klipper: str, name: str) -> None:
@@ -121,10 +167,12 @@ def run_print(src: str, work: str, samples: int = 12,
               users: list[tuple[float, str]] | None = None, inject: bool = False,
               base_cfg: str = CORPUS_CFG, python: str | None = None,
               extra_cfg: str = "",
-              finish_file: Callable[[str], None] | None = None) -> dict[str, Any]:
+              finish_file: Callable[[str], None] | None = None,
+              klipper_tree: tuple[str, str] | None = None) -> dict[str, Any]:
     """Print `src` in Klipper with the module; returns the probe's results, each sample
-    with `truth_s` (Klipper's remaining time from there) and `error_s`."""
-    paths = oracle_paths()
+    with `truth_s` (Klipper's remaining time from there) and `error_s`. `klipper_tree`:
+    (Klipper tree, its Python) to print in instead of the oracle's."""
+    paths = klipper_tree or oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
     klipper, _ = paths
@@ -153,7 +201,7 @@ def run_print(src: str, work: str, samples: int = 12,
     out = os.path.join(work, "ktest.json")
     log = os.path.join(work, "klippy.log")
     env = dict(os.environ, KTEST_OUT=out, ORACLE_OUT=os.path.join(work, "oracle.json"))
-    result = run_klippy(cfg, batch, log, out, env, 1800.)
+    result = run_klippy(cfg, batch, log, out, env, 1800., klipper_tree)
     end = result["end_print_time"]
     for sample in result["samples"]:
         sample["truth_s"] = end - sample["print_time"]

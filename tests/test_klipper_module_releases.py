@@ -1,0 +1,197 @@
+"""The Klipper module on every release it supports: its batch prints
+(tests/klipper_module/run_print.py, as in tests/test_klipper_module_real.py) in Klipper
+v0.12.0, v0.13.0, 84104bbbd and Kalico v2026.07.00, each with its own printer.cfg (the
+one tests/oracle_refs_releases/ made its references with), against today's bars: plain
+prints (and a file's own table) within 0.5 s + 0.2 % of the time Klipper then took; after a
+change typed mid-print (M220, SET_VELOCITY_LIMIT, EXCLUDE_OBJECT) 1 s + 1 %, the exact answer
+within 2 s.
+
+The release trees are built as .ci/klipper-setup builds 84104bbbd
+(tests/oracle_refs_releases/make_refs.sh says how); their places are taken from
+ORACLE_KLIPPER_V0_12_0, ORACLE_KLIPPER_V0_13_0, ORACLE_KALICO and ORACLE_KALICO_PYTHON
+(defaults: /var/tmp/oracle-<release>/). A missing tree skips, but under CI it fails."""
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
+import run_print  # noqa: E402
+
+from tests.conftest import IN_CI, require_klipper  # noqa: E402
+
+HERE = Path(__file__).parent
+REFS = HERE / "oracle_refs_releases"
+CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
+FILES = {
+    "prusaslicer": "prusaslicer/ps25_nut_accelA_small.gcode",
+    "orcaslicer": "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
+    "cura": "cura/cancelobj_cura5.0.0_inverted_pyramid.gcode",
+}
+PLAIN_ABS, PLAIN_REL = 0.5, 0.002
+CHANGED_ABS, CHANGED_REL = 1.0, 0.01
+ANSWER_WITHIN_S = 2.0
+RELEASES = ["v0.12.0", "v0.13.0", "84104bbbd", "kalico-v2026.07.00"]
+# What each release's git checkout reports as its version (klippy's util.get_git_version):
+# the tarballs the trees are built from have no .git, so klippy/.version says it, as
+# Klipper's own release packaging does; the module hands it to its worker, which times
+# the print with that release's rules (limits.klipper_release). 84104bbbd reports "?"
+# (today's rules).
+VERSIONS = {"v0.12.0": "v0.12.0-0-g0d67d9c4", "v0.13.0": "v0.13.0-0-g61c0c8d2",
+            "kalico-v2026.07.00": "v2026.07.00-0-g30c65e09"}
+
+
+def release_tree(release: str) -> tuple[tuple[str, str], str]:
+    """((Klipper tree, its Python), printer.cfg) of `release`: skipped when the tree is not
+    built here, but under CI it must be (.ci/run builds it)."""
+    if release == "84104bbbd":
+        return require_klipper(), os.path.join(run_print.SHARED, "corpus", "printer.cfg")
+    oracle = require_klipper()
+    if release.startswith("kalico-"):
+        tree = os.environ.get("ORACLE_KALICO", "/var/tmp/oracle-kalico/kalico")
+        python = os.environ.get("ORACLE_KALICO_PYTHON", "/var/tmp/oracle-kalico/venv/bin/python")
+        cfg = REFS / release / "printer.cfg"
+    else:
+        tree = os.environ.get("ORACLE_KLIPPER_" + release.upper().replace(".", "_"),
+                              "/var/tmp/oracle-%s/klipper" % release)
+        python = oracle[1]
+        cfg = REFS / ("klipper-" + release) / "printer.cfg"
+    if not (os.path.exists(os.path.join(tree, "out", "klipper.dict"))
+            and os.path.exists(python)):
+        if IN_CI:
+            pytest.fail("the %s tree is not built at %s (.ci/run builds it)" % (release, tree))
+        pytest.skip("the %s tree is not built here (%s)" % (release, tree))
+    _report_version(tree, VERSIONS[release])
+    return (tree, python), str(cfg)
+
+
+def _report_version(tree: str, version: str) -> None:
+    """`tree`'s klippy/.version says `version` (written once, atomically)."""
+    path = os.path.join(tree, "klippy", ".version")
+    try:
+        with open(path) as f:
+            if f.read().strip() == version:
+                return
+    except OSError:
+        pass
+    tmp = "%s.%d.tmp" % (path, os.getpid())
+    with open(tmp, "w") as f:
+        f.write(version + "\n")
+    os.replace(tmp, path)
+
+
+def _print(tmp_path: Path, release: str, slicer: str, **kw: Any) -> dict[str, Any]:
+    tree, cfg = release_tree(release)
+    result = run_print.run_print(str(CORPUS / FILES[slicer]), str(tmp_path), base_cfg=cfg,
+                                 klipper_tree=tree, **kw)
+    assert result["kestimator_error"] is None
+    assert result["errors"] == []
+    assert result["n_runout_flushes"] == 0
+    assert result["display_status_wrapped"] is True
+    assert len(result["samples"]) >= 10
+    return result
+
+
+def _bad(samples: list[dict[str, Any]], absolute: float, relative: float) -> list[Any]:
+    return [(s["id"], s["remaining_s"], round(s["truth_s"], 3)) for s in samples
+            if s.get("remaining_s") is None
+            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
+
+
+def _after_change(result: dict[str, Any]) -> list[dict[str, Any]]:
+    (user,) = result["users"]
+    assert user["asked"] and user["answered"]
+    assert user["answer_wait_s"] < ANSWER_WITHIN_S
+    change_t = next(s["print_time"] for s in result["samples"]
+                    if s["position"] >= user["position"])
+    return [s for s in result["samples"] if s["print_time"] >= change_t]
+
+
+@pytest.mark.parametrize("slicer", sorted(FILES))
+@pytest.mark.parametrize("release", RELEASES)
+def test_remaining_time_follows_each_release_through_a_plain_print(
+        tmp_path: Path, release: str, slicer: str) -> None:
+    result = _print(tmp_path, release, slicer)
+    assert {s["source"] for s in result["samples"]} == {"estimate"}
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_a_speed_change_typed_mid_print_is_re_estimated_on_each_release(
+        tmp_path: Path, release: str) -> None:
+    result = _print(tmp_path, release, "cura", users=[(0.4, "M220 S150")])
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_a_velocity_limit_typed_mid_print_is_re_estimated_on_each_release(
+        tmp_path: Path, release: str) -> None:
+    result = _print(tmp_path, release, "prusaslicer", users=[
+        (0.4, "SET_VELOCITY_LIMIT ACCEL=700 SQUARE_CORNER_VELOCITY=2")])
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_the_files_own_table_is_used_only_when_made_for_the_release(
+        tmp_path: Path, release: str) -> None:
+    """`kestimator inject` without the printer's klipper_version times the file with
+    today's rules: on today's Klipper the module starts from that table; on an older
+    release or Kalico the table was not made for the rules of the Klipper it runs in (the
+    worker's table_mismatch compares them) and the module estimates the file instead.
+    Either way the time is within the plain bars."""
+    result = _print(tmp_path, release, "prusaslicer", inject=True)
+    sources = {s["source"] for s in result["samples"]}
+    assert sources == ({"table"} if release == "84104bbbd" else {"estimate"})
+    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_an_object_excluded_mid_print_is_re_estimated_on_each_release(
+        tmp_path: Path, release: str) -> None:
+    tree, cfg = release_tree(release)
+    source = CORPUS / "orcaslicer" / "helixscreen_xyzcube_orca2.3.1_klipper.gcode"
+    names = [line.split(b"NAME=")[1].split()[0].decode()
+             for line in source.read_bytes().split(b"\n")
+             if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
+    assert names
+    result = run_print.run_print(str(source), str(tmp_path), base_cfg=cfg, klipper_tree=tree,
+                                 users=[(0.45, "EXCLUDE_OBJECT NAME=%s" % names[-1])])
+    assert result["kestimator_error"] is None and result["errors"] == []
+    assert result["n_runout_flushes"] == 0
+    after = _after_change(result)
+    assert len(after) >= 5
+    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    for sample in after:
+        left = {name.upper(): t for name, t in sample["objects"].items()}
+        assert left[names[-1].upper()] == 0.
+
+
+def test_a_release_reporting_no_version_is_timed_by_the_version_printer_cfg_names(
+        tmp_path: Path) -> None:
+    """v0.12.0 installed without git or klippy/.version reports "?": the module's worker
+    then times the print with today's rules, 4.4 s off over this 6-minute print; the
+    guide's `# kestimator: klipper_version = v0.12.0` in printer.cfg makes it exact."""
+    (tree, python), cfg = release_tree("v0.12.0")
+    copy = tmp_path / "klipper"
+    shutil.copytree(os.path.join(tree, "klippy"), copy / "klippy", symlinks=True)
+    (copy / "klippy" / ".version").unlink()
+    os.symlink(os.path.join(tree, "out"), copy / "out")
+    errors = {}
+    for named in (False, True):
+        result = run_print.run_print(
+            str(CORPUS / FILES["orcaslicer"]), str(tmp_path / str(named)), base_cfg=cfg,
+            klipper_tree=(str(copy), python),
+            extra_cfg="# kestimator: klipper_version = v0.12.0\n" if named else "")
+        assert result["kestimator_error"] is None and result["errors"] == []
+        errors[named] = max(abs(s["error_s"]) for s in result["samples"])
+    assert errors[False] > 1.
+    assert errors[True] < 0.01
