@@ -511,7 +511,7 @@ git -C "$1/klipper" init -q
 # manager pulls (git runs the post-merge hook install.sh wrote).
 UPDATE_SCRIPT = r"""set -eu
 cd "$0/source"
-sed -i 's/^__version__ = "\(.*\)"$/__version__ = ".1"/' kestimator/__init__.py
+sed -i 's/^__version__ = "\(.*\)"$/__version__ = "\1.1"/' kestimator/__init__.py
 git -c user.name=test -c user.email=test@example.invalid commit -q -am "next version"
 git push -q "$0/origin.git" main
 cd "$1" && git pull -q --ff-only
