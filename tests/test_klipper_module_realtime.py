@@ -8,8 +8,11 @@ after a change typed mid-print.
 
 Real-printer configs beyond the corpus's: pressure advance with input shaper, a delta; and
 state typed before the print. A change typed mid-print is checked from 2 s after it, one
-change (that alters the time) per print. The prints all run at once (they mostly wait on the
-wall clock); together they take as long as the longest, about 5 minutes.
+change (that alters the time) per print. Two multi-colour prints (tests/stop_refs) pause
+at their colour changes and pauses and are resumed: `next_stop` is held to the same bars
+against the time Klipper then took to stand at the next stop, and the guide's stop notice
+and `display_next_stop` are run there. The prints all run at once (they mostly wait on the
+wall clock); together they take as long as the longest.
 """
 from __future__ import annotations
 
