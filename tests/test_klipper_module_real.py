@@ -50,17 +50,11 @@ def _print(tmp_path: Path, slicer: str, **kw: Any) -> dict[str, Any]:
     return result
 
 
-def _bad(samples: list[dict[str, Any]], absolute: float, relative: float) -> list[Any]:
-    return [(s["id"], s["remaining_s"], round(s["truth_s"], 3)) for s in samples
-            if s.get("remaining_s") is None
-            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
-
-
 @pytest.mark.parametrize("slicer", sorted(FILES))
 def test_remaining_time_follows_klipper_through_a_plain_print(tmp_path: Path,
                                                               slicer: str) -> None:
     result = _print(tmp_path, slicer)
-    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert run_print.samples_off_bar(result["samples"], PLAIN_ABS, PLAIN_REL) == []
     assert {s["source"] for s in result["samples"]} == {"estimate"}
 
 
@@ -68,16 +62,7 @@ def test_remaining_time_follows_klipper_through_a_plain_print(tmp_path: Path,
 def test_an_injected_table_starts_at_once_and_is_as_true(tmp_path: Path, slicer: str) -> None:
     result = _print(tmp_path, slicer, inject=True)
     assert {s["source"] for s in result["samples"]} == {"table"}
-    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
-
-
-def _after_change(result: dict[str, Any]) -> list[dict[str, Any]]:
-    (user,) = result["users"]
-    assert user["asked"] and user["answered"]
-    assert user["answer_wait_s"] < ANSWER_WITHIN_S
-    change_t = next(s["print_time"] for s in result["samples"]
-                    if s["position"] >= user["position"])
-    return [s for s in result["samples"] if s["print_time"] >= change_t]
+    assert run_print.samples_off_bar(result["samples"], PLAIN_ABS, PLAIN_REL) == []
 
 
 @pytest.mark.parametrize("slicer", ["cura", "prusaslicer"])
@@ -85,9 +70,9 @@ def test_a_velocity_limit_typed_mid_print_is_re_estimated(tmp_path: Path, slicer
     """Mainsail's and Fluidd's limit sliders send SET_VELOCITY_LIMIT."""
     result = _print(tmp_path, slicer, users=[
         (0.4, "SET_VELOCITY_LIMIT ACCEL=700 SQUARE_CORNER_VELOCITY=2")])
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
 
 
 @pytest.mark.parametrize("slicer", sorted(FILES))
@@ -95,9 +80,9 @@ def test_a_velocity_limit_typed_mid_print_is_re_estimated(tmp_path: Path, slicer
 def test_a_speed_change_typed_mid_print_is_re_estimated(tmp_path: Path, slicer: str,
                                                         factor: int) -> None:
     result = _print(tmp_path, slicer, users=[(0.4, "M220 S%d" % factor)])
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
 
 
 # Files with several objects, labelled as Moonraker labels them (preprocess_cancellation;
@@ -136,9 +121,9 @@ def test_an_object_excluded_mid_print_is_re_estimated(tmp_path: Path, slicer: st
                                  users=[(0.45, "EXCLUDE_OBJECT NAME=%s" % names[-1])])
     assert result["kestimator_error"] is None and result["errors"] == []
     assert result["n_runout_flushes"] == 0
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
     # The excluded object has nothing left; the others still have their time (per-object
     # times are taken at layer markers: the Slic3r 1.3 file has none).
     for sample in after:
@@ -199,7 +184,7 @@ def test_a_worker_killed_mid_print_is_started_again_and_the_time_comes_back(
                     if s["position"] >= change["position"])
     after = [s for s in result["samples"] if s["print_time"] >= change_t]
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
     assert {s["source"] for s in after} == {"estimate"}
 
 
@@ -214,9 +199,9 @@ def test_a_storm_of_speed_changes_leaves_one_exact_answer(tmp_path: Path) -> Non
     (user,) = result["users"]
     assert user["asked"] and user["answered"]
     assert user["answer_wait_s"] < ANSWER_WITHIN_S
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
 
 
 @pytest.mark.parametrize("forgery", ["huge_table", "negative_time"])
@@ -236,5 +221,5 @@ def test_a_hostile_table_in_the_file_is_refused_and_klipper_prints_on(
         Path(path).write_bytes(data + forged_block(payload, size))
     result = _print(tmp_path, "prusaslicer", finish_file=forge)
     assert {s["source"] for s in result["samples"]} == {"estimate"}
-    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert run_print.samples_off_bar(result["samples"], PLAIN_ABS, PLAIN_REL) == []
     assert result["memory_kib"]["worker"]["VmHWM"] < 300 * 1024

@@ -97,37 +97,22 @@ def _print(tmp_path: Path, release: str, slicer: str, **kw: Any) -> dict[str, An
     return result
 
 
-def _bad(samples: list[dict[str, Any]], absolute: float, relative: float) -> list[Any]:
-    return [(s["id"], s["remaining_s"], round(s["truth_s"], 3)) for s in samples
-            if s.get("remaining_s") is None
-            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
-
-
-def _after_change(result: dict[str, Any]) -> list[dict[str, Any]]:
-    (user,) = result["users"]
-    assert user["asked"] and user["answered"]
-    assert user["answer_wait_s"] < ANSWER_WITHIN_S
-    change_t = next(s["print_time"] for s in result["samples"]
-                    if s["position"] >= user["position"])
-    return [s for s in result["samples"] if s["print_time"] >= change_t]
-
-
 @pytest.mark.parametrize("slicer", sorted(FILES))
 @pytest.mark.parametrize("release", RELEASES)
 def test_remaining_time_follows_each_release_through_a_plain_print(
         tmp_path: Path, release: str, slicer: str) -> None:
     result = _print(tmp_path, release, slicer)
     assert {s["source"] for s in result["samples"]} == {"estimate"}
-    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert run_print.samples_off_bar(result["samples"], PLAIN_ABS, PLAIN_REL) == []
 
 
 @pytest.mark.parametrize("release", RELEASES)
 def test_a_speed_change_typed_mid_print_is_re_estimated_on_each_release(
         tmp_path: Path, release: str) -> None:
     result = _print(tmp_path, release, "cura", users=[(0.4, "M220 S150")])
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
 
 
 @pytest.mark.parametrize("release", RELEASES)
@@ -135,9 +120,9 @@ def test_a_velocity_limit_typed_mid_print_is_re_estimated_on_each_release(
         tmp_path: Path, release: str) -> None:
     result = _print(tmp_path, release, "prusaslicer", users=[
         (0.4, "SET_VELOCITY_LIMIT ACCEL=700 SQUARE_CORNER_VELOCITY=2")])
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
 
 
 @pytest.mark.parametrize("release", RELEASES)
@@ -151,7 +136,7 @@ def test_the_files_own_table_is_used_only_when_made_for_the_release(
     result = _print(tmp_path, release, "prusaslicer", inject=True)
     sources = {s["source"] for s in result["samples"]}
     assert sources == ({"table"} if release == "84104bbbd" else {"estimate"})
-    assert _bad(result["samples"], PLAIN_ABS, PLAIN_REL) == []
+    assert run_print.samples_off_bar(result["samples"], PLAIN_ABS, PLAIN_REL) == []
 
 
 @pytest.mark.parametrize("release", RELEASES)
@@ -167,9 +152,9 @@ def test_an_object_excluded_mid_print_is_re_estimated_on_each_release(
                                  users=[(0.45, "EXCLUDE_OBJECT NAME=%s" % names[-1])])
     assert result["kestimator_error"] is None and result["errors"] == []
     assert result["n_runout_flushes"] == 0
-    after = _after_change(result)
+    after = run_print.samples_after_change(result, ANSWER_WITHIN_S)
     assert len(after) >= 5
-    assert _bad(after, CHANGED_ABS, CHANGED_REL) == []
+    assert run_print.samples_off_bar(after, CHANGED_ABS, CHANGED_REL) == []
     for sample in after:
         left = {name.upper(): t for name, t in sample["objects"].items()}
         assert left[names[-1].upper()] == 0.

@@ -212,6 +212,26 @@ def run_print(src: str, work: str, samples: int = 12,
     return result
 
 
+def samples_off_bar(samples: list[dict[str, Any]], absolute: float,
+                    relative: float) -> list[Any]:
+    """The samples whose remaining_s is missing or off Klipper's truth by more than
+    `absolute` + `relative` x the truth: (id, remaining_s, truth_s) of each."""
+    return [(s["id"], s["remaining_s"], round(s["truth_s"], 3)) for s in samples
+            if s.get("remaining_s") is None
+            or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
+
+
+def samples_after_change(result: dict[str, Any], answer_within_s: float) -> list[dict[str, Any]]:
+    """The samples from the one typed change on: the worker asked and answered within
+    `answer_within_s`."""
+    (user,) = result["users"]
+    assert user["asked"] and user["answered"]
+    assert user["answer_wait_s"] < answer_within_s
+    change_t = next(s["print_time"] for s in result["samples"]
+                    if s["position"] >= user["position"])
+    return [s for s in result["samples"] if s["print_time"] >= change_t]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
