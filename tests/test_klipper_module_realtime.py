@@ -35,8 +35,8 @@ from tests.conftest import require_klipper, require_program  # noqa: E402
 pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
-PLAIN_ABS, PLAIN_REL = 0.5, 0.002
-CHANGED_ABS, CHANGED_REL = 1.0, 0.01
+PLAIN_ABS, PLAIN_REL = run_print.PLAIN_ABS, run_print.PLAIN_REL
+CHANGED_ABS, CHANGED_REL = run_print.CHANGED_ABS, run_print.CHANGED_REL
 SETTLE_S = 2.0          # the bar after a change holds from this long after it
 FROM_DURATION_S = 10.0  # ... and from this long after the first extrusion
 HEAT_WAIT_S = 3.0

@@ -33,9 +33,9 @@ FILES = {
     "orcaslicer": "orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode",
     "cura": "cura/cancelobj_cura5.0.0_inverted_pyramid.gcode",
 }
-PLAIN_ABS, PLAIN_REL = 0.5, 0.002
-CHANGED_ABS, CHANGED_REL = 1.0, 0.01
-ANSWER_WITHIN_S = 2.0
+PLAIN_ABS, PLAIN_REL = run_print.PLAIN_ABS, run_print.PLAIN_REL
+CHANGED_ABS, CHANGED_REL = run_print.CHANGED_ABS, run_print.CHANGED_REL
+ANSWER_WITHIN_S = run_print.ANSWER_WITHIN_S
 RELEASES = ["v0.12.0", "v0.13.0", "84104bbbd", "kalico-v2026.07.00"]
 # What each release's git checkout reports as its version (klippy's util.get_git_version):
 # the tarballs the trees are built from have no .git, so klippy/.version says it, as
