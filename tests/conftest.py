@@ -12,6 +12,7 @@ import json
 import os
 import resource
 import shutil
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -236,14 +237,20 @@ def require_klipper() -> tuple[str, str]:
     return paths
 
 
-def load_cura_build_script() -> Any:
-    """plugins/cura/build.py, under a name no installed module has."""
-    spec = importlib.util.spec_from_file_location(
-        "kestimator_cura_build", PROJECT / "plugins" / "cura" / "build.py")
+def load_script(name: str, path: Path) -> Any:
+    """The script at `path` (a benchmark, a build script) imported as module `name`, a name
+    no installed module has; registered in sys.modules, where its dataclasses look it up."""
+    spec = importlib.util.spec_from_file_location(name, path)
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def load_cura_build_script() -> Any:
+    """plugins/cura/build.py, under a name no installed module has."""
+    return load_script("kestimator_cura_build", PROJECT / "plugins" / "cura" / "build.py")
 
 
 def without_progress_table(data: bytes) -> bytes:

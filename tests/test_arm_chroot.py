@@ -16,7 +16,6 @@ Klipper's 1473.045 s, xyzcube 354.288 s against 355.192 s), and which build it c
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import shutil
@@ -27,19 +26,13 @@ from types import ModuleType
 
 import pytest
 
-from .conftest import IN_CI, PROJECT
+from .conftest import IN_CI, PROJECT, load_script
 
 ROOT_ENVIRONMENT = "KESTIMATOR_ARM64_ROOT"
 
 
 def _arm_check() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("arm_check_benchmark",
-                                                  PROJECT / "benchmarks" / "arm_check.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script("arm_check_benchmark", PROJECT / "benchmarks" / "arm_check.py")
 
 
 def _arm64_root() -> Path:

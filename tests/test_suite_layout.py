@@ -6,7 +6,6 @@ them all; what a run makes once for every process (conftest.once_per_run)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import os
 import subprocess
@@ -19,7 +18,13 @@ from typing import Any
 import pytest
 
 from . import conftest
-from .conftest import PROJECT, once_per_run, pytest_collection_modifyitems, recorded_file_times
+from .conftest import (
+    PROJECT,
+    load_script,
+    once_per_run,
+    pytest_collection_modifyitems,
+    recorded_file_times,
+)
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -143,13 +148,7 @@ def test_what_failed_to_be_made_once_is_tried_again_by_the_next_that_asks() -> N
 
 
 def _suite_time() -> Any:
-    spec = importlib.util.spec_from_file_location(
-        "suite_time_benchmark", PROJECT / "benchmarks" / "suite_time.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclass looks its module up there
-    spec.loader.exec_module(module)
-    return module
+    return load_script("suite_time_benchmark", PROJECT / "benchmarks" / "suite_time.py")
 
 
 def test_the_idle_estimate_runs_a_file_waiting_on_the_clock_beside_cpu_bound_ones() -> None:
