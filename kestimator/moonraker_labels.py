@@ -13,7 +13,8 @@ would estimate afresh at print start.
 So, when our parent is that metadata run with object processing on (its ``-c`` config says
 ``check_objects``), our output gets the table of the file Moonraker's labelling will make of
 it, at a cost of at most half a plain post-process more (`MAX_EXTRA_SHARE`; a host may allow
-another share in ``KESTIMATOR_LABEL_AHEAD_SHARE``):
+another share in ``KESTIMATOR_LABEL_AHEAD_SHARE``, and a host whose CPU is never idle a nice
+value for the labelling, instead of idle CPU time only, in ``KESTIMATOR_LABEL_AHEAD_NICE``):
 
 - as we start, Moonraker's own labelling (its interpreter and metadata.py, with the slicer it
   identified from the uploaded file, as it will) runs on a private copy of the upload, beside
@@ -78,6 +79,9 @@ METADATA_TIMEOUT_S = 300.0
 PROCESSOR_TIMEOUT_S = 120.0
 # Where SCHED_IDLE is missing, the labelling program runs this nice: our own run goes first.
 LABEL_NICE = 19
+# A host whose CPU is never idle (a camera stream, other uploads) may run the labelling at a
+# nice value (0 to 19) instead of on idle CPU time only, where it could get none at all.
+NICE_ENVIRONMENT = "KESTIMATOR_LABEL_AHEAD_NICE"
 # preprocess_cancellation's header: "\n\n", this line, "; N known objects", N definitions.
 HEADER_MARKER = b"; Pre-Processed for Cancel-Object support by preprocess_cancellation "
 KNOWN_OBJECTS_RE = re.compile(rb"; (\d+) known objects\n")
@@ -169,16 +173,34 @@ class Labeller:
             raise
         finally:
             os.close(theirs)
-        # Below us: on Linux only on otherwise idle CPU time (SCHED_IDLE), so our own run
-        # never waits for it; it is stopped when it has not finished in time.
-        try:
-            os.sched_setscheduler(proc.pid, os.SCHED_IDLE, os.sched_param(0))
-        except (OSError, AttributeError):
-            try:
-                os.setpriority(os.PRIO_PROCESS, proc.pid, LABEL_NICE)
-            except (OSError, AttributeError):
-                pass
+        _lower_priority(proc.pid, label_nice())
         return LabelRun(proc, ours, copy, time.monotonic())
+
+
+def label_nice() -> int | None:
+    """The nice value NICE_ENVIRONMENT asks for the labelling (0 to 19), or None: idle CPU
+    time only (the default, and for any other value)."""
+    try:
+        nice = int(os.environ.get(NICE_ENVIRONMENT, ""))
+    except ValueError:
+        return None
+    return nice if 0 <= nice <= 19 else None
+
+
+def _lower_priority(pid: int, nice: int | None) -> None:
+    """Put process `pid` below us: by default, on Linux, on otherwise idle CPU time only
+    (SCHED_IDLE), so our own run never waits for it (it is stopped when it has not finished
+    in time); with `nice`, at that nice value (never above our own priority)."""
+    if nice is None:
+        try:
+            os.sched_setscheduler(pid, os.SCHED_IDLE, os.sched_param(0))
+            return
+        except (OSError, AttributeError):
+            nice = LABEL_NICE
+    try:
+        os.setpriority(os.PRIO_PROCESS, pid, max(nice, os.getpriority(os.PRIO_PROCESS, 0)))
+    except (OSError, AttributeError):
+        pass
 
 
 @dataclass

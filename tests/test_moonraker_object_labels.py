@@ -29,7 +29,7 @@ from kestimator.config.klipper_estimator import dump_config
 from kestimator.config.printer_cfg import limits_from_printer_cfg
 from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.estimate import estimate_file
-from kestimator.moonraker_labels import SHARE_ENVIRONMENT, Labeller
+from kestimator.moonraker_labels import NICE_ENVIRONMENT, SHARE_ENVIRONMENT, Labeller
 from kestimator.progress_table import (
     TableError,
     content_matches,
@@ -75,8 +75,11 @@ def _ask_worker(tmp_path: Path, path: Path, use_table: bool = True) -> dict[str,
 def test_an_upload_moonraker_labels_keeps_a_table_made_for_the_labelled_file(
         moonraker_python: str, tmp_path: Path,  # noqa: F811
         monkeypatch: pytest.MonkeyPatch) -> None:
-    # Moonraker's labelling runs ahead on idle CPU time only: on a loaded test host it may
-    # need more than half a post-process (the share itself: the tests below).
+    # Moonraker's labelling runs ahead on idle CPU time only by default. A test host running
+    # three test processes on two CPUs has none (the labelling got no CPU at all and was
+    # stopped at its deadline): it runs at a nice value, as a host whose CPU is never idle is
+    # told to, and may take more than half a post-process (the share itself: the tests below).
+    monkeypatch.setenv(NICE_ENVIRONMENT, "0")
     monkeypatch.setenv(SHARE_ENVIRONMENT, "20")
     data = tmp_path / "printer_data"
     for folder in ("config", "gcodes", "logs", "comms", "database"):
@@ -192,6 +195,34 @@ def test_the_labeller_is_moonrakers_only_when_its_metadata_run_processes_objects
                                found.metadata_timeout_s, 0.0)
     monkeypatch.setattr(moonraker_labels, "_parent_args", lambda pid: ["/bin/sh", "-c", "x"])
     assert moonraker_labels.moonraker_labeller(os.getpid()) is None
+
+
+@pytest.mark.parametrize("value, nice", [(None, None), ("7", 7), ("0", 0), ("20", None),
+                                         ("-5", None), ("idle", None)])
+def test_the_labelling_runs_on_idle_cpu_time_unless_the_host_asks_for_a_nice_value(
+        monkeypatch: pytest.MonkeyPatch, value: str | None, nice: int | None) -> None:
+    """By default Moonraker's labelling run ahead gets idle CPU time only (SCHED_IDLE: our own
+    run never waits for it); KESTIMATOR_LABEL_AHEAD_NICE=0..19 runs it at that nice value
+    instead (never above our own priority), for a host whose CPU is never idle."""
+    from kestimator import moonraker_labels
+
+    if value is None:
+        monkeypatch.delenv(NICE_ENVIRONMENT, raising=False)
+    else:
+        monkeypatch.setenv(NICE_ENVIRONMENT, value)
+    assert moonraker_labels.label_nice() == nice
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        moonraker_labels._lower_priority(child.pid, moonraker_labels.label_nice())
+        if nice is None:
+            assert os.sched_getscheduler(child.pid) == os.SCHED_IDLE
+        else:
+            assert os.sched_getscheduler(child.pid) == os.SCHED_OTHER
+            assert os.getpriority(os.PRIO_PROCESS, child.pid) == max(
+                nice, os.getpriority(os.PRIO_PROCESS, 0))
+    finally:
+        child.kill()
+        child.wait()
 
 
 # Moonraker's metadata run as far as kestimator-compat sees it: a `metadata.py -c CONFIG`
