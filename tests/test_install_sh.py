@@ -31,6 +31,7 @@ from tests.conftest import (
     CORPUS_CFG,
     IN_CI,
     PROJECT,
+    load_script,
     require_klipper,
     require_program,
 )
@@ -657,13 +658,8 @@ def _worker_build(checkout: Path) -> tuple[str, str]:
 
 def _klipper_worker():  # type: ignore[no-untyped-def]
     """The Klipper module's worker.py (its WORKER_BOOT), standard library only."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location(
-        "kestimator_klipper_worker", PROJECT / "plugins" / "klipper" / "kestimator" / "worker.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("kestimator_klipper_worker",
+                       PROJECT / "plugins" / "klipper" / "kestimator" / "worker.py")
 
 
 def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_version(
