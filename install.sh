@@ -14,7 +14,7 @@ VENV="$REPO/.venv-host"
 LAUNCHER="$REPO/plugins/moonraker/klipper_estimator"
 DATA="$HOME/printer_data"
 KLIPPER_DIR="$HOME/klipper"
-MODULE="$REPO/plugins/klipper/kestimator.py"
+MODULE="$REPO/plugins/klipper/kestimator"
 BUILDER="$REPO/plugins/moonraker/build-venv"
 HOOK_MARK="# kestimator: build the new commit (install.sh wrote this hook)"
 YES=0
@@ -235,12 +235,22 @@ conf_writable() {
 state_has() { [ -f "$STATE" ] && grep -qxF "$1" "$STATE"; }
 state_add() { state_has "$1" || printf '%s\n' "$1" >> "$STATE"; }
 
-# The Klipper module: klippy/extras/kestimator.py, a link to this checkout's file (as
-# Klipper add-ons install), kept out of Klipper's git status so its updates stay clean.
+# The Klipper module: klippy/extras/kestimator, a link to this checkout's package (as
+# Klipper add-ons install; Klipper loads extras/kestimator/__init__.py), kept out of
+# Klipper's git status so its updates stay clean. Before it was a package it was one file,
+# linked as klippy/extras/kestimator.py: build-venv (install.sh's first step, and git's
+# hook after an update from Moonraker's panel) moves that link to the package's.
 EXTRAS="$KLIPPER_DIR/klippy/extras"
-MODULE_LINK="$EXTRAS/kestimator.py"
+MODULE_LINK="$EXTRAS/kestimator"
 EXCLUDE="$KLIPPER_DIR/.git/info/exclude"
-EXCLUDE_LINE="klippy/extras/kestimator.py"
+EXCLUDE_LINE="klippy/extras/kestimator"
+OLD_MODULE="$REPO/plugins/klipper/kestimator.py"
+OLD_MODULE_LINK="$EXTRAS/kestimator.py"
+OLD_EXCLUDE_LINE="klippy/extras/kestimator.py"
+# $1 is our link to $2, or nothing is there.
+ours_or_none() {
+    { [ -L "$1" ] && [ "$(readlink "$1")" = "$2" ]; } || { [ ! -e "$1" ] && [ ! -L "$1" ]; }
+}
 link_module() {
     if [ ! -d "$EXTRAS" ]; then
         say "no Klipper at $KLIPPER_DIR (-k DIR): the Klipper module is not linked."
@@ -251,8 +261,13 @@ link_module() {
     elif [ -e "$MODULE_LINK" ] || [ -L "$MODULE_LINK" ]; then
         say "WARNING: $MODULE_LINK exists and is not kestimator's link: left alone."
         return
+    elif ! ours_or_none "$OLD_MODULE_LINK" "$OLD_MODULE"; then
+        say "WARNING: $OLD_MODULE_LINK exists and is not kestimator's link: the Klipper module is not linked (that file is someone else's [kestimator] module)."
+        return
     else
         ln -s "$MODULE" "$MODULE_LINK"
+        # Our link to the module's earlier shape, if build-venv could not move it.
+        rm -f "$OLD_MODULE_LINK" "$EXTRAS/__pycache__/kestimator."*.pyc
         say "Klipper module linked: $MODULE_LINK"
     fi
     if [ -d "$KLIPPER_DIR/.git/info" ] && ! grep -qx "$EXCLUDE_LINE" "$EXCLUDE" 2>/dev/null; then
@@ -267,17 +282,32 @@ link_module() {
     say "To turn it on, add a [kestimator] section to printer.cfg and restart Klipper (see plugins/klipper/README.md)."
 }
 unlink_module() {
-    if [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" = "$MODULE" ]; then
-        rm -f "$MODULE_LINK"
-        # What Klipper's Python compiled of it (Klipper's own .pyc files stay).
-        rm -f "$EXTRAS/__pycache__/kestimator."*.pyc
-        say "Klipper module link removed: restart Klipper when it is not printing (sudo systemctl restart $(service_name klipper)) to unload it."
-    fi
-    if [ -f "$EXCLUDE" ] && grep -qx "$EXCLUDE_LINE" "$EXCLUDE"; then
+    local link target line
+    # Whichever shape is there: the package's link, or the file's (an update not yet
+    # built); only ours.
+    for link in "$MODULE_LINK" "$OLD_MODULE_LINK"; do
+        target=$MODULE
+        [ "$link" = "$MODULE_LINK" ] || target=$OLD_MODULE
+        if [ -L "$link" ] && [ "$(readlink "$link")" = "$target" ]; then
+            rm -f "$link"
+            # What Klipper's Python compiled of the file (Klipper's own .pyc files stay;
+            # the package's are in this checkout).
+            rm -f "$EXTRAS/__pycache__/kestimator."*.pyc
+            say "Klipper module link removed: restart Klipper when it is not printing (sudo systemctl restart $(service_name klipper)) to unload it."
+        fi
+    done
+    for line in "$EXCLUDE_LINE" "$OLD_EXCLUDE_LINE"; do
+        unexclude "$line"
+    done
+}
+# Our line $1 out of Klipper's .git/info/exclude (the file too when install.sh made it and
+# nothing else is in it).
+unexclude() {
+    if [ -f "$EXCLUDE" ] && grep -qxF "$1" "$EXCLUDE"; then
         # Our line out of Klipper's .git/info/exclude, with the newline we put before it.
         local newline_added=0
         if state_has exclude_newline; then newline_added=1; fi
-        python3 - "$EXCLUDE" "$EXCLUDE_LINE" "$newline_added" <<'PYTHON'
+        python3 - "$EXCLUDE" "$1" "$newline_added" <<'PYTHON'
 import os, sys
 path, line, newline_added = sys.argv[1], sys.argv[2].encode() + b"\n", sys.argv[3] == "1"
 data = open(path, "rb").read()
@@ -314,12 +344,11 @@ SECTION_TOOL="$REPO/plugins/klipper/config_section.py"
 # user's yes (-y, or asked), else the uninstall stops and says what to do.
 klipper_section_consent() {
     local found answer=n
-    # Only for this Klipper with our link, or with none (an earlier uninstall removed it):
-    # another kestimator.py there is someone else's.
+    # Only for this Klipper with our link (either shape), or with none (an earlier
+    # uninstall removed it): another kestimator or kestimator.py there is someone else's.
     if [ ! -d "$EXTRAS" ] || [ ! -f "$PRINTER_CFG" ] \
-        || { [ -L "$MODULE_LINK" ] && [ "$(readlink "$MODULE_LINK")" != "$MODULE" ]; } \
-        || { [ ! -L "$MODULE_LINK" ] && [ -e "$MODULE_LINK" ]; } \
-        || [ -e "$EXTRAS/kestimator/__init__.py" ]; then
+        || ! ours_or_none "$MODULE_LINK" "$MODULE" \
+        || ! ours_or_none "$OLD_MODULE_LINK" "$OLD_MODULE"; then
         return 0
     fi
     found=$(python3 "$SECTION_TOOL" find "$PRINTER_CFG" 2>&1) \
@@ -438,7 +467,7 @@ fi
 
 # The venv's build (plugins/moonraker/build-venv, also run by git after an update from
 # Moonraker's panel: the post-merge hook below).
-KESTIMATOR_BUILD="$BUILD" "$BUILDER" || die "building kestimator into $VENV failed (see above)"
+KESTIMATOR_BUILD="$BUILD" KESTIMATOR_KLIPPER_DIR="$KLIPPER_DIR" "$BUILDER" || die "building kestimator into $VENV failed (see above)"
 version_line=$("$VENV/bin/kestimator" --version)
 # After Moonraker's update manager pulls (git pull), git runs this hook before Moonraker
 # restarts its services: the new commit is built as this one was.

@@ -141,8 +141,8 @@ def ask_worker(checkout: str, path: str, printer_cfg: str) -> dict[str, object]:
     import importlib.util
 
     spec = importlib.util.spec_from_file_location(
-        "kestimator_klipper_module", os.path.join(checkout, "plugins", "klipper",
-                                                  "kestimator.py"))
+        "kestimator_klipper_worker", os.path.join(checkout, "plugins", "klipper",
+                                                  "kestimator", "worker.py"))
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -96,9 +96,11 @@ def _upload(base: str, path: Path) -> dict:
 
 
 @contextlib.contextmanager
-def _moonraker(python: str, data: Path, port: int) -> Iterator[subprocess.Popen[bytes]]:
+def _moonraker(python: str, data: Path, port: int,
+               home: Path | None = None) -> Iterator[subprocess.Popen[bytes]]:
+    """Moonraker on `data`, its HOME `home` (default: the data folder)."""
     log = open(data / "logs" / "stdout.log", "wb")
-    env = dict(os.environ, HOME=str(data), XDG_CONFIG_HOME=str(data / "xdg-config"),
+    env = dict(os.environ, HOME=str(home or data), XDG_CONFIG_HOME=str(data / "xdg-config"),
                XDG_CACHE_HOME=str(data / "xdg-cache"))
     env.pop(PYTHON_ENVIRONMENT, None)
     process = subprocess.Popen(

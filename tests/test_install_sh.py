@@ -26,7 +26,15 @@ import pytest
 from kestimator import __version__, compat
 from kestimator.config.resolve import LimitRequest, resolve_limits
 from kestimator.estimate import estimate_file
-from tests.conftest import CORPUS, CORPUS_CFG, PROJECT, require_klipper, require_program
+from tests.conftest import (
+    CORPUS,
+    CORPUS_CFG,
+    IN_CI,
+    PROJECT,
+    load_script,
+    require_klipper,
+    require_program,
+)
 from tests.moonraker_host import (  # noqa: F401 (moonraker_python is the session fixture)
     _free_port,
     _metadata,
@@ -50,11 +58,11 @@ def _git(*args: str, cwd: Path) -> str:
                           text=True, timeout=60).stdout
 
 
-def _checkout(root: Path) -> Path:
-    """`git clone` of this project as it is now (uncommitted changes included), with a local
-    bare repository as its origin."""
-    require_program("git")
-    source = root / "source"
+IDENTITY = ("-c", "user.name=test", "-c", "user.email=test@example.invalid")
+
+
+def _copy_project(source: Path) -> None:
+    """This project's files as they are now (uncommitted changes included) into `source`."""
     listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others",
                              "--exclude-standard"], cwd=PROJECT, check=True,
                             capture_output=True, timeout=60).stdout.decode().split("\0")
@@ -63,10 +71,24 @@ def _checkout(root: Path) -> Path:
         if path.is_file():
             (source / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(path, source / name)
-    identity = ("-c", "user.name=test", "-c", "user.email=test@example.invalid")
+
+
+def _checkout(root: Path, commit: str | None = None) -> Path:
+    """`git clone` of this project as it is now (uncommitted changes included), or as it was
+    at `commit` of its history, with a local bare repository as its origin."""
+    require_program("git")
+    source = root / "source"
+    if commit is None:
+        _copy_project(source)
+    else:
+        source.mkdir(parents=True)
+        archive = subprocess.run(["git", "archive", commit], cwd=PROJECT, check=True,
+                                 capture_output=True, timeout=60).stdout
+        subprocess.run(["tar", "-x", "-C", str(source)], input=archive, check=True,
+                       timeout=60)
     _git("init", "-q", "-b", "main", cwd=source)
     _git("add", "-A", cwd=source)
-    _git(*identity, "commit", "-q", "-m", "kestimator", cwd=source)
+    _git(*IDENTITY, "commit", "-q", "-m", "kestimator", cwd=source)
     _git("clone", "-q", "--bare", str(source), str(root / "origin.git"), cwd=root)
     checkout = root / "home" / "kestimator"
     checkout.parent.mkdir(parents=True)
@@ -161,9 +183,9 @@ def test_install_sh_moonraker_runs_kestimator_updates_it_and_uninstall_restores(
     assert 'printer_cfg = "%s"' % (data / "config" / "printer.cfg") in profile.read_text()
     # The Klipper module is linked as add-ons are, and Klipper's git status stays clean.
     klipper = tmp_path / "home" / "klipper"
-    module_link = klipper / "klippy" / "extras" / "kestimator.py"
-    assert os.readlink(module_link) == str(checkout / "plugins" / "klipper" / "kestimator.py")
-    assert "kestimator.py" not in _git("status", "--porcelain", cwd=klipper)
+    module_link = klipper / "klippy" / "extras" / "kestimator"
+    assert os.readlink(module_link) == str(checkout / "plugins" / "klipper" / "kestimator")
+    assert "kestimator" not in _git("status", "--porcelain", cwd=klipper)
     assert "add a [kestimator] section to printer.cfg" in first.stdout
 
     base = "http://127.0.0.1:%d" % port
@@ -325,16 +347,18 @@ def _tree(root: Path, skip: Path | None) -> dict[str, tuple[object, ...]]:
     return found
 
 
-def _klipper_host(home: Path, data_name: str = "printer_data") -> tuple[Path, Path]:
+def _klipper_host(home: Path, data_name: str = "printer_data",
+                  port: int = 7125) -> tuple[Path, Path]:
     """A host as _host makes it, its ~/klipper the oracle's real klippy (the module links into
     its extras/), printer.cfg including kestimator.cfg with the user's [kestimator] section."""
     klipper, _ = require_klipper()
-    data, _ = _host(home, 7125)
+    data, _ = _host(home, port)
     if data_name != data.name:
         data = data.rename(data.parent / data_name)
     shutil.rmtree(home / "klipper" / "klippy")
     shutil.copytree(Path(klipper) / "klippy", home / "klipper" / "klippy", symlinks=True,
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "kestimator.py"))
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc", "kestimator.py",
+                                                  "kestimator"))
     config = data / "config"
     with open(config / "printer.cfg", "ab") as f:
         f.write(b"\n[include kestimator.cfg]\n")
@@ -345,7 +369,7 @@ def _klipper_host(home: Path, data_name: str = "printer_data") -> tuple[Path, Pa
 def _klipper_starts(klipper_home: Path, printer_cfg: Path, log: Path) -> tuple[bool, str]:
     """Klipper (batch mode, the oracle's MCU dictionary) started on printer_cfg, through its
     configuration to 'Configured MCU' and out: (whether it did, its log's end). Its Python
-    writes .pyc files as on a host (klippy/extras/__pycache__/kestimator.*.pyc too)."""
+    writes .pyc files as on a host (the module's in its package's __pycache__)."""
     oracle_klipper, python = require_klipper()
     env = dict(os.environ, HOME=str(klipper_home.parent))
     env.pop("PYTHONDONTWRITEBYTECODE", None)
@@ -390,7 +414,9 @@ def test_install_sh_uninstall_gives_back_every_byte_and_klipper_starts(
     assert installed.returncode == 0, installed.stdout + installed.stderr
     started, log = _klipper_starts(klipper, data / "config" / "printer.cfg", tmp_path / "on.log")
     assert started, log  # the module is there: Klipper takes the section
-    assert list((klipper / "klippy" / "extras" / "__pycache__").glob("kestimator.*.pyc"))
+    # Klipper loaded the package (its Python compiled it where the link points).
+    assert list((checkout / "plugins" / "klipper" / "kestimator" / "__pycache__").glob(
+        "section.*.pyc"))
     if case == "symlinked_conf":
         assert os.readlink(conf) == str(home / "printer-configs" / "moonraker.conf")
         assert b"[update_manager kestimator]" in kept.read_bytes()
@@ -401,7 +427,7 @@ def test_install_sh_uninstall_gives_back_every_byte_and_klipper_starts(
     elif case == "exclude_no_newline":
         again = _install(checkout, data)
         assert again.returncode == 0, again.stdout + again.stderr
-        assert exclude.read_bytes() == exclude_before + b"\nklippy/extras/kestimator.py\n"
+        assert exclude.read_bytes() == exclude_before + b"\nklippy/extras/kestimator\n"
     elif case == "quote_in_data_path":
         if sys.version_info >= (3, 11):
             import tomllib
@@ -567,7 +593,7 @@ def test_install_sh_uninstall_asks_at_a_terminal_before_commenting_out_the_secti
         b"\n[kestimator]\nset_progress: False\n", b"\n#[kestimator]\n#set_progress: False\n")
     assert not (data / "config" / "moonraker.conf.kestimator.bak").exists()
     assert not os.path.lexists(tmp_path / "home" / "klipper" / "klippy" / "extras" /
-                               "kestimator.py")
+                               "kestimator")
 
 
 def test_install_sh_uninstall_again_after_an_old_uninstall_comments_out_the_section(
@@ -581,16 +607,25 @@ def test_install_sh_uninstall_again_after_an_old_uninstall_comments_out_the_sect
     printer_cfg.write_bytes(user_cfg)
     installed = _install(checkout, data)
     assert installed.returncode == 0, installed.stdout + installed.stderr
-    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").unlink()
+    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator").unlink()
     removed = _install(checkout, data, "--uninstall", "-y")
     assert removed.returncode == 0, removed.stdout + removed.stderr
     assert printer_cfg.read_bytes() == user_cfg[:-len(b"[kestimator]\n")] + b"#[kestimator]\n"
-    # Someone else's kestimator.py in extras/: their module, their section, left alone.
+    # Someone else's kestimator.py, or kestimator package, in extras/: their module, their
+    # section, left alone.
+    extras = tmp_path / "home" / "klipper" / "klippy" / "extras"
     printer_cfg.write_bytes(user_cfg)
-    (tmp_path / "home" / "klipper" / "klippy" / "extras" / "kestimator.py").write_text("")
+    (extras / "kestimator.py").write_text("")
     again = _install(checkout, data, "--uninstall", "-y")
     assert again.returncode == 0, again.stdout + again.stderr
     assert printer_cfg.read_bytes() == user_cfg
+    (extras / "kestimator.py").unlink()
+    (extras / "kestimator").mkdir()
+    (extras / "kestimator" / "__init__.py").write_text("")
+    again = _install(checkout, data, "--uninstall", "-y")
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert printer_cfg.read_bytes() == user_cfg
+    assert (extras / "kestimator" / "__init__.py").exists()
 
 
 def _update_through_moonraker(base: str) -> None:
@@ -610,7 +645,7 @@ def _update_through_moonraker(base: str) -> None:
 def _worker_build(checkout: Path) -> tuple[str, str]:
     """The version and file of the kestimator the Klipper module's worker imports: its boot
     (WORKER_BOOT) run with the venv's Python, printing them instead of serving."""
-    boot = _klipper_module().WORKER_BOOT
+    boot = _klipper_worker().WORKER_BOOT
     run = 'runpy.run_module("kestimator.worker", run_name="__main__", alter_sys=True)'
     assert run in boot
     probe = boot.replace(run, "import kestimator; print(kestimator.__version__, "
@@ -621,14 +656,10 @@ def _worker_build(checkout: Path) -> tuple[str, str]:
     return out[0], out[1] + " " + out[2].strip()
 
 
-def _klipper_module():  # type: ignore[no-untyped-def]
-    import importlib.util
-    spec = importlib.util.spec_from_file_location(
-        "kestimator_klipper_module", PROJECT / "plugins" / "klipper" / "kestimator.py")
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def _klipper_worker():  # type: ignore[no-untyped-def]
+    """The Klipper module's worker.py (its WORKER_BOOT), standard library only."""
+    return load_script("kestimator_klipper_worker",
+                       PROJECT / "plugins" / "klipper" / "kestimator" / "worker.py")
 
 
 def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_version(
@@ -704,6 +735,93 @@ def test_update_from_moonraker_builds_the_new_commit_and_the_panel_shows_its_ver
     (checkout / ".venv-host" / "kestimator-commit").write_text("0" * 40 + "\n")
     version, where = _worker_build(checkout)
     assert version == new_version and where.startswith(str(checkout / "kestimator"))
+
+
+# The module's file before it was a package: installs made then linked it into extras/.
+ONE_FILE_MODULE = "plugins/klipper/kestimator.py"
+
+
+def _one_file_module_commit() -> str:
+    """The newest commit of this project whose Klipper module was one file (ONE_FILE_MODULE)."""
+    require_program("git")
+    last = subprocess.run(["git", "log", "-1", "--format=%H", "HEAD", "--", ONE_FILE_MODULE],
+                          cwd=PROJECT, capture_output=True, text=True, timeout=60).stdout.strip()
+    if not last:
+        message = "this checkout's history does not reach the one-file Klipper module"
+        if IN_CI:
+            pytest.fail(message)
+        pytest.skip(message)
+    there = subprocess.run(["git", "cat-file", "-e", "%s:%s" % (last, ONE_FILE_MODULE)],
+                           cwd=PROJECT, capture_output=True, timeout=60).returncode == 0
+    return last if there else _git("rev-parse", last + "^", cwd=PROJECT).strip()
+
+
+def test_an_update_from_the_one_file_module_links_the_package_and_klipper_loads_it(
+        moonraker_python: str, corpus_root: Path, tmp_path: Path) -> None:  # noqa: F811
+    """A host installed when the Klipper module was one file (klippy/extras/kestimator.py,
+    linked by that commit's install.sh, compiled by Klipper's Python), updated from the panel
+    to this commit: git's hook links the package (klippy/extras/kestimator) in the file's
+    place, Klipper's exclude names it, nothing of the file is left, and real Klipper starts
+    with the [kestimator] section, loading the package. --uninstall then gives it all back."""
+    old = _one_file_module_commit()
+    checkout = _checkout(tmp_path, old)
+    port = _free_port()
+    home = tmp_path / "home"
+    data, klipper = _klipper_host(home, port=port)
+    printer_cfg = data / "config" / "printer.cfg"
+    extras = klipper / "klippy" / "extras"
+    exclude = klipper / ".git" / "info" / "exclude"
+    # Klipper's tree as the user has it (its own .pyc files aside: its runs here write them).
+    def klipper_tree() -> dict[str, tuple[object, ...]]:
+        return {name: value for name, value in _tree(klipper, None).items()
+                if "__pycache__" not in name}
+    before = klipper_tree()
+    installed = _install(checkout, data)
+    assert installed.returncode == 0, installed.stdout + installed.stderr
+    assert os.readlink(extras / "kestimator.py") == str(checkout / ONE_FILE_MODULE)
+    started, log = _klipper_starts(klipper, printer_cfg, tmp_path / "old.log")
+    assert started, log
+    assert list((extras / "__pycache__").glob("kestimator.*.pyc"))
+
+    # This commit, pushed to the origin, and pulled by Moonraker's update manager.
+    source = tmp_path / "source"
+    _git("rm", "-r", "-q", ".", cwd=source)
+    _copy_project(source)
+    _git("add", "-A", cwd=source)
+    _git(*IDENTITY, "commit", "-q", "-m", "the Klipper module as a package", cwd=source)
+    _git("push", "-q", str(tmp_path / "origin.git"), "main", cwd=source)
+    new_commit = _git("rev-parse", "HEAD", cwd=source).strip()
+    base = "http://127.0.0.1:%d" % port
+    stamp = checkout / ".venv-host" / "kestimator-commit"
+    # Moonraker runs as the user it was installed by, HOME theirs (git's hook looks for
+    # Klipper at ~/klipper, where that install.sh linked the file).
+    with _moonraker(moonraker_python, data, port, home=home) as process:
+        _wait_ready(base, process, data / "logs" / "stdout.log")
+        _update_status(base)  # the update manager has read the checkout
+        _update_through_moonraker(base)
+        deadline = time.monotonic() + INSTALL_TIMEOUT_S
+        while (time.monotonic() < deadline
+               and stamp.read_text(errors="replace").strip() != new_commit):
+            time.sleep(0.5)
+    assert _git("rev-parse", "HEAD", cwd=checkout).strip() == new_commit
+    assert stamp.read_text() == new_commit + "\n"
+    assert os.readlink(extras / "kestimator") == str(checkout / "plugins" / "klipper" /
+                                                     "kestimator")
+    assert not os.path.lexists(extras / "kestimator.py")
+    assert not list((extras / "__pycache__").glob("kestimator.*.pyc"))
+    lines = exclude.read_text().splitlines()
+    assert lines.count("klippy/extras/kestimator") == 1
+    assert "klippy/extras/kestimator.py" not in lines
+    assert "kestimator" not in _git("status", "--porcelain", "--ignored=no", cwd=klipper)
+    started, log = _klipper_starts(klipper, printer_cfg, tmp_path / "new.log")
+    assert started, log
+    assert list((checkout / "plugins" / "klipper" / "kestimator" / "__pycache__").glob(
+        "section.*.pyc"))
+
+    removed = _install(checkout, data, "--uninstall", "-y")
+    assert removed.returncode == 0, removed.stdout + removed.stderr
+    assert (data / "config" / "kestimator.cfg").read_bytes() == KESTIMATOR_SECTION_COMMENTED
+    assert klipper_tree() == before
 
 
 def _mainsail_general(base: str) -> dict:

@@ -1,4 +1,4 @@
-"""The Klipper module (plugins/klipper/kestimator.py) with Klipper's objects stubbed at
+"""The Klipper module (the package plugins/klipper/kestimator/) with Klipper's objects stubbed at
 the interfaces it uses (tests/klipper_module/stubs.py): what it says, when it asks the
 worker again, and that nothing it does can leave it. The same module in real Klipper is
 tests/test_klipper_module_real.py."""
@@ -310,7 +310,7 @@ def test_events_are_bounded() -> None:
     followed, and the status says so; the module goes on for the next print."""
     kest, printer, worker = printing()
     vsd = printer.objects["virtual_sdcard"]
-    for k in range(MOD.MAX_EVENTS):
+    for k in range(MOD.events.MAX_EVENTS):
         vsd.file_position = k
         printer.gcode.run("M220", S=str(100 + k))
     assert not kest.disabled and kest.failed is None
@@ -320,19 +320,20 @@ def test_events_are_bounded() -> None:
     status = kest.get_status(0.)
     assert "changes in one print" in status["error"] and status["state"] == "error"
     assert status["remaining_s"] is None and not kest.disabled
-    assert len(kest.events) == MOD.MAX_EVENTS
+    assert len(kest.events) == MOD.events.MAX_EVENTS
 
 
 def test_speed_changes_at_one_file_position_are_one_event() -> None:
     """A macro loop of M220s runs between two lines: only the last factor counts."""
     kest, printer, worker = printing()
     printer.objects["virtual_sdcard"].file_position = 300
-    for k in range(2 * MOD.MAX_EVENTS):
+    for k in range(2 * MOD.events.MAX_EVENTS):
         printer.gcode.run("M220", S=str(50 + k))
     printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="1000")
     printer.gcode.run("SET_VELOCITY_LIMIT", ACCEL="1000")
     assert kest.failed is None and kest.events == [
-        (300, "M220 S%d" % (50 + 2 * MOD.MAX_EVENTS - 1)), (300, "SET_VELOCITY_LIMIT ACCEL=1000")]
+        (300, "M220 S%d" % (50 + 2 * MOD.events.MAX_EVENTS - 1)),
+        (300, "SET_VELOCITY_LIMIT ACCEL=1000")]
 
 
 def test_a_new_print_starts_over() -> None:
@@ -346,19 +347,55 @@ def test_a_new_print_starts_over() -> None:
 
 
 def test_table_time_is_the_last_point_at_or_before_the_position() -> None:
-    table = MOD.Table(answer(1, total=100.))
+    table = MOD.table.Table(answer(1, total=100.))
     assert table.time_at(0) == 0. and table.time_at(250) == 0. and table.time_at(500) == 50.
     assert table.time_at(5000) == 100. and table.time_at(-1) == 0.
 
 
-def test_the_module_imports_only_the_standard_library() -> None:
-    with open(stubs.MODULE_PATH) as f:
+def test_the_module_is_a_package_of_files_under_400_lines_with_load_config_in_init() -> None:
+    """Shaped as klippy's extras packages (extras/display/): __init__.py holds
+    `load_config` and imports, every other file one concern under 400 lines, and the
+    hooks taken from Klipper listed in one file."""
+    files = sorted(name for name in os.listdir(stubs.PACKAGE_PATH) if name.endswith(".py"))
+    assert "__init__.py" in files and len(files) > 2
+    for name in files:
+        with open(os.path.join(stubs.PACKAGE_PATH, name)) as f:
+            assert len(f.read().splitlines()) < 400, name
+    with open(os.path.join(stubs.PACKAGE_PATH, "__init__.py")) as f:
         tree = ast.parse(f.read())
-    names = {alias.name.split(".")[0] for node in ast.walk(tree)
-             if isinstance(node, ast.Import) for alias in node.names}
-    names |= {node.module.split(".")[0] for node in ast.walk(tree)
-              if isinstance(node, ast.ImportFrom) and node.module}
-    assert names <= set(sys.stdlib_module_names)
+    defined = [node for node in tree.body
+               if not isinstance(node, (ast.Import, ast.ImportFrom, ast.Expr))]
+    assert [(type(node), getattr(node, "name", None)) for node in defined] == [
+        (ast.FunctionDef, "load_config")]
+    assert MOD.load_config is not None and not hasattr(MOD, "load_config_prefix")
+    holders = []
+    for name in files:
+        with open(os.path.join(stubs.PACKAGE_PATH, name)) as f:
+            if "KLIPPER_HOOKS: " in f.read():
+                holders.append(name)
+    assert holders == ["hooks.py"]
+
+
+def test_the_module_imports_only_the_standard_library_and_its_own_files() -> None:
+    files = sorted(name for name in os.listdir(stubs.PACKAGE_PATH) if name.endswith(".py"))
+    own = {name[:-3] for name in files}
+    for name in files:
+        with open(os.path.join(stubs.PACKAGE_PATH, name)) as f:
+            tree = ast.parse(f.read())
+        names = {alias.name.split(".")[0] for node in ast.walk(tree)
+                 if isinstance(node, ast.Import) for alias in node.names}
+        names |= {node.module.split(".")[0] for node in ast.walk(tree)
+                  if isinstance(node, ast.ImportFrom) and node.level == 0 and node.module}
+        assert names <= set(sys.stdlib_module_names), name
+        # Its own files by relative imports only (`from . import x`, `from .x import y`):
+        # Klipper imports the package as extras.kestimator, Kalico as
+        # klippy.extras.kestimator.
+        relative = {node.module or alias.name for node in ast.walk(tree)
+                    if isinstance(node, ast.ImportFrom) and node.level > 0
+                    for alias in node.names}
+        assert all(node.level in (0, 1) for node in ast.walk(tree)
+                   if isinstance(node, ast.ImportFrom)), name
+        assert relative <= own, name
 
 
 def test_the_real_worker_answers_through_the_reactors_fd_callback(tmp_path: Any) -> None:
@@ -427,7 +464,7 @@ def test_a_new_print_stops_the_worker_busy_with_the_last_and_asks_a_fresh_one(
     restart; an answer for x arriving late all the same is not taken for y's."""
     kest, printer, worker = printing()
     fresh = FakeWorker()
-    monkeypatch.setattr(MOD, "Worker", lambda *args, **kw: fresh)
+    monkeypatch.setattr(MOD.estimates, "Worker", lambda *args, **kw: fresh)
     printer.send_event("virtual_sdcard:reset_file")
     assert worker.killed and kest.worker is fresh
     printer.objects["virtual_sdcard"].path = "/sd/y.gcode"
@@ -543,7 +580,7 @@ def test_an_oversized_answer_never_reaches_the_reactor_and_is_not_accumulated(
     try:
         printer.reactor.pump_fds(until)   # raises if the fd callback lets anything out
         assert "too large" in kest.error
-        assert longest[0] <= MOD.MAX_ANSWER_BYTES
+        assert longest[0] <= MOD.worker.MAX_ANSWER_BYTES
         assert not kest.disabled and unknown(kest.get_status(0.))
         # refused, not retried: the same request would get the same answer
         assert kest.worker is worker
@@ -641,10 +678,10 @@ def test_a_worker_that_dies_is_restarted_with_a_back_off_a_bounded_number_of_tim
             if "no more" in kest.error:
                 break
             printer.reactor.advance(60.)
-        assert len(starts) == 1 + MOD.MAX_RESTARTS    # klippy:ready's and the restarts
+        assert len(starts) == 1 + MOD.estimates.MAX_RESTARTS    # klippy:ready's and the restarts
         assert unknown(kest.get_status(0.)) and kest.get_status(0.)["state"] == "error"
         restarts = [r for r in caplog.records if "restarting the worker" in r.getMessage()]
-        assert len(restarts) == MOD.MAX_RESTARTS
+        assert len(restarts) == MOD.estimates.MAX_RESTARTS
     finally:
         kest._stop_worker()
 
@@ -659,8 +696,8 @@ def test_the_worker_starts_at_ready_not_in_a_timer(monkeypatch: pytest.MonkeyPat
     try:
         assert kest.worker is not None
         started = []
-        real_popen = MOD.subprocess.Popen
-        monkeypatch.setattr(MOD.subprocess, "Popen",
+        real_popen = MOD.worker.subprocess.Popen
+        monkeypatch.setattr(MOD.worker.subprocess, "Popen",
                             lambda *a, **k: started.append(a) or real_popen(*a, **k))
         start_print(printer, str(gcode))
         printer.reactor.pump_fds(lambda: kest.table is not None or kest.error is not None)
@@ -687,13 +724,13 @@ def test_a_worker_that_died_before_the_write_is_handled_not_raised(
         monkeypatch: pytest.MonkeyPatch, tmp_path: Any) -> None:
     """The race behind the flaky test: the worker has exited when the request is written
     (BrokenPipeError). Here it always has."""
-    real_popen = MOD.subprocess.Popen
+    real_popen = MOD.worker.subprocess.Popen
 
     def exited(*a: Any, **k: Any) -> Any:
         proc = real_popen(*a, **k)
         proc.wait()
         return proc
-    monkeypatch.setattr(MOD.subprocess, "Popen", exited)
+    monkeypatch.setattr(MOD.worker.subprocess, "Popen", exited)
     bare = tmp_path / "python"
     bare.write_text("#!/bin/sh\nexit 1\n")
     bare.chmod(0o755)
@@ -720,17 +757,17 @@ def big_answer(request_id: int, **fields: Any) -> dict[str, Any]:
 def test_answers_beyond_the_workers_own_limits_are_refused_in_a_short_callback(
         case: str) -> None:
     kest, printer, worker = printing()
-    n = {"objects": MOD.MAX_OBJECTS + 1, "names": 200000}.get(case)
+    n = {"objects": MOD.table.MAX_OBJECTS + 1, "names": 200000}.get(case)
     if n is not None:
         doc = big_answer(1, object_names=["o%d" % i for i in range(n)],
                          object_offsets_b64=b64("q", [0]),
                          object_remaining_b64=b64("d", [1.] * n))
     elif case == "points":
-        m = MOD.MAX_TIME_POINTS + 1
+        m = MOD.table.MAX_TIME_POINTS + 1
         doc = big_answer(1, offsets_b64=b64("q", list(range(m))),
                          times_b64=b64("d", [i / m for i in range(m)]), total_s=1.)
     elif case == "object_points":
-        m = MOD.MAX_OBJECT_POINTS + 1
+        m = MOD.table.MAX_OBJECT_POINTS + 1
         doc = big_answer(1, object_offsets_b64=b64("q", list(range(m))),
                          object_remaining_b64=b64("d", [0.] * (2 * m)))
     elif case == "long_name":
@@ -853,11 +890,11 @@ def test_the_modules_limits_are_the_table_writers() -> None:
     """The module refuses what the worker's writer never writes, and nothing it writes."""
     from kestimator import progress_table, worker
 
-    assert MOD.MAX_TIME_POINTS == progress_table.MAX_TABLE_POINTS
-    assert MOD.MAX_OBJECT_POINTS == progress_table.MAX_OBJECT_POINTS
-    assert MOD.MAX_OBJECTS == progress_table.MAX_OBJECTS
-    assert MOD.MAX_NAME_CHARS >= progress_table.MAX_NAME_BYTES
-    assert worker.MAX_ANSWER_BYTES < MOD.MAX_ANSWER_BYTES
+    assert MOD.table.MAX_TIME_POINTS == progress_table.MAX_TABLE_POINTS
+    assert MOD.table.MAX_OBJECT_POINTS == progress_table.MAX_OBJECT_POINTS
+    assert MOD.table.MAX_OBJECTS == progress_table.MAX_OBJECTS
+    assert MOD.table.MAX_NAME_CHARS >= progress_table.MAX_NAME_BYTES
+    assert worker.MAX_ANSWER_BYTES < MOD.worker.MAX_ANSWER_BYTES
 
 
 def _table_after(kest: Any, printer: stubs.Printer, path: str) -> float:
@@ -1017,8 +1054,8 @@ def test_without_display_next_stop_the_display_message_is_left_alone() -> None:
 def test_the_modules_stop_limits_are_the_table_writers() -> None:
     from kestimator import progress_table
 
-    assert MOD.MAX_STOPS == progress_table.MAX_TABLE_STOPS
-    assert MOD.MAX_STOP_COMMAND_CHARS == progress_table.MAX_STOP_COMMAND_BYTES
+    assert MOD.table.MAX_STOPS == progress_table.MAX_TABLE_STOPS
+    assert MOD.table.MAX_STOP_COMMAND_CHARS == progress_table.MAX_STOP_COMMAND_BYTES
 
 
 def test_after_resuming_from_a_stop_it_stays_behind() -> None:

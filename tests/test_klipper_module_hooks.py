@@ -1,6 +1,6 @@
 """The Klipper module in a Klipper newer than it knows: a copy of the oracle's Klipper
 84104bbbd tree in which a hook the module takes (KLIPPER_HOOKS in
-plugins/klipper/kestimator.py) is renamed, everywhere Klipper itself uses it. A corpus
+plugins/klipper/kestimator/hooks.py) is renamed, everywhere Klipper itself uses it. A corpus
 file prints there in batch mode (tests/klipper_module/run_print.py): Klipper finishes the
 print, display_status is Klipper's own (never answered through the module), and the
 module says once in klippy.log and in its status which hook is missing."""

@@ -67,7 +67,7 @@ filename: %(dir)s/variables.cfg
 # as its calibration needs NumPy; load_cell, palette2 and ldc1612 alone are left out: NumPy,
 # a serial device, a probe's part), and the project's own Klipper module, [kestimator]
 # (plugins/klipper/; its worker is not started: batch mode ends before it would be used).
-PROJECT_MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
+PROJECT_MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator")
 PROBE_BASE = "config/printer-creality-ender3-v2-2020.cfg"
 EXTRA_PROBES = {
     "kestimator": "\n[kestimator]\npython: /bin/false\n",
@@ -248,11 +248,13 @@ def _in_klipper(out: str, klippy_dir: str, argv: list[str]) -> None:
 
     def load_project_module(self: Any, config: Any, section: str) -> Any:
         # The project's own Klipper module ([kestimator], plugins/klipper/), loaded as
-        # klippy's load_object loads an extras file a user linked.
+        # klippy's load_object loads an extras package a user linked.
         import importlib.util
         if section in self.objects:
             return self.objects[section]
-        spec = importlib.util.spec_from_file_location("extras.kestimator", PROJECT_MODULE)
+        spec = importlib.util.spec_from_file_location(
+            "extras.kestimator", os.path.join(PROJECT_MODULE, "__init__.py"),
+            submodule_search_locations=[PROJECT_MODULE])
         assert spec is not None and spec.loader is not None
         mod = importlib.util.module_from_spec(spec)
         sys.modules["extras.kestimator"] = mod

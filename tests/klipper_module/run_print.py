@@ -27,7 +27,7 @@ ROOT = os.path.dirname(os.path.dirname(HERE))
 SHARED = os.path.join(os.path.dirname(ROOT), "shared")
 ORACLE_DIR = os.path.join(SHARED, "tools", "oracle")
 CORPUS_CFG = os.path.join(SHARED, "corpus", "printer.cfg")
-MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
+MODULE = os.path.join(ROOT, "plugins", "klipper", "kestimator")
 
 
 def oracle_paths() -> tuple[str, str] | None:
@@ -110,10 +110,21 @@ def _run_klippy_until(out: str, klipper: str, kpython: str, cfg: str, batch: str
 
 
 def _link(src: str, klipper: str, name: str) -> None:
-    """Point klippy/extras/`name` at `src`. Prints run in parallel threads and processes,
-    so the link is made under a name of its own and renamed over `dst`: a check-then-create
-    raced (FileExistsError) when two prints linked the same module at once."""
+    """Point klippy/extras/`name` at `src` (a module's file, or a package's folder as the
+    kestimator module is). Prints run in parallel threads and processes, so the link is
+    made under a name of its own and renamed over `dst`: a check-then-create raced
+    (FileExistsError) when two prints linked the same module at once."""
     dst = os.path.join(klipper, "klippy", "extras", name)
+    if os.path.isdir(src):
+        # A package's earlier shape, one file linked as NAME.py: the package shadows it
+        # (Python imports a folder's package before a module of the same name), and it
+        # would be left broken once the checkout it points into moves on.
+        old = dst + ".py"
+        if os.path.islink(old):
+            try:
+                os.unlink(old)
+            except FileNotFoundError:
+                pass
     if os.path.lexists(dst) and os.path.realpath(dst) == os.path.realpath(src):
         return
     tmp = "%s.%d.%d.tmp" % (dst, os.getpid(), threading.get_ident())
@@ -192,7 +203,7 @@ def run_print(src: str, work: str, samples: int = 12,
                        check=True, capture_output=True, cwd=work)
     if finish_file is not None:
         finish_file(test_file)
-    _link(MODULE, klipper, "kestimator.py")
+    _link(MODULE, klipper, "kestimator")
     _link(os.path.join(HERE, "ktest_probe.py"), klipper, "ktest_probe.py")
     _link(os.path.join(ORACLE_DIR, "oracle_probe.py"), klipper, "oracle_probe.py")
     batch = os.path.join(work, "batch.gcode")

@@ -78,7 +78,7 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
     if inject:
         subprocess.run([python, "-m", "kestimator", "inject", test_file, "--printer-cfg", cfg],
                        check=True, capture_output=True, cwd=work)
-    run_print._link(run_print.MODULE, klipper, "kestimator.py")
+    run_print._link(run_print.MODULE, klipper, "kestimator")
     run_print._link(os.path.join(HERE, "ktest_realtime.py"), klipper, "ktest_realtime.py")
     run_print._link(os.path.join(run_print.ORACLE_DIR, "oracle_probe.py"), klipper,
                     "oracle_probe.py")

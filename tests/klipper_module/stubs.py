@@ -6,18 +6,27 @@ from __future__ import annotations
 import importlib.util
 import os
 import select
+import sys
 import time
 from typing import Any, Callable
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-MODULE_PATH = os.path.join(ROOT, "plugins", "klipper", "kestimator.py")
+PACKAGE_PATH = os.path.join(ROOT, "plugins", "klipper", "kestimator")
+NAME = "klippy_extras_kestimator"
 
 
 def load_module() -> Any:
-    """plugins/klipper/kestimator.py, loaded as Klipper loads an extras module."""
-    spec = importlib.util.spec_from_file_location("klippy_extras_kestimator", MODULE_PATH)
+    """plugins/klipper/kestimator/, loaded as Klipper loads an extras package (its
+    __init__.py as a package, its files by their relative imports); loaded afresh each
+    time. Its files are the package's attributes (`module.table.Table`)."""
+    for name in [name for name in sys.modules if name == NAME or name.startswith(NAME + ".")]:
+        del sys.modules[name]
+    spec = importlib.util.spec_from_file_location(
+        NAME, os.path.join(PACKAGE_PATH, "__init__.py"),
+        submodule_search_locations=[PACKAGE_PATH])
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[NAME] = module
     spec.loader.exec_module(module)
     return module
 
