@@ -35,10 +35,6 @@ from tests.conftest import require_klipper, require_program  # noqa: E402
 pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
-PLAIN_ABS, PLAIN_REL = run_print.PLAIN_ABS, run_print.PLAIN_REL
-CHANGED_ABS, CHANGED_REL = run_print.CHANGED_ABS, run_print.CHANGED_REL
-SETTLE_S = 2.0          # the bar after a change holds from this long after it
-FROM_DURATION_S = 10.0  # ... and from this long after the first extrusion
 HEAT_WAIT_S = 3.0
 
 
@@ -174,9 +170,6 @@ CASES = {
     "velocity_limit": _case_velocity_limit,
     "speed_change": _case_speed_change,
 }
-# Typed commands that do not change the time left (a pause's time is left out; a
-# display message; an echo).
-TIMELESS = ("PAUSE", "RESUME", "M117", "ECHO")
 
 
 @pytest.fixture(scope="module")
@@ -206,30 +199,7 @@ def _kest(sample: dict[str, Any]) -> dict[str, Any]:
     return dict(sample["status"].get("kestimator", {}))
 
 
-def _checked(samples: list[dict[str, Any]],
-             typed: list[dict[str, Any]]) -> list[tuple[dict[str, Any], float, float]]:
-    """The samples the bars apply to, each with its bar (absolute, relative): from 10 s of
-    print_duration, leaving out the 2 s after each typed command. A change typed later
-    makes what Klipper then takes differ from what anyone could know before it: a print
-    with a change is checked from 2 s after it (its only one that changes the time)."""
-    changes = [t for t in typed if t["cmd"].split()[0] not in TIMELESS]
-    start = changes[-1]["done_eventtime"] + SETTLE_S if changes else 0.
-    out = []
-    for sample in samples:
-        stats = sample["status"].get("print_stats", {})
-        if stats.get("state") not in ("printing", "paused"):
-            continue
-        if stats.get("print_duration", 0.) < FROM_DURATION_S:
-            continue
-        eventtime = sample["eventtime"]
-        if eventtime < start:
-            continue
-        if any(t["eventtime"] <= eventtime < t["done_eventtime"] + SETTLE_S for t in typed):
-            continue
-        changed = any(t["done_eventtime"] <= eventtime for t in typed)
-        bar = (CHANGED_ABS, CHANGED_REL) if changed else (PLAIN_ABS, PLAIN_REL)
-        out.append((sample, bar[0], bar[1]))
-    return out
+_checked = run_realtime.checked_samples
 
 
 def _off(result: dict[str, Any]) -> list[Any]:
