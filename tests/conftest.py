@@ -238,7 +238,7 @@ def require_klipper() -> tuple[str, str]:
 
 
 # The Klipper releases the module runs on (tests/test_klipper_module_releases.py, and
-# tests/test_klipper_module_realtime_releases.py in real time), and what each release's git
+# tests/test_klipper_module_realtime.py at wall-clock speed), and what each release's git
 # checkout reports as its version (klippy's util.get_git_version): the tarballs the trees are
 # built from have no .git, so klippy/.version says it, as Klipper's own release packaging
 # does; the module hands it to its worker, which times the print with that release's rules

@@ -3,7 +3,7 @@ tests/test_klipper_module_realtime.py (real Klipper at wall-clock speed with the
 Markdown table: status cycles checked, the worst error of `remaining_s` against the time
 Klipper then took, the worst of Mainsail's own estimate and ETA (its store code,
 tests/frontends/), and the module's longest reactor callback. With --releases: the print of
-tests/test_klipper_module_realtime_releases.py in each release it runs on instead, with
+each release (tests/test_klipper_module_realtime.py's RELEASES) instead, with
 each print's wall time.
 
     python3 tests/klipper_module/measure_realtime.py [--releases]   (about 9 or 5 minutes)
@@ -26,7 +26,6 @@ sys.path.insert(0, str(HERE.parent / "frontends"))
 import frontends  # noqa: E402
 
 from tests import test_klipper_module_realtime as rt  # noqa: E402
-from tests import test_klipper_module_realtime_releases as rel  # noqa: E402
 from tests.conftest import require_release  # noqa: E402
 
 
@@ -49,7 +48,7 @@ def row(name: str, result: dict[str, Any]) -> str:
 def _timed(release: str, work: Path) -> dict[str, Any]:
     tree, cfg = require_release(release)
     start = time.monotonic()
-    result = rel._print(work, tree, cfg)
+    result = rt._case_release(work, tree, cfg)
     result["wall_s"] = time.monotonic() - start
     return result
 
@@ -67,7 +66,7 @@ def main() -> None:
             concurrent.futures.ThreadPoolExecutor(max_workers=3) as pool:
         if args.releases:
             futures = {release: pool.submit(_timed, release, Path(tmp) / release)
-                       for release in rel.RELEASES}
+                       for release in rt.RELEASES}
         else:
             futures = {name: pool.submit(case, Path(tmp) / name)
                        for name, case in rt.CASES.items()}

@@ -8,7 +8,7 @@ kestimator module loaded, and hold what the module said against what Klipper the
 The print takes as long as it takes on a printer (batch-mode Klipper made real-time by
 ktest_realtime.py, beside this file). Needs the oracle's Klipper (run_print.oracle_paths),
 or another tree given as `klipper_tree` (Klipper v0.12.0, v0.13.0, Kalico v2026.07.00:
-tests/test_klipper_module_realtime_releases.py), run as run_print runs it.
+tests/test_klipper_module_realtime.py RELEASES), run as run_print runs it.
 Commands given with --before are typed at the console before the print starts (they
 persist, as Mainsail's limit sliders do until a restart); --at types a command when the
 print reaches a fraction of the file, --after that many seconds after the previous one.
