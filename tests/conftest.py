@@ -237,6 +237,61 @@ def require_klipper() -> tuple[str, str]:
     return paths
 
 
+# The Klipper releases the module runs on (tests/test_klipper_module_releases.py, and
+# tests/test_klipper_module_realtime.py at wall-clock speed), and what each release's git
+# checkout reports as its version (klippy's util.get_git_version): the tarballs the trees are
+# built from have no .git, so klippy/.version says it, as Klipper's own release packaging
+# does; the module hands it to its worker, which times the print with that release's rules
+# (limits.klipper_release). 84104bbbd reports "?" (today's rules).
+RELEASES = ["v0.12.0", "v0.13.0", "84104bbbd", "kalico-v2026.07.00"]
+RELEASE_VERSIONS = {"v0.12.0": "v0.12.0-0-g0d67d9c4", "v0.13.0": "v0.13.0-0-g61c0c8d2",
+                    "kalico-v2026.07.00": "v2026.07.00-0-g30c65e09"}
+
+
+def require_release(release: str) -> tuple[tuple[str, str], str]:
+    """((Klipper tree, its Python), printer.cfg) of `release` (one of RELEASES), built as
+    .ci/klipper-setup builds 84104bbbd, its place taken from ORACLE_KLIPPER_V0_12_0,
+    ORACLE_KLIPPER_V0_13_0, ORACLE_KALICO and ORACLE_KALICO_PYTHON (defaults:
+    /var/tmp/oracle-<release>/); its printer.cfg the one tests/oracle_refs_releases/ made
+    its references with. Skipped when the tree is not built here, but under CI it must be
+    (.ci/run builds it)."""
+    if release == "84104bbbd":
+        return require_klipper(), str(CORPUS_CFG)
+    oracle = require_klipper()
+    refs = PROJECT / "tests" / "oracle_refs_releases"
+    if release.startswith("kalico-"):
+        tree = os.environ.get("ORACLE_KALICO", "/var/tmp/oracle-kalico/kalico")
+        python = os.environ.get("ORACLE_KALICO_PYTHON", "/var/tmp/oracle-kalico/venv/bin/python")
+        cfg = refs / release / "printer.cfg"
+    else:
+        tree = os.environ.get("ORACLE_KLIPPER_" + release.upper().replace(".", "_"),
+                              "/var/tmp/oracle-%s/klipper" % release)
+        python = oracle[1]
+        cfg = refs / ("klipper-" + release) / "printer.cfg"
+    if not (os.path.exists(os.path.join(tree, "out", "klipper.dict"))
+            and os.path.exists(python)):
+        if IN_CI:
+            pytest.fail("the %s tree is not built at %s (.ci/run builds it)" % (release, tree))
+        pytest.skip("the %s tree is not built here (%s)" % (release, tree))
+    _report_version(tree, RELEASE_VERSIONS[release])
+    return (tree, python), str(cfg)
+
+
+def _report_version(tree: str, version: str) -> None:
+    """`tree`'s klippy/.version says `version` (written once, atomically)."""
+    path = os.path.join(tree, "klippy", ".version")
+    try:
+        with open(path) as f:
+            if f.read().strip() == version:
+                return
+    except OSError:
+        pass
+    tmp = "%s.%d.tmp" % (path, os.getpid())
+    with open(tmp, "w") as f:
+        f.write(version + "\n")
+    os.replace(tmp, path)
+
+
 def load_script(name: str, path: Path) -> Any:
     """The script at `path` (a benchmark, a build script) imported as module `name`, a name
     no installed module has; registered in sys.modules, where its dataclasses look it up."""

@@ -11,8 +11,18 @@ state typed before the print. A change typed mid-print is checked from 2 s after
 change (that alters the time) per print. Two multi-colour prints (tests/stop_refs) pause
 at their colour changes and pauses and are resumed: `next_stop` is held to the same bars
 against the time Klipper then took to stand at the next stop, and the guide's stop notice
-and `display_next_stop` are run there. The prints all run at once (they mostly wait on the
-wall clock); together they take as long as the longest.
+and `display_next_stop` are run there.
+
+On every release the module supports: one print each in Klipper v0.12.0, v0.13.0 and Kalico
+v2026.07.00 (RELEASES, each with its own printer.cfg, the one tests/oracle_refs_releases/
+made its references with; its tree found by tests/conftest.py's require_release: a missing
+tree skips, but under CI it fails) covers what 84104bbbd's cases cover one by one: arcs,
+labelled objects, a speed factor set before the print; an object excluded, a speed change,
+a pause resumed, typed; a heater wait in the file. Each is held to the same bars at every
+status cycle, and so is Mainsail's arithmetic.
+
+The prints all run at once (they mostly wait on the wall clock); together they take as long
+as the longest.
 """
 from __future__ import annotations
 
@@ -30,15 +40,11 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "kli
 import run_print  # noqa: E402
 import run_realtime  # noqa: E402
 
-from tests.conftest import require_klipper, require_program  # noqa: E402
+from tests.conftest import require_klipper, require_program, require_release  # noqa: E402
 
 pytestmark = pytest.mark.wall_clock  # tests/conftest.py starts it first
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 REFS = Path(__file__).parent / "oracle_refs"
-PLAIN_ABS, PLAIN_REL = run_print.PLAIN_ABS, run_print.PLAIN_REL
-CHANGED_ABS, CHANGED_REL = run_print.CHANGED_ABS, run_print.CHANGED_REL
-SETTLE_S = 2.0          # the bar after a change holds from this long after it
-FROM_DURATION_S = 10.0  # ... and from this long after the first extrusion
 HEAT_WAIT_S = 3.0
 
 
@@ -164,6 +170,35 @@ def _case_speed_change_before_stops(work: Path) -> dict[str, Any]:
                                      script=script)
 
 
+# The older releases the module runs on (84104bbbd's prints are the cases above), each with
+# one print: _case_release.
+RELEASES = ["v0.12.0", "v0.13.0", "kalico-v2026.07.00"]
+RELEASE_TYPED = ["EXCLUDE_OBJECT", "M220", "PAUSE", "RESUME"]
+RELEASE_PAUSED_S = 6.0
+
+
+def _case_release(work: Path, tree: tuple[str, str], cfg: str) -> dict[str, Any]:
+    """A release's one print (tree: (Klipper tree, its Python); cfg: its printer.cfg): the
+    labelled ArcWelder file, a speed factor set before the print; an object excluded, a
+    slower speed, a pause and its resume typed; a heater wait in the file."""
+    work.mkdir(parents=True, exist_ok=True)
+    src = CORPUS / "prusaslicer" / "cancelobj_ps2.4.0a1_arcwelder.gcode"
+    labelled = _labelled(src, work / "labelled.gcode")
+    names = [line.split(b"NAME=")[1].split()[0].decode()
+             for line in labelled.read_bytes().split(b"\n")
+             if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
+    test_file = _with_heater_wait(labelled, work / "test_src.gcode", 0.8)
+    result = run_realtime.run_realtime(
+        str(test_file), str(work / "print"), heat_wait=HEAT_WAIT_S, before=["M220 S200"],
+        base_cfg=cfg, klipper_tree=tree,
+        script=[{"at": 0.15, "cmd": "EXCLUDE_OBJECT NAME=%s" % names[-1]},
+                {"at": 0.3, "cmd": "M220 S170"},
+                {"at": 0.5, "cmd": "PAUSE"},
+                {"after": RELEASE_PAUSED_S, "cmd": "RESUME"}])
+    result["excluded_name"] = names[-1]
+    return result
+
+
 CASES = {
     "speed_change_before_stops": _case_speed_change_before_stops,
     "exclusion_pause_heater_wait": _case_exclusion_pause_heater_wait,
@@ -174,23 +209,32 @@ CASES = {
     "velocity_limit": _case_velocity_limit,
     "speed_change": _case_speed_change,
 }
-# Typed commands that do not change the time left (a pause's time is left out; a
-# display message; an echo).
-TIMELESS = ("PAUSE", "RESUME", "M117", "ECHO")
 
 
 @pytest.fixture(scope="module")
 def prints(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
-    """Every case's print, started at once; each test waits for its own."""
+    """Every case's print and every release's, started at once; each test waits for its
+    own. A release whose tree is missing gets its skip (or, under CI, its failure)
+    instead."""
     require_klipper()
-    pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(CASES))
-    futures = {name: pool.submit(case, tmp_path_factory.mktemp(name))
-               for name, case in CASES.items()}
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=len(CASES) + len(RELEASES))
+    started: dict[str, Any] = {name: pool.submit(case, tmp_path_factory.mktemp(name))
+                               for name, case in CASES.items()}
+    for release in RELEASES:
+        try:
+            tree, cfg = require_release(release)
+        except (pytest.skip.Exception, pytest.fail.Exception) as outcome:
+            started[release] = outcome
+            continue
+        started[release] = pool.submit(_case_release, tmp_path_factory.mktemp(release), tree,
+                                       cfg)
     pool.shutdown(wait=False)
-    return futures
+    return started
 
 
 def _result(prints: dict[str, Any], name: str) -> dict[str, Any]:
+    if isinstance(prints[name], BaseException):
+        raise prints[name]
     result: dict[str, Any] = prints[name].result()
     # Klipper finished the print as a printer would: no error, never starved of moves.
     assert result["state"] == "complete", result["state"]
@@ -206,30 +250,7 @@ def _kest(sample: dict[str, Any]) -> dict[str, Any]:
     return dict(sample["status"].get("kestimator", {}))
 
 
-def _checked(samples: list[dict[str, Any]],
-             typed: list[dict[str, Any]]) -> list[tuple[dict[str, Any], float, float]]:
-    """The samples the bars apply to, each with its bar (absolute, relative): from 10 s of
-    print_duration, leaving out the 2 s after each typed command. A change typed later
-    makes what Klipper then takes differ from what anyone could know before it: a print
-    with a change is checked from 2 s after it (its only one that changes the time)."""
-    changes = [t for t in typed if t["cmd"].split()[0] not in TIMELESS]
-    start = changes[-1]["done_eventtime"] + SETTLE_S if changes else 0.
-    out = []
-    for sample in samples:
-        stats = sample["status"].get("print_stats", {})
-        if stats.get("state") not in ("printing", "paused"):
-            continue
-        if stats.get("print_duration", 0.) < FROM_DURATION_S:
-            continue
-        eventtime = sample["eventtime"]
-        if eventtime < start:
-            continue
-        if any(t["eventtime"] <= eventtime < t["done_eventtime"] + SETTLE_S for t in typed):
-            continue
-        changed = any(t["done_eventtime"] <= eventtime for t in typed)
-        bar = (CHANGED_ABS, CHANGED_REL) if changed else (PLAIN_ABS, PLAIN_REL)
-        out.append((sample, bar[0], bar[1]))
-    return out
+_checked = run_realtime.checked_samples
 
 
 def _off(result: dict[str, Any]) -> list[Any]:
@@ -241,14 +262,14 @@ def _off(result: dict[str, Any]) -> list[Any]:
             or abs(s["error_s"]) > absolute + relative * s["truth_s"]]
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(CASES) + RELEASES)
 def test_remaining_time_follows_klipper_at_every_status_cycle(prints: dict[str, Any],
                                                               name: str) -> None:
     result = _result(prints, name)
     assert _off(result) == []
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(CASES) + RELEASES)
 def test_display_status_gives_the_front_ends_klippers_remaining_time(prints: dict[str, Any],
                                                                       name: str) -> None:
     """display_status's progress is D / (D + R) in the very status cycle that carries D
@@ -309,7 +330,7 @@ def test_a_pause_and_a_heater_wait_leave_the_time_left_standing(prints: dict[str
     assert _kest(paused[-1])["excluded_objects"]
 
 
-@pytest.mark.parametrize("name", sorted(CASES))
+@pytest.mark.parametrize("name", sorted(CASES) + RELEASES)
 def test_mainsail_by_its_own_code_shows_klippers_remaining_time(prints: dict[str, Any],
                                                                 name: str) -> None:
     """The recorded status stream fed to Mainsail's own store code (tests/frontends/) with
@@ -336,6 +357,32 @@ def test_mainsail_by_its_own_code_shows_klippers_remaining_time(prints: dict[str
             if view[field] is None or abs(view[field]) > 1.:
                 off.append((round(sample["print_time"], 2), field, view[field]))
     assert off == []
+
+
+@pytest.mark.parametrize("release", RELEASES)
+def test_the_changes_typed_mid_print_are_answered_on_each_release(
+        prints: dict[str, Any], release: str) -> None:
+    """From 2 s after the speed change (run_print.ANSWER_WITHIN_S) the module's own exact
+    answer, not a provisional one, with the excluded object's time left 0; while the head
+    stands paused the time left stands; Klipper was idle through the pause and the heater
+    waits (the file's two at its start and the one put in at 80 %)."""
+    result = _result(prints, release)
+    assert [t["cmd"].split()[0] for t in result["typed"]] == RELEASE_TYPED
+    assert all("error" not in t for t in result["typed"])
+    checked = [s for s, _, _ in _checked(result["samples"], result["typed"])]
+    assert {_kest(s)["source"] for s in checked} == {"estimate"}
+    excluded = result["excluded_name"].upper()
+    for sample in checked:
+        left = {name.upper(): t for name, t in _kest(sample)["objects"].items()}
+        assert left[excluded] == 0.
+    # The head runs out what was queued (up to 2.3 s here) after PAUSE returns: the time left
+    # stands from where it stood (the idle gap Klipper re-synced after).
+    standing = [s for s in checked if s["status"]["print_stats"]["state"] == "paused"
+                and any(old <= s["print_time"] < new for old, new in result["gaps"])]
+    assert len(standing) >= 4
+    assert len({_kest(s)["remaining_s"] for s in standing}) == 1
+    idle = [new - old for old, new in result["gaps"] if new - old > HEAT_WAIT_S - 0.5]
+    assert len(idle) >= 4
 
 
 # Each case's stops (command, line), and whether a pause is typed before them.

@@ -7,9 +7,8 @@ change typed mid-print (M220, SET_VELOCITY_LIMIT, EXCLUDE_OBJECT) 1 s + 1 %, the
 within 2 s.
 
 The release trees are built as .ci/klipper-setup builds 84104bbbd
-(tests/oracle_refs_releases/make_refs.sh says how); their places are taken from
-ORACLE_KLIPPER_V0_12_0, ORACLE_KLIPPER_V0_13_0, ORACLE_KALICO and ORACLE_KALICO_PYTHON
-(defaults: /var/tmp/oracle-<release>/). A missing tree skips, but under CI it fails."""
+(tests/oracle_refs_releases/make_refs.sh says how); tests/conftest.py's require_release
+finds them. A missing tree skips, but under CI it fails."""
 from __future__ import annotations
 
 import os
@@ -23,10 +22,8 @@ import pytest
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "klipper_module"))
 import run_print  # noqa: E402
 
-from tests.conftest import IN_CI, require_klipper  # noqa: E402
+from tests import conftest  # noqa: E402
 
-HERE = Path(__file__).parent
-REFS = HERE / "oracle_refs_releases"
 CORPUS = Path(run_print.SHARED) / "corpus" / "gcode"
 FILES = {
     "prusaslicer": "prusaslicer/ps25_nut_accelA_small.gcode",
@@ -36,53 +33,8 @@ FILES = {
 PLAIN_ABS, PLAIN_REL = run_print.PLAIN_ABS, run_print.PLAIN_REL
 CHANGED_ABS, CHANGED_REL = run_print.CHANGED_ABS, run_print.CHANGED_REL
 ANSWER_WITHIN_S = run_print.ANSWER_WITHIN_S
-RELEASES = ["v0.12.0", "v0.13.0", "84104bbbd", "kalico-v2026.07.00"]
-# What each release's git checkout reports as its version (klippy's util.get_git_version):
-# the tarballs the trees are built from have no .git, so klippy/.version says it, as
-# Klipper's own release packaging does; the module hands it to its worker, which times
-# the print with that release's rules (limits.klipper_release). 84104bbbd reports "?"
-# (today's rules).
-VERSIONS = {"v0.12.0": "v0.12.0-0-g0d67d9c4", "v0.13.0": "v0.13.0-0-g61c0c8d2",
-            "kalico-v2026.07.00": "v2026.07.00-0-g30c65e09"}
-
-
-def release_tree(release: str) -> tuple[tuple[str, str], str]:
-    """((Klipper tree, its Python), printer.cfg) of `release`: skipped when the tree is not
-    built here, but under CI it must be (.ci/run builds it)."""
-    if release == "84104bbbd":
-        return require_klipper(), os.path.join(run_print.SHARED, "corpus", "printer.cfg")
-    oracle = require_klipper()
-    if release.startswith("kalico-"):
-        tree = os.environ.get("ORACLE_KALICO", "/var/tmp/oracle-kalico/kalico")
-        python = os.environ.get("ORACLE_KALICO_PYTHON", "/var/tmp/oracle-kalico/venv/bin/python")
-        cfg = REFS / release / "printer.cfg"
-    else:
-        tree = os.environ.get("ORACLE_KLIPPER_" + release.upper().replace(".", "_"),
-                              "/var/tmp/oracle-%s/klipper" % release)
-        python = oracle[1]
-        cfg = REFS / ("klipper-" + release) / "printer.cfg"
-    if not (os.path.exists(os.path.join(tree, "out", "klipper.dict"))
-            and os.path.exists(python)):
-        if IN_CI:
-            pytest.fail("the %s tree is not built at %s (.ci/run builds it)" % (release, tree))
-        pytest.skip("the %s tree is not built here (%s)" % (release, tree))
-    _report_version(tree, VERSIONS[release])
-    return (tree, python), str(cfg)
-
-
-def _report_version(tree: str, version: str) -> None:
-    """`tree`'s klippy/.version says `version` (written once, atomically)."""
-    path = os.path.join(tree, "klippy", ".version")
-    try:
-        with open(path) as f:
-            if f.read().strip() == version:
-                return
-    except OSError:
-        pass
-    tmp = "%s.%d.tmp" % (path, os.getpid())
-    with open(tmp, "w") as f:
-        f.write(version + "\n")
-    os.replace(tmp, path)
+RELEASES = conftest.RELEASES
+release_tree = conftest.require_release
 
 
 def _print(tmp_path: Path, release: str, slicer: str, **kw: Any) -> dict[str, Any]:

@@ -10,7 +10,8 @@ whole print runs in a moment and the reactor runs timers only between lines. Her
   virtual_sdcard waits inside a G1 (toolhead._check_pause) while the queue is full, and the
   reactor runs every timer there, the module's too;
 - motion queuing's real background flush handler (_flush_handler) generates steps, not the
-  batch-mode one;
+  batch-mode one (84104bbbd; v0.12.0, v0.13.0 and Kalico flush in the toolhead, whose
+  flush timer is the real one once it may pause);
 - G28 is the oracle's instant homing (ORACLE_HOME of ../shared/tools/oracle's probe, which
   is loaded beside this one: batch mode has no endstops); a heater wait with a target
   (M109/M190 S>0) waits for the moves, then `heat_wait` seconds of wall clock, as heating
@@ -23,7 +24,10 @@ whole print runs in a moment and the reactor runs timers only between lines. Her
   one ($KTEST_SCRIPT, JSON: [{"at": 0.4, "cmd": "M220 S150"}, {"after": 3, "cmd": ...}]).
 
 Nothing calls the kestimator module's internals. When the print has ended and every move
-has run, the results (JSON) go to $KTEST_OUT: the status stream, the commands typed, the
+has run, the results (JSON) go to $KTEST_OUT (84104bbbd asks at the end of its batch input,
+gcode:debuginput_exit; the older releases and Kalico have no such event and end at once
+there, so a timer asks too, and run_print.run_klippy holds their input open until the
+results are written): the status stream, the commands typed, the
 print_time at which the last move ended, the idle gaps (print_time re-synced after the
 queue ran dry: a pause, a heater wait), the errors Klipper reported and the runout flushes.
 """
@@ -40,6 +44,7 @@ SUBSCRIBE = {
 # print_time when the process starts: an MCU that has been up for a while.
 CLOCK_START = 100.
 SCRIPT_POLL = 0.05
+END_POLL = 0.25
 END_LIMIT_S = 3600.
 
 
@@ -110,9 +115,14 @@ class KTestRealtime:
             mcu.estimated_print_time = estimated_print_time
         self.toolhead = lookup("toolhead")
         self.toolhead.can_pause = True
-        mq = lookup("motion_queuing")
-        mq.can_pause = True
-        mq.flush_timer.callback = mq._flush_handler
+        mq = lookup("motion_queuing", None)
+        if mq is not None:
+            mq.can_pause = True
+            mq.flush_timer.callback = mq._flush_handler
+        # The look-ahead queue: toolhead.lookahead, toolhead.move_queue before v0.13.0.
+        self.lookahead = getattr(self.toolhead, "lookahead", None)
+        if self.lookahead is None:
+            self.lookahead = self.toolhead.move_queue
         oracle = lookup("oracle_probe")
         self.gcode.register_command("G28", None)
         self.gcode.register_command("G28", oracle.cmd_ORACLE_HOME)
@@ -135,6 +145,7 @@ class KTestRealtime:
         register = lookup("webhooks")._endpoints["register_remote_method"]
         register(_Request(_Connection(self._remote_call), {}, "notify"))
         self.reactor.register_timer(self._script_timer, self.reactor.NOW)
+        self.reactor.register_timer(self._end_timer, self.reactor.NOW)
 
     def _heater_wait(self, original):
         def wait(gcmd):
@@ -191,14 +202,20 @@ class KTestRealtime:
 
     # The end
     def _exit(self):
+        return self._ended(self.reactor.monotonic())
+
+    def _end_timer(self, eventtime):
+        return self.reactor.NEVER if self._ended(eventtime) else eventtime + END_POLL
+
+    def _ended(self, now):
+        """The results are written: now, if the print has ended and every move has run."""
         if self.written:
             return True
-        now = self.reactor.monotonic()
         th = self.toolhead
         print_stats = self.printer.lookup_object("print_stats")
         state = print_stats.get_status(now)["state"]
         finished = (state in ("complete", "cancelled", "error") and not self.script
-                    and th.lookahead.get_last() is None
+                    and self.lookahead.get_last() is None
                     and now + self.offset > th.print_time + 0.5)
         if not finished and time.time() - self.start_wall < END_LIMIT_S:
             return False

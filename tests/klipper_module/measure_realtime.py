@@ -2,15 +2,19 @@
 tests/test_klipper_module_realtime.py (real Klipper at wall-clock speed with the module), as a
 Markdown table: status cycles checked, the worst error of `remaining_s` against the time
 Klipper then took, the worst of Mainsail's own estimate and ETA (its store code,
-tests/frontends/), and the module's longest reactor callback.
+tests/frontends/), and the module's longest reactor callback. With --releases: the print of
+each release (tests/test_klipper_module_realtime.py's RELEASES) instead, with
+each print's wall time.
 
-    python3 tests/klipper_module/measure_realtime.py      (about 9 minutes)
+    python3 tests/klipper_module/measure_realtime.py [--releases]   (about 9 or 5 minutes)
 """
 from __future__ import annotations
 
+import argparse
 import concurrent.futures
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +26,7 @@ sys.path.insert(0, str(HERE.parent / "frontends"))
 import frontends  # noqa: E402
 
 from tests import test_klipper_module_realtime as rt  # noqa: E402
+from tests.conftest import require_release  # noqa: E402
 
 
 def row(name: str, result: dict[str, Any]) -> str:
@@ -40,16 +45,35 @@ def row(name: str, result: dict[str, Any]) -> str:
         callback)
 
 
+def _timed(release: str, work: Path) -> dict[str, Any]:
+    tree, cfg = require_release(release)
+    start = time.monotonic()
+    result = rt._case_release(work, tree, cfg)
+    result["wall_s"] = time.monotonic() - start
+    return result
+
+
 def main() -> None:
-    print("| case | typed | cycles checked | worst error | Mainsail estimate | Mainsail ETA "
-          "| longest callback |")
-    print("|---|---|---|---|---|---|---|")
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--releases", action="store_true")
+    args = ap.parse_args()
+    print("| %s | typed | cycles checked | worst error | Mainsail estimate | Mainsail ETA "
+          "| longest callback |%s" % ("release" if args.releases else "case",
+                                      " wall |" if args.releases else ""))
+    print("|---|---|---|---|---|---|---|%s" % ("---|" if args.releases else ""))
     with tempfile.TemporaryDirectory() as tmp, \
             concurrent.futures.ThreadPoolExecutor(max_workers=3) as pool:
-        futures = {name: pool.submit(case, Path(tmp) / name)
-                   for name, case in rt.CASES.items()}
+        if args.releases:
+            futures = {release: pool.submit(_timed, release, Path(tmp) / release)
+                       for release in rt.RELEASES}
+        else:
+            futures = {name: pool.submit(case, Path(tmp) / name)
+                       for name, case in rt.CASES.items()}
         for name, future in futures.items():
-            print(row(name, future.result()), flush=True)
+            result = future.result()
+            wall = " %.0f s |" % result["wall_s"] if args.releases else ""
+            print(row(name, result) + wall, flush=True)
 
 
 if __name__ == "__main__":

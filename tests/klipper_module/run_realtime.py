@@ -6,7 +6,9 @@ kestimator module loaded, and hold what the module said against what Klipper the
         [--heat-wait S] [--inject] [--keep]
 
 The print takes as long as it takes on a printer (batch-mode Klipper made real-time by
-ktest_realtime.py, beside this file). Needs the oracle's Klipper (run_print.oracle_paths).
+ktest_realtime.py, beside this file). Needs the oracle's Klipper (run_print.oracle_paths),
+or another tree given as `klipper_tree` (Klipper v0.12.0, v0.13.0, Kalico v2026.07.00:
+tests/test_klipper_module_realtime.py RELEASES), run as run_print runs it.
 Commands given with --before are typed at the console before the print starts (they
 persist, as Mainsail's limit sliders do until a restart); --at types a command when the
 print reaches a fraction of the file, --after that many seconds after the previous one.
@@ -56,11 +58,13 @@ def truth_at(print_time: float, end: float, gaps: list[list[float]]) -> float:
 def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | None = None,
                  script: list[dict[str, Any]] | None = None, heat_wait: float = 0.,
                  inject: bool = False, base_cfg: str = run_print.CORPUS_CFG,
-                 python: str | None = None, timeout: float = 1800.) -> dict[str, Any]:
+                 python: str | None = None, timeout: float = 1800.,
+                 klipper_tree: tuple[str, str] | None = None) -> dict[str, Any]:
     """Print `src` at wall-clock speed with the module; the results of ktest_realtime with
-    `samples` (full status each cycle, `truth_s`, and `error_s` where the module had a
-    remaining time)."""
-    paths = run_print.oracle_paths()
+    `samples` (each status cycle's `id` (its index), full status, `truth_s`, and `error_s`
+    where the module had a remaining time). `klipper_tree`: (Klipper tree, its Python) to
+    print in instead of the oracle's."""
+    paths = klipper_tree or run_print.oracle_paths()
     if paths is None:
         raise RuntimeError("the oracle's Klipper is not set up (ORACLE_KLIPPER)")
     klipper, _ = paths
@@ -92,10 +96,11 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
     log = os.path.join(work, "klippy.log")
     env = dict(os.environ, KTEST_OUT=out, ORACLE_OUT=os.path.join(work, "oracle.json"),
                KTEST_SCRIPT=json.dumps(script or []))
-    result = run_print.run_klippy(cfg, batch, log, out, env, timeout)
+    result = run_print.run_klippy(cfg, batch, log, out, env, timeout, paths)
     end = result["end_print_time"]
     samples = _merge(result.pop("stream"), result["clock_offset"])
-    for sample in samples:
+    for index, sample in enumerate(samples):
+        sample["id"] = index
         sample["truth_s"] = truth_at(sample["print_time"], end, result["gaps"])
         kest = sample["status"].get("kestimator", {})
         sample["remaining_s"] = kest.get("remaining_s")
@@ -104,6 +109,43 @@ def run_realtime(src: str, work: str, extra_cfg: str = "", before: list[str] | N
     result["samples"] = samples
     result["klippy_log"] = log
     return result
+
+
+# The status cycles the bars apply to: from 10 s of print_duration, and from
+# run_print.ANSWER_WITHIN_S after a typed command (the module's answer to a change is due
+# by then). Typed commands that do not change the time left: a pause's time is left out; a
+# display message; an echo.
+FROM_DURATION_S = 10.0
+SETTLE_S = run_print.ANSWER_WITHIN_S
+TIMELESS = ("PAUSE", "RESUME", "M117", "ECHO")
+
+
+def checked_samples(samples: list[dict[str, Any]], typed: list[dict[str, Any]]
+                    ) -> list[tuple[dict[str, Any], float, float]]:
+    """The samples the bars apply to, each with its bar (absolute, relative: run_print's
+    plain one, or its changed one once a command was typed): from 10 s of print_duration,
+    leaving out the 2 s after each typed command. A change typed later makes what Klipper
+    then takes differ from what anyone could know before it: a print with a change is
+    checked from 2 s after it (its only one that changes the time)."""
+    changes = [t for t in typed if t["cmd"].split()[0] not in TIMELESS]
+    start = changes[-1]["done_eventtime"] + SETTLE_S if changes else 0.
+    out = []
+    for sample in samples:
+        stats = sample["status"].get("print_stats", {})
+        if stats.get("state") not in ("printing", "paused"):
+            continue
+        if stats.get("print_duration", 0.) < FROM_DURATION_S:
+            continue
+        eventtime = sample["eventtime"]
+        if eventtime < start:
+            continue
+        if any(t["eventtime"] <= eventtime < t["done_eventtime"] + SETTLE_S for t in typed):
+            continue
+        changed = any(t["done_eventtime"] <= eventtime for t in typed)
+        bar = ((run_print.CHANGED_ABS, run_print.CHANGED_REL) if changed
+               else (run_print.PLAIN_ABS, run_print.PLAIN_REL))
+        out.append((sample, bar[0], bar[1]))
+    return out
 
 
 def main() -> None:
