@@ -9,6 +9,7 @@
 set -eu
 RELEASE=$1
 TREE=$2
+MODE=${3:-}
 HERE=$(cd "$(dirname "$0")" && pwd)
 ORACLE=${ORACLE:-$HERE/../../../shared/tools/oracle/oracle.py}
 CORPUS=${CORPUS:-$HERE/../../../shared/corpus}
@@ -16,9 +17,11 @@ case $RELEASE in
     kalico-*) DIR=$HERE/$RELEASE ;;
     *) DIR=$HERE/klipper-$RELEASE ;;
 esac
+[ "$MODE" != heldout ] || DIR=$HERE/heldout/$(basename "$DIR")
 case $RELEASE in
     v0.12.0) LABEL="Klipper v0.12.0 (0d67d9c45d2d, 2023-11-10; ../shared/upstream/klipper-v0.12.0.tar.gz), klippy batch mode" ;;
     v0.13.0) LABEL="Klipper v0.13.0 (61c0c8d2ef40, 2025-04-11; ../shared/upstream/klipper-v0.13.0.tar.gz), klippy batch mode" ;;
+    84104bbbd) LABEL="Klipper 84104bbbd (v0.13.0-730, 2026-08), klippy batch mode" ;;
     kalico-v2026.07.00) LABEL="Kalico v2026.07.00 (30c65e09de06, 2026-07; ../shared/upstream/kalico-v2026.07.00.tar.gz), klippy batch mode" ;;
     *) echo "make_refs.sh: unknown release $RELEASE" >&2; exit 2 ;;
 esac
@@ -45,6 +48,24 @@ PY
     mv "$folder/$name.json.tmp" "$folder/$name.json"
 }
 
+if [ "$MODE" = heldout ]; then
+    # Files and configs never used to develop or tune the release rules (README.md, "Held-out check"):
+    # slicers other than the six files' above, with acceleration changes, arcs, a
+    # pressure-advance change and firmware retraction; each config folder's printer.cfg
+    # written with this release's own options.
+    for config in "$DIR"/*/; do
+        for gcode in gcode/superslicer/cancelobj_ss2.3.56_arcwelder.gcode \
+            gcode/superslicer/cancelobj_ss2.4_inverted_pyramid.gcode \
+            gcode/icesl/cancelobj_icesl_2021-09.gcode \
+            gcode/cura/cura413_voron250_torus_relE_fwretract.gcode \
+            gcode/ideamaker/cancelobj_ideamaker4.2.0.gcode \
+            gcode/kirimoto/cancelobj_kirimoto3.0.gcode; do
+            make_ref "${config%/}" "$gcode"
+        done
+    done
+    exit 0
+fi
+[ "$RELEASE" != 84104bbbd ] || { echo "make_refs.sh: 84104bbbd's are ../oracle_refs" >&2; exit 2; }
 NUT=gcode/prusaslicer/ps25_nut_accelA_small.gcode
 ACCELCTL=gcode/orcaslicer/accelctl_orca1.5.0_klipper_m204.gcode
 for gcode in "$NUT" "$ACCELCTL" \
