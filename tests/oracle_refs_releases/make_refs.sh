@@ -72,7 +72,8 @@ for gcode in "$NUT" "$ACCELCTL" \
     gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
     gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
     gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode motor_off.gcode heater_first.gcode; do
+    flush_junctions.gcode pa_same_window.gcode lookahead_peak.gcode motor_off.gcode \
+    heater_first.gcode; do
     make_ref "$DIR" "$gcode"
 done
 # fan/printer.cfg: this release's with a [fan]
