@@ -194,16 +194,19 @@ class PrinterExtruders:
         new_window = (pressure_advance_window(advance, smooth_time)
                       != pressure_advance_window(old_advance, old_smooth))
         if new_window or self.toolhead.pressure_advance_always_flushes:
-            # Need full kinematic flush to change the smooth time (Kalico: always)
+            # Need full kinematic flush to change the smooth time (Klipper before
+            # v0.12.0-262 and Kalico: always)
             self.toolhead.flush_step_generation()
         stepper.pressure_advance = advance
         stepper.pressure_advance_smooth_time = smooth_time
         if new_window:
             self._check_scan_windows()
-            if self.toolhead.pressure_advance_waits:
-                # Klipper v0.12.0-262 to v0.13.0-245 register a look-ahead callback after
-                # the flush too; with nothing queued that is get_last_move_time.
-                self.toolhead.get_last_move_time()
+        if (self.toolhead.pressure_advance_waits
+                and self.toolhead.lookahead.get_last() is None):
+            # Klipper v0.12.0-262 to v0.13.0-245 register a look-ahead callback at every
+            # SET_PRESSURE_ADVANCE (after the flush of a new window); with nothing queued
+            # that is get_last_move_time.
+            self.toolhead.get_last_move_time()
 
     def cmd_SET_E_ROTATION_DISTANCE(self, cmd: Command) -> None:
         """SET_EXTRUDER_ROTATION_DISTANCE: a new rotation distance stops step generation."""

@@ -100,20 +100,26 @@ APP_NAMES = {"klipper": "Klipper", "kalico": "Kalico"}
 # fifth column: a new pressure-advance window waits for the toolhead as well
 # (SET_PRESSURE_ADVANCE's look-ahead callback after its flush, which with nothing queued is
 # get_last_move_time: c84d78f3f, v0.12.0-262, 2024-07, to v0.13.0-245; 542694350 took it
-# out). The last: every SET_PRESSURE_ADVANCE flushes step generation, whether its scan window
-# changes or not (Kalico's kinematics/extruder.py calls note_step_generation_scan_time
-# unconditionally; Klipper only for a new window).
-KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str, bool, bool],
+# out). The sixth: every SET_PRESSURE_ADVANCE flushes step generation, whether its scan window
+# changes or not (kinematics/extruder.py calls note_step_generation_scan_time unconditionally:
+# Klipper before c84d78f3f, v0.12.0-262, 2024-07, and Kalico; from there only for a new
+# window). The seventh, the look-ahead's plan
+# (toolhead.py's LookAheadQueue.flush): "delayed", the moves that cannot accelerate wait in a
+# list for the peak cruise of the move before them, which is capped by that move's
+# max_cruise_v2 (Klipper before 41901ec38, v0.13.0-300, 2025-09, and Kalico v2026.07.00);
+# "mainline", no cap, and such a move cruises at no more than the move before it.
+KLIPPER_TOOLHEAD_RULES: dict[str, tuple[tuple[tuple[int, ...], int, str, str, bool, bool, str],
                                         ...]] = {
-    "klipper": (((0,), 0, "clamped", "force_flush", False, False),
-                ((0, 12, 0), 23, "clamped", "mainline", False, False),
-                ((0, 12, 0), 69, "clamped", "min_restart", False, False),
-                ((0, 12, 0), 262, "clamped", "min_restart", True, False),
-                ((0, 12, 0), 383, "clamped_delta_v2", "min_restart", True, False),
-                ((0, 12, 0), 384, "mainline", "min_restart", True, False),
-                ((0, 13, 0), 238, "mainline", "mainline", True, False),
-                ((0, 13, 0), 246, "mainline", "mainline", False, False)),
-    "kalico": (((0,), 0, "mainline", "min_restart", False, True),),
+    "klipper": (((0,), 0, "clamped", "force_flush", False, True, "delayed"),
+                ((0, 12, 0), 23, "clamped", "mainline", False, True, "delayed"),
+                ((0, 12, 0), 69, "clamped", "min_restart", False, True, "delayed"),
+                ((0, 12, 0), 262, "clamped", "min_restart", True, False, "delayed"),
+                ((0, 12, 0), 383, "clamped_delta_v2", "min_restart", True, False, "delayed"),
+                ((0, 12, 0), 384, "mainline", "min_restart", True, False, "delayed"),
+                ((0, 13, 0), 238, "mainline", "mainline", True, False, "delayed"),
+                ((0, 13, 0), 246, "mainline", "mainline", False, False, "delayed"),
+                ((0, 13, 0), 300, "mainline", "mainline", False, False, "mainline")),
+    "kalico": (((0,), 0, "mainline", "min_restart", False, True, "delayed"),),
 }
 
 
@@ -129,12 +135,13 @@ class KlipperRelease:
     generation: str
     rule: str
     note: str | None = None
-    # The junction, print-time and pressure-advance rules (KLIPPER_TOOLHEAD_RULES) of this
-    # release, and whether it is Kalico (its commands: RESET_VELOCITY_LIMIT, ...).
+    # The junction, print-time, pressure-advance and look-ahead rules
+    # (KLIPPER_TOOLHEAD_RULES) of this release.
     junction: str = "mainline"
     print_time: str = "mainline"
     pressure_advance_waits: bool = False
     pressure_advance_always_flushes: bool = False
+    lookahead: str = "mainline"
 
     @property
     def is_kalico(self) -> bool:
@@ -170,21 +177,21 @@ def klipper_release(version: str) -> KlipperRelease:
     commits = int(match.group("commits") or 0)
     name = APP_NAMES[app]
     newest_release, newest_commits, generation, rule = rules[-1]
-    junction, print_time, waits, always = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
+    junction, print_time, waits, always, lookahead = KLIPPER_TOOLHEAD_RULES[app][-1][2:]
     if (release, commits) > (newest_release, newest_commits):
         return KlipperRelease(name, release, commits, generation, rule,
                               f"klipper_version {version.strip()} is newer than the newest "
                               f"{name} kestimator knows: taken as {rule}", junction, print_time,
-                              waits, always)
+                              waits, always, lookahead)
     for start, start_commits, start_generation, start_rule in rules:
         if (release, commits) >= (start, start_commits):
             generation, rule = start_generation, start_rule
     for row in KLIPPER_TOOLHEAD_RULES[app]:
         if (release, commits) >= (row[0], row[1]):
-            junction, print_time, waits, always = row[2], row[3], row[4], row[5]
+            junction, print_time, waits, always, lookahead = row[2:]
     return KlipperRelease(name, release, commits, generation, rule, junction=junction,
                           print_time=print_time, pressure_advance_waits=waits,
-                          pressure_advance_always_flushes=always)
+                          pressure_advance_always_flushes=always, lookahead=lookahead)
 
 
 # Options of an [extruderN] section that change motion time (kinematics/extruder.py).

@@ -483,6 +483,98 @@ class LookAheadQueue:
         return junction_flush <= 0.0
 
 
+# The lazy-flush time of Klipper before 16fc46fe5 (v0.13.0-340, 2025-10) and of Kalico.
+LOOKAHEAD_FLUSH_TIME_V0_13: Final = 0.250
+
+
+@mypyc_attr(serializable=True, allow_interpreted_subclasses=True)
+class DelayedLookAheadQueue(LookAheadQueue):
+    """The look-ahead of a Klipper before 41901ec38 (v0.13.0-300, 2025-09) and of Kalico
+    v2026.07.00: flush() as klippy/toolhead.py of Klipper v0.13.0 has it (there the
+    LookAheadQueue; in v0.12.0 the MoveQueue, the same code), upstream's max_smoothed_v2 /
+    smooth_delta_v2 under the mcr names. Two differences in the plan: the peak cruise of a
+    move that can accelerate is capped by that move's own max_cruise_v2, and the moves that
+    cannot accelerate after it ("delayed") cruise at no more than that peak (mainline: no
+    more than the cruise of the move before them). Where a lazy flush cuts (flush_count = i,
+    LOOKAHEAD_FLUSH_TIME 0.250; 6118525c1, 16fc46fe5 changed them) changes no plan. The
+    ToolHead makes it when `klipper_version` names such a release."""
+
+    __slots__ = ()
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME_V0_13
+
+    def flush(self, lazy: bool = False) -> list[Move]:
+        """Plan and remove the moves whose profile is final (all of them unless lazy)."""
+        self.junction_flush = LOOKAHEAD_FLUSH_TIME_V0_13
+        update_flush_count = lazy
+        queue = self.queue
+        flush_count = len(queue)
+        # Traverse queue from last to first move and determine maximum junction speed
+        # assuming the robot comes to a complete stop after the last move.
+        delayed: list[Move] = []
+        next_end_v2 = next_mcr_start_v2 = peak_cruise_v2 = 0.0
+        for i in range(flush_count - 1, -1, -1):
+            move = queue[i]
+            reachable_start_v2 = next_end_v2 + move.delta_v2
+            # min() written out as comparisons (same result, see LookAheadQueue.flush)
+            start_v2 = move.max_start_v2
+            if reachable_start_v2 < start_v2:
+                start_v2 = reachable_start_v2
+            reach_mcr_start_v2 = next_mcr_start_v2 + move.mcr_delta_v2
+            mcr_start_v2 = move.max_mcr_start_v2
+            if reach_mcr_start_v2 < mcr_start_v2:
+                mcr_start_v2 = reach_mcr_start_v2
+            if mcr_start_v2 < reach_mcr_start_v2:
+                # It's possible for this move to accelerate
+                if mcr_start_v2 + move.mcr_delta_v2 > next_mcr_start_v2 or delayed:
+                    # This move can decelerate or this is a full accel move after a full
+                    # decel move
+                    if update_flush_count and peak_cruise_v2:
+                        flush_count = i
+                        update_flush_count = False
+                    # upstream: min(move.max_cruise_v2, (smoothed_v2 + reachable...) * .5)
+                    peak_cruise_v2 = (mcr_start_v2 + reach_mcr_start_v2) * 0.5
+                    if move.max_cruise_v2 < peak_cruise_v2:
+                        peak_cruise_v2 = move.max_cruise_v2
+                    if delayed:
+                        # Propagate peak_cruise_v2 to any delayed moves
+                        if not update_flush_count and i < flush_count:
+                            mc_v2 = peak_cruise_v2
+                            for m in reversed(delayed):
+                                ms_v2 = m.flush_start_v2
+                                me_v2 = m.flush_next_start_v2
+                                if ms_v2 < mc_v2:
+                                    mc_v2 = ms_v2
+                                m.set_junction(mc_v2 if mc_v2 < ms_v2 else ms_v2, mc_v2,
+                                               mc_v2 if mc_v2 < me_v2 else me_v2)
+                        del delayed[:]
+                if not update_flush_count and i < flush_count:
+                    cruise_v2 = (start_v2 + reachable_start_v2) * 0.5
+                    if move.max_cruise_v2 < cruise_v2:
+                        cruise_v2 = move.max_cruise_v2
+                    if peak_cruise_v2 < cruise_v2:
+                        cruise_v2 = peak_cruise_v2
+                    move.set_junction(cruise_v2 if cruise_v2 < start_v2 else start_v2,
+                                      cruise_v2,
+                                      cruise_v2 if cruise_v2 < next_end_v2 else next_end_v2)
+            else:
+                # Delay calculating this move until peak_cruise_v2 is known
+                # (upstream keeps (move, start_v2, next_end_v2) in the list)
+                move.flush_start_v2 = start_v2
+                move.flush_next_start_v2 = next_end_v2
+                delayed.append(move)
+            next_end_v2 = start_v2
+            next_mcr_start_v2 = mcr_start_v2
+        if update_flush_count or not flush_count:
+            return []
+        # Remove processed moves from the queue
+        res = queue[:flush_count]
+        del queue[:flush_count]
+        return res
+
+
 # Seconds of moves queued before the first flush after the toolhead was at rest.
 BUFFER_TIME_HIGH: Final = 1.0
 # Klipper v0.12.0's [printer] buffer_time_high default (the option went in bafb126ab,
@@ -500,7 +592,11 @@ class ToolHead:
     def __init__(self, limits: Limits,
                  on_moves: Callable[[list[Move], float], None] | None = None) -> None:
         self.limits = limits
-        self.lookahead = LookAheadQueue()
+        release = klipper_release(limits.klipper_version) if limits.klipper_version else None
+        # The look-ahead of the Klipper named by klipper_version (mainline without one).
+        self.lookahead: LookAheadQueue = (
+            DelayedLookAheadQueue() if release is not None and release.lookahead == "delayed"
+            else LookAheadQueue())
         self.lookahead.set_flush_time(BUFFER_TIME_HIGH)
         # Upstream's commanded_pos list, one float per axis (see the commanded_pos property).
         self.commanded_x = self.commanded_y = self.commanded_z = self.commanded_e = 0.0
@@ -515,7 +611,6 @@ class ToolHead:
         self._calc_junction_deviation()
         # The junction rule of the Klipper named by klipper_version (mainline without one):
         # None for Move's, else the Move class with that release's calc_junction.
-        release = klipper_release(limits.klipper_version) if limits.klipper_version else None
         self.old_junction_move: type[Move] | None = {
             "clamped": ClampedJunctionMove,
             "clamped_delta_v2": DeltaV2ClampedJunctionMove}.get(

@@ -258,13 +258,13 @@ def _release_rules(version: str | None) -> object:
     Klipper's); the text itself when it is no version."""
     from kestimator.limits import klipper_release
     if not version:
-        return ("mainline", "mainline", False, False, False)
+        return ("mainline", "mainline", False, False, "mainline", False)
     try:
         release = klipper_release(version)
     except ValueError:
         return version
     return (release.junction, release.print_time, release.pressure_advance_waits,
-            release.pressure_advance_always_flushes, release.is_kalico)
+            release.pressure_advance_always_flushes, release.lookahead, release.is_kalico)
 
 
 def _same_release_as(made_for: Settings, here: Settings) -> Settings:

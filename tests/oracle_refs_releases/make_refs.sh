@@ -51,15 +51,17 @@ PY
 if [ "$MODE" = heldout ]; then
     # Files and configs never used to develop or tune the release rules (README.md, "Held-out check"):
     # slicers other than the six files' above, with acceleration changes, arcs, a
-    # pressure-advance change and firmware retraction; each config folder's printer.cfg
-    # written with this release's own options.
+    # pressure-advance change and firmware retraction, and the one other file with
+    # SET_VELOCITY_LIMIT; each config folder's printer.cfg written with this release's own
+    # options.
     for config in "$DIR"/*/; do
         for gcode in gcode/superslicer/cancelobj_ss2.3.56_arcwelder.gcode \
             gcode/superslicer/cancelobj_ss2.4_inverted_pyramid.gcode \
             gcode/icesl/cancelobj_icesl_2021-09.gcode \
             gcode/cura/cura413_voron250_torus_relE_fwretract.gcode \
             gcode/ideamaker/cancelobj_ideamaker4.2.0.gcode \
-            gcode/kirimoto/cancelobj_kirimoto3.0.gcode; do
+            gcode/kirimoto/cancelobj_kirimoto3.0.gcode \
+            gcode/orcaslicer/helixscreen_stand_orca2.3.1_klipper.gcode; do
             make_ref "${config%/}" "$gcode"
         done
     done
@@ -72,7 +74,8 @@ for gcode in "$NUT" "$ACCELCTL" \
     gcode/orcaslicer/helixscreen_xyzcube_orca2.3.1_klipper.gcode \
     gcode/orcaslicer/helixscreen_calicat_orca2.3.1_klipper.gcode \
     gcode/slic3r/slic3r130_torus_x3_accel.gcode \
-    flush_junctions.gcode motor_off.gcode heater_first.gcode; do
+    flush_junctions.gcode pa_same_window.gcode lookahead_peak.gcode motor_off.gcode \
+    heater_first.gcode; do
     make_ref "$DIR" "$gcode"
 done
 # fan/printer.cfg: this release's with a [fan]
