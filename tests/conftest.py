@@ -168,7 +168,7 @@ def compile_checkout_bytecode() -> None:
     import subprocess
 
     for name in BYTECODE_DIRS:
-        compileall.compile_dir(str(PROJECT / name), quiet=1)
+        compileall.compile_dir(str(PROJECT / name), quiet=2)
     pypy = shutil.which("pypy3")
     if pypy is not None:
         subprocess.run([pypy, "-m", "compileall", "-q", *(str(PROJECT / name)
