@@ -87,16 +87,22 @@ def _case_injected_table(work: Path) -> dict[str, Any]:
         inject=True)
 
 
-def _case_exclusion_pause_heater_wait(work: Path) -> dict[str, Any]:
-    """Arcs (ArcWelder), labelled objects, a speed factor set before the print; an object
-    excluded, then a pause, typed mid-print; a heater wait in the file."""
+def _arcwelder_labelled_with_heater_wait(work: Path) -> tuple[Path, list[str]]:
+    """PrusaSlicer's ArcWelder file with its objects labelled and a heater wait at 80 %
+    (written into `work`), and its objects' names."""
     work.mkdir(parents=True, exist_ok=True)
     src = CORPUS / "prusaslicer" / "cancelobj_ps2.4.0a1_arcwelder.gcode"
     labelled = _labelled(src, work / "labelled.gcode")
     names = [line.split(b"NAME=")[1].split()[0].decode()
              for line in labelled.read_bytes().split(b"\n")
              if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
-    test_file = _with_heater_wait(labelled, work / "test_src.gcode", 0.8)
+    return _with_heater_wait(labelled, work / "test_src.gcode", 0.8), names
+
+
+def _case_exclusion_pause_heater_wait(work: Path) -> dict[str, Any]:
+    """Arcs (ArcWelder), labelled objects, a speed factor set before the print; an object
+    excluded, then a pause, typed mid-print; a heater wait in the file."""
+    test_file, names = _arcwelder_labelled_with_heater_wait(work)
     return run_realtime.run_realtime(
         str(test_file), str(work / "print"), heat_wait=HEAT_WAIT_S, before=["M220 S200"],
         script=[{"at": 0.2, "cmd": "EXCLUDE_OBJECT NAME=%s" % names[-1]},
@@ -181,13 +187,7 @@ def _case_release(work: Path, tree: tuple[str, str], cfg: str) -> dict[str, Any]
     """A release's one print (tree: (Klipper tree, its Python); cfg: its printer.cfg): the
     labelled ArcWelder file, a speed factor set before the print; an object excluded, a
     slower speed, a pause and its resume typed; a heater wait in the file."""
-    work.mkdir(parents=True, exist_ok=True)
-    src = CORPUS / "prusaslicer" / "cancelobj_ps2.4.0a1_arcwelder.gcode"
-    labelled = _labelled(src, work / "labelled.gcode")
-    names = [line.split(b"NAME=")[1].split()[0].decode()
-             for line in labelled.read_bytes().split(b"\n")
-             if line.startswith(b"EXCLUDE_OBJECT_DEFINE")]
-    test_file = _with_heater_wait(labelled, work / "test_src.gcode", 0.8)
+    test_file, names = _arcwelder_labelled_with_heater_wait(work)
     result = run_realtime.run_realtime(
         str(test_file), str(work / "print"), heat_wait=HEAT_WAIT_S, before=["M220 S200"],
         base_cfg=cfg, klipper_tree=tree,

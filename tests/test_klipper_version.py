@@ -337,6 +337,16 @@ def _estimate(ref_path: Path, environ: dict[str, str]) -> tuple[dict[str, object
     return ref, estimate_file(gcode, resolved.limits)
 
 
+def _assert_every_point(ref: dict[str, object], est: Estimate, points: int) -> None:
+    """The total and every checkpoint of `ref` (`points` in all) within TOL_RULES_S."""
+    mine = dict(est.layers)
+    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
+    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
+    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]  # type: ignore[arg-type]
+    assert len(got) == points and all(abs(a - b) <= TOL_RULES_S
+                                      for a, b in zip(got, want)), (got, want)
+
+
 @pytest.mark.parametrize("ref_path", _release_refs())
 def test_klipper_version_gives_that_releases_own_times(ref_path: Path, corpus_root: Path,
                                                        environ: dict[str, str]) -> None:
@@ -361,12 +371,7 @@ def test_each_releases_flush_and_junction_rules_agree_to_the_microsecond(
     0.15 s off with 84104bbbd's rules, on v0.13.0 0.03 s), near-straight and reversing
     junctions (on v0.12.0 1e-5 s off with 84104bbbd's)."""
     ref, est = _estimate(RELEASES / folder / "flush_junctions.json", environ)
-    mine = dict(est.layers)
-    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
-    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
-    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
-    assert len(got) == 5 and all(abs(a - b) <= TOL_RULES_S for a, b in zip(got, want)), (
-        got, want)
+    _assert_every_point(ref, est, 5)
 
 
 @pytest.mark.parametrize("folder", list(RELEASE_VERSIONS))
@@ -379,12 +384,7 @@ def test_each_releases_pressure_advance_and_look_ahead_rules_agree_to_the_micros
     accelerating move's max_cruise_v2 (with today's 3.3e-4 s off on v0.12.0, 5.5e-4 s on
     v0.13.0 and Kalico; on the held-out helixscreen_stand 5.1e-4 s and 7.9e-5 s)."""
     ref, est = _estimate(RELEASES / folder / (name + ".json"), environ)
-    mine = dict(est.layers)
-    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
-    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
-    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
-    assert len(got) == points and all(abs(a - b) <= TOL_RULES_S
-                                      for a, b in zip(got, want)), (got, want)
+    _assert_every_point(ref, est, points)
 
 
 def test_without_the_version_a_v0_12_0_config_is_minutes_off_on_accel_changes(
@@ -431,12 +431,7 @@ def test_kalicos_own_rules_agree_to_the_microsecond(environ: dict[str, str]) -> 
     limits, SET_VELOCITY_LIMIT Z_VELOCITY / Z_ACCEL set the kinematics' (without the
     flushes 0.13 s off, without the two commands up to 3.8 s at a layer)."""
     ref, est = _estimate(RELEASES / "kalico-v2026.07.00" / "kalico_rules.json", environ)
-    mine = dict(est.layers)
-    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
-    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
-    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
-    assert len(got) == 7 and all(abs(a - b) <= TOL_RULES_S for a, b in zip(got, want)), (
-        got, want)
+    _assert_every_point(ref, est, 7)
     flushes = [klipper_release(v).pressure_advance_always_flushes
                for v in ("Kalico v2026.07.00-0-g30c65e09", "v0.13.0-0-g61c0c8d2", "v0.12.0",
                          "v0.13.0-730-g84104bbbd")]
@@ -470,14 +465,5 @@ def test_each_releases_motor_off_and_heater_barrier_agree_to_the_microsecond(
     if name == "heater_first":
         # and a fan set so (fan/: the folder's printer.cfg with a [fan]), the same rule
         fan, fan_est = _estimate(RELEASES / folder / "fan" / "fan_first.json", environ)
-        fan_got = [fan_est.total_s] + [dict(fan_est.layers)[int(cp["line"])]
-                                       for cp in fan["checkpoints"]]  # type: ignore[attr-defined]
-        fan_want = [float(fan["total_s"])] + [cp["t"] for cp in fan["checkpoints"]]  # type: ignore[attr-defined]
-        assert len(fan_got) == 4 and all(abs(a - b) <= TOL_RULES_S
-                                         for a, b in zip(fan_got, fan_want)), (fan_got, fan_want)
-    mine = dict(est.layers)
-    checkpoints: list[dict[str, float]] = ref["checkpoints"]  # type: ignore[assignment]
-    got = [est.total_s] + [mine[int(cp["line"])] for cp in checkpoints]
-    want = [float(ref["total_s"])] + [cp["t"] for cp in checkpoints]
-    assert len(got) == points and all(abs(a - b) <= TOL_RULES_S
-                                      for a, b in zip(got, want)), (got, want)
+        _assert_every_point(fan, fan_est, 4)
+    _assert_every_point(ref, est, points)
