@@ -257,10 +257,11 @@ else:
 '''
 
 
-def _metadata_run(tmp_path: Path, labelling: str, upload: Path, timeout: float = 600.0
-                  ) -> tuple[subprocess.Popen[bytes], dict[str, str], Path]:
+def _metadata_run(tmp_path: Path, labelling: str, upload: Path, timeout: float = 600.0,
+                  share: str = "20") -> tuple[subprocess.Popen[bytes], dict[str, str], Path]:
     """Moonraker's metadata run (faked as above) on `upload`, with `timeout` as our
-    processor's limit; the process, the environment and the estimator config."""
+    processor's limit and `share` as the labelling's (SHARE_ENVIRONMENT); the process, the
+    environment and the estimator config."""
     script = tmp_path / "moonraker" / "components" / "file_manager" / "metadata.py"
     script.parent.mkdir(parents=True)
     script.write_text(_FAKE_METADATA)
@@ -280,7 +281,7 @@ def _metadata_run(tmp_path: Path, labelling: str, upload: Path, timeout: float =
     env = dict(os.environ, PYTHONPATH=str(PROJECT), TMPDIR=str(temp), LABELLING=labelling,
                # The labelling runs on idle CPU time only: on a loaded test host it may
                # take more than its share (the share itself is the "slow" case's).
-               **{SHARE_ENVIRONMENT: "20"},
+               **{SHARE_ENVIRONMENT: share},
                LABELLER_PID_FILE=str(tmp_path / "labeller.pid"),
                XDG_CONFIG_HOME=str(tmp_path / "config"), XDG_CACHE_HOME=str(tmp_path / "cache"))
     process = subprocess.Popen([sys.executable, str(script), "-c", str(config)], env=env,
@@ -289,22 +290,28 @@ def _metadata_run(tmp_path: Path, labelling: str, upload: Path, timeout: float =
     return process, env, estimator_cfg
 
 
-@pytest.mark.parametrize("labelling, timeout, why", [
-    ("slow", 2.5, "not labelled ahead: that does not fit in the time left (its limit: 2 s)"),
-    ("cura", 600.0, "(cura labels), which is not done ahead: its table is estimated at "
-                    "print start"),
+@pytest.mark.parametrize("labelling, timeout, share, why", [
+    # No time left: the processor's limit (2 s) is all margin.
+    ("slow", 2.0, "20", "not labelled ahead: that does not fit in the time left (its "
+                        "limit: 2 s)"),
+    # Time left, but the labelling takes more than its share (the default's).
+    ("slow", 600.0, "0.5", "not labelled ahead (its labelling takes longer than there is "
+                           "time for)"),
+    ("cura", 600.0, "20", "(cura labels), which is not done ahead: its table is estimated "
+                          "at print start"),
 ])
 def test_labelling_ahead_that_cannot_be_done_is_said_in_one_line_and_the_upload_processed(
-        tmp_path: Path, labelling: str, timeout: float, why: str) -> None:
-    """Past what is left of the processor's limit (its 2.5 s, less the margin kept), or for
-    labels not done ahead (Cura's), the file is processed as a plain post-process, one line
-    says why, and Moonraker's labelling run ahead is stopped."""
+        tmp_path: Path, labelling: str, timeout: float, share: str, why: str) -> None:
+    """With no time left of the processor's limit (less the margin kept), past the
+    labelling's share of a plain post-process, or for labels not done ahead (Cura's), the
+    file is processed as a plain post-process, one line says why, and Moonraker's labelling
+    run ahead is stopped."""
     gcodes = tmp_path / "gcodes"
     gcodes.mkdir()
     source = CORPUS / "gcode" / UPLOADS[1]
     upload = gcodes / source.name
     shutil.copyfile(source, upload)
-    process, _, _ = _metadata_run(tmp_path, labelling, upload, timeout)
+    process, _, _ = _metadata_run(tmp_path, labelling, upload, timeout, share)
     out, err = process.communicate(timeout=300)
     assert process.returncode == 0, err
     said = [line for line in err.decode().splitlines() if "warning" not in line]
